@@ -1,0 +1,144 @@
+"""Cameras: OpenGL view and projection matrices, and the clip-space transform.
+
+Conventions (OpenGL): right-handed world and eye space, the camera looks down
+its local ``-z`` axis with ``+y`` up; matrices are 4x4, row-major nested
+lists/arrays that act on *column* vectors, ``clip = projection @ view @ model @
+[p, 1]``; NDC is ``clip.xyz / clip.w`` with ``z`` in ``[-1, 1]`` (near to far).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+__all__ = ["Camera", "look_at", "perspective", "orthographic", "to_clip"]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Camera:
+    """A pinhole (or orthographic) camera.
+
+    **Fields:**
+    - `view`: (4, 4) world-to-eye matrix.
+    - `projection`: (4, 4) eye-to-clip matrix (OpenGL clip space).
+    - `eye`: (3,) camera position in world space, ``inverse(view) @ [0, 0, 0, 1]``,
+      kept separately (computed in float64) so that camera-relative positions
+      stay accurate for geometry far from the origin.
+    """
+
+    view: Array
+    projection: Array
+    eye: Array
+
+    @staticmethod
+    def from_matrices(view, projection) -> Camera:
+        """A camera from explicit 4x4 ``view`` and ``projection`` matrices (column-vector convention)."""
+        view64 = _as_matrix(view, "view")
+        proj64 = _as_matrix(projection, "projection")
+        if not np.allclose(view64[3], [0.0, 0.0, 0.0, 1.0]):
+            raise ValueError("camera: the view matrix must be affine (last row 0, 0, 0, 1), got "
+                             f"{view64[3].tolist()}")
+        if abs(np.linalg.det(view64[:3, :3])) < 1e-12:
+            raise ValueError("camera: the view matrix is singular")
+        eye = np.linalg.inv(view64)[:3, 3]
+        return Camera(
+            view=jnp.asarray(view64, jnp.float32),
+            projection=jnp.asarray(proj64, jnp.float32),
+            eye=jnp.asarray(eye, jnp.float32),
+        )
+
+    @staticmethod
+    def look_at(eye, target, up=(0.0, 1.0, 0.0), *, fov_y_deg=45.0, aspect=1.0, near=0.1,
+                far=100.0) -> Camera:
+        """A perspective camera at ``eye`` looking at ``target`` (see `look_at`, `perspective`)."""
+        return Camera.from_matrices(look_at(eye, target, up),
+                                    perspective(fov_y_deg, aspect, near, far))
+
+    @property
+    def view_projection(self) -> Array:
+        """``projection @ view``."""
+        return self.projection @ self.view
+
+
+def _as_matrix(m, name: str) -> np.ndarray:
+    m = np.asarray(m, dtype=np.float64)
+    if m.shape != (4, 4):
+        raise ValueError(f"camera: `{name}` must be a 4x4 matrix, got shape {m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise ValueError(f"camera: `{name}` contains NaN or inf")
+    return m
+
+
+def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """World-to-eye matrix (float64) of a camera at ``eye`` looking at ``target`` (gluLookAt)."""
+    eye, target, up = (np.asarray(v, np.float64).reshape(3) for v in (eye, target, up))
+    for name, v in (("eye", eye), ("target", target), ("up", up)):
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"camera: `{name}` must be finite, got {v.tolist()}")
+    f = target - eye
+    if np.linalg.norm(f) <= 1e-12 * max(1.0, np.linalg.norm(eye)):
+        raise ValueError("camera: `eye` and `target` coincide")
+    f = f / np.linalg.norm(f)
+    s = np.cross(f, up)
+    if np.linalg.norm(s) <= 1e-9 * max(np.linalg.norm(up), 1e-300):
+        raise ValueError("camera: `up` is parallel to the viewing direction (or zero)")
+    s = s / np.linalg.norm(s)
+    u = np.cross(s, f)
+    m = np.eye(4)
+    m[0, :3], m[1, :3], m[2, :3] = s, u, -f
+    m[:3, 3] = -m[:3, :3] @ eye
+    return m
+
+
+def perspective(fov_y_deg: float, aspect: float, near: float, far: float) -> np.ndarray:
+    """OpenGL perspective projection (gluPerspective), float64; NDC z in [-1, 1]."""
+    if not (0.0 < fov_y_deg < 180.0):
+        raise ValueError(f"camera: `fov_y_deg` must be in (0, 180), got {fov_y_deg}")
+    if not (aspect > 0.0 and math.isfinite(aspect)):
+        raise ValueError(f"camera: `aspect` must be positive, got {aspect}")
+    if not (near > 0.0):
+        raise ValueError(f"camera: `near` must be > 0 for a perspective camera, got {near}")
+    if not (far > near and math.isfinite(far)):
+        raise ValueError(f"camera: `far` must be finite and > near ({near}), got {far}")
+    f = 1.0 / math.tan(math.radians(fov_y_deg) / 2.0)
+    m = np.zeros((4, 4))
+    m[0, 0] = f / aspect
+    m[1, 1] = f
+    m[2, 2] = (far + near) / (near - far)
+    m[2, 3] = 2.0 * far * near / (near - far)
+    m[3, 2] = -1.0
+    return m
+
+
+def orthographic(left, right, bottom, top, near, far) -> np.ndarray:
+    """OpenGL orthographic projection (glOrtho), float64."""
+    if not (right != left and top != bottom and far != near):
+        raise ValueError("camera: orthographic extents must be non-empty")
+    m = np.eye(4)
+    m[0, 0] = 2.0 / (right - left)
+    m[1, 1] = 2.0 / (top - bottom)
+    m[2, 2] = -2.0 / (far - near)
+    m[0, 3] = -(right + left) / (right - left)
+    m[1, 3] = -(top + bottom) / (top - bottom)
+    m[2, 3] = -(far + near) / (far - near)
+    return m
+
+
+def to_clip(positions: Array, camera: Camera) -> Array:
+    """Clip-space coordinates ``(V, 4)`` of world-space ``positions`` ``(V, 3)``.
+
+    Computed as ``projection @ A @ (p - eye)``, where ``A`` is the linear part of
+    the view matrix (``view @ p = A (p - eye)`` for any affine view matrix), so
+    that geometry far from the world origin but near the camera keeps its
+    precision.
+    """
+    p = jnp.asarray(positions)
+    eye_space = (p - camera.eye) @ camera.view[:3, :3].T
+    proj = camera.projection
+    return eye_space @ proj[:, :3].T + proj[:, 3]

@@ -1,0 +1,442 @@
+r"""Visibility: which triangle each pixel sees (OpenGL semantics), without pixels x triangles.
+
+**Coordinates.** Window coordinates follow OpenGL: ``x`` to the right, ``y``
+*up*, pixel ``(i, j)`` has its centre at ``(i + 1/2, j + 1/2)``, window depth is
+``(z_ndc + 1) / 2``. Every image-shaped array jaxnm returns is in *image
+layout*: row 0 is the **top** row, i.e. image row ``r`` holds window row
+``j = H - 1 - r``.
+
+**Homogeneous rasterization.** Each vertex is mapped to homogeneous window
+coordinates ``h = ((X + W) w_px / 2, (Y + W) h_px / 2, W)`` (no division). For
+a triangle with rows ``h_0, h_1, h_2`` and a pixel centre ``p = (x, y, 1)`` the
+edge functions are ``E_i(p) = det[p; h_j; h_k]`` (``i, j, k`` cyclic), and
+
+.. math::
+    b_i = \frac{E_i}{\sum_m E_m}, \qquad w = \frac{\det M}{\sum_m E_m}, \qquad
+    z_{win} = \frac{\sum_m E_m h^z_m}{\det M}
+
+are the perspective-correct barycentrics of the point seen through ``p``, its
+clip ``w`` and its window depth (``M = [h_0; h_1; h_2]``, ``h^z = (Z + W)/2``).
+A pixel is covered iff every ``E_i`` has the sign of ``det M`` (which implies
+``w > 0``: the point is in front of the eye) and ``0 <= z_win <= 1`` (between
+the near and far planes). This is near-plane clipping without clipped
+polygons and without ever dividing by ``w`` (Olano and Greer, "Triangle scan
+conversion using 2D homogeneous coordinates", 1997). ``det M > 0`` means the
+triangle is counter-clockwise in the window (front-facing, GL default).
+
+**Fill rule.** A pixel centre exactly on an edge (``E_i == 0``) belongs to the
+triangle whose inward edge normal ``n = sign(det M) grad E_i`` satisfies the
+tie rule (see `TIE_RULE`). Each edge function is evaluated with its two
+vertices in a canonical (lexicographic) order and then negated if needed, so
+the two triangles that share an edge compute bit-identical values of opposite
+sign: coverage is watertight (no cracks, no double coverage) in float32.
+
+**Cost.** Work is triangle-parallel. Each triangle's clipped screen bounding
+box is split into ``block x block`` pixel blocks aligned to a global grid; a
+*slot* is one (triangle, block) pair. Slots are processed ``slots`` at a time
+(a fixed buffer); the number of rounds adapts at run time, so nothing is ever
+dropped, and memory stays bounded. The depth test is two scatter-min passes
+(nearest depth, then the lowest triangle index among equal depths, as
+``GL_LESS`` with draw order = index order).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+__all__ = ["Fragments", "rasterize", "window_homogeneous", "TIE_RULE"]
+
+#: A pixel centre exactly on an edge belongs to the triangle whose inward edge
+#: normal ``n`` (window coordinates, y up) has ``n.x > 0``, or ``n.x == 0`` and
+#: ``n.y > 0``: left and bottom edges (window y up) own their centres, i.e. the
+#: D3D "top-left" rule in image coordinates. This is what Mesa llvmpipe does
+#: (measured; see tests/glref.py and tests/test_gl.py).
+TIE_RULE = "left_bottom_yup"
+
+#: Vertices are snapped to a 1/2**8 pixel grid for the coverage test, as GPUs do.
+SUBPIXEL_BITS = 8
+
+_NO_TRIANGLE = np.iinfo(np.int32).max
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Fragments:
+    """What the rasterizer saw at each pixel (image layout, row 0 = top).
+
+    **Fields:**
+    - `triangle_id`: (H, W) int32 index into ``faces``, -1 for background.
+    - `depth`: (H, W) float32 window depth in [0, 1]; 1 on background.
+    - `front_facing`: (H, W) bool, counter-clockwise in the window (y up).
+    - `clip`: (V, 4) the clip-space vertices that were rasterized.
+    - `faces`: (F, 3) int32 triangle vertex indices.
+
+    ``clip`` and ``faces`` are kept so that later stages can evaluate *the
+    pixel's own triangle* anywhere on screen (helper pixels), and so that
+    gradients flow from interpolated values back to the vertices.
+    """
+
+    triangle_id: Array
+    depth: Array
+    front_facing: Array
+    clip: Array
+    faces: Array
+
+    @property
+    def mask(self) -> Array:
+        """(H, W) bool, True where a triangle covers the pixel."""
+        return self.triangle_id >= 0
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(height, width)``."""
+        return self.triangle_id.shape
+
+
+def window_homogeneous(clip: Array, width: int, height: int) -> Array:
+    """Homogeneous window coordinates ``((X+W) w/2, (Y+W) h/2, (Z+W)/2, W)`` of clip points ``(..., 4)``.
+
+    Dividing the first three by the last gives window x, y (pixels, y up) and
+    window depth.
+    """
+    x, y, z, w = jnp.moveaxis(clip, -1, 0)
+    return jnp.stack([(x + w) * (0.5 * width), (y + w) * (0.5 * height), (z + w) * 0.5, w], -1)
+
+
+# --------------------------------------------------------------------------------------
+# per-triangle setup
+# --------------------------------------------------------------------------------------
+
+
+def _lex_less(a: Array, b: Array) -> Array:
+    """Lexicographic ``a < b`` over the last axis (length 3)."""
+    return (a[..., 0] < b[..., 0]) | (
+        (a[..., 0] == b[..., 0])
+        & ((a[..., 1] < b[..., 1]) | ((a[..., 1] == b[..., 1]) & (a[..., 2] < b[..., 2])))
+    )
+
+
+def _edge_coefficients(hj: Array, hk: Array, x0: Array, y0: Array):
+    """Coefficients of ``E(x0 + dx, y0 + dy) = c + a dx + b dy = det[p; hj; hk]``.
+
+    ``hj, hk``: (..., 3) homogeneous window (x, y, w). The two vertices are
+    put in canonical order before any arithmetic, so that the same edge gives
+    bit-identical magnitudes in both triangles that share it.
+    """
+    swap = _lex_less(hk, hj)
+    u = jnp.where(swap[..., None], hk, hj)
+    v = jnp.where(swap[..., None], hj, hk)
+    sign = jnp.where(swap, -1.0, 1.0).astype(hj.dtype)
+    # translate so that the evaluation point is the origin (better conditioned)
+    ux, uy, uw = u[..., 0] - x0 * u[..., 2], u[..., 1] - y0 * u[..., 2], u[..., 2]
+    vx, vy, vw = v[..., 0] - x0 * v[..., 2], v[..., 1] - y0 * v[..., 2], v[..., 2]
+    a = uy * vw - uw * vy
+    b = uw * vx - ux * vw
+    c = ux * vy - uy * vx
+    return sign * a, sign * b, sign * c
+
+
+def _tie_inside(na: Array, nb: Array) -> Array:
+    """Tie rule on the inward normal ``(na, nb)`` of an edge (see `TIE_RULE`)."""
+    return (na > 0) | ((na == 0) & (nb > 0))
+
+
+def _snap_vertices(h: Array, subpixel_bits: int | None) -> Array:
+    """Coverage positions: vertices in front of the eye projected and snapped to the sub-pixel grid.
+
+    A vertex with ``w > 0`` (and a window position within +-2**14 px, where
+    float32 still resolves the grid) is replaced by ``(x, y, depth, 1)`` with x, y
+    rounded to multiples of ``2**-subpixel_bits``. Rescaling a row of ``M`` by a
+    positive factor changes neither the signs of the edge functions nor the
+    depth, so snapped and homogeneous vertices mix freely; triangles that cross
+    the eye plane keep their unsnapped homogeneous vertices (a GPU would snap
+    the clipped polygon instead, which can differ by 1/512 px at its edges).
+    """
+    if subpixel_bits is None:
+        return h
+    hx, hy, hz, hw = jnp.moveaxis(h, -1, 0)
+    ok = hw > 0
+    inv = 1.0 / jnp.where(ok, hw, 1.0)
+    x, y = hx * inv, hy * inv
+    lim = float(1 << 14)
+    ok = ok & (jnp.abs(x) < lim) & (jnp.abs(y) < lim)
+    q = float(1 << subpixel_bits)
+    snapped = jnp.stack([jnp.round(x * q) / q, jnp.round(y * q) / q, hz * inv,
+                         jnp.ones_like(hw)], -1)
+    return jnp.where(ok[:, None], snapped, h)
+
+
+def _triangle_setup(h: Array, faces: Array, width: int, height: int, block: int,
+                    cull_back: bool):
+    """Per-triangle sign, block bounding box and validity.
+
+    ``h``: (V, 4) homogeneous window coordinates. Returns ``tri_h`` (F, 3, 4),
+    ``sigma`` (F,) sign of det M, block ranges ``bx0, by0, nbx, nby`` (F,) and
+    the slot count per triangle (0 for triangles that cannot cover a pixel).
+    """
+    tri = h[faces]  # (F, 3, 4)
+    hxyw = tri[..., (0, 1, 3)]
+    det = jnp.einsum("fi,fi->f", hxyw[:, 0], jnp.cross(hxyw[:, 1], hxyw[:, 2]))
+    sigma = jnp.sign(det)
+
+    # Clipped bounding box: vertices in front of the near plane, plus the points where
+    # edges cross it. (Also excludes triangles wholly behind near or beyond far.)
+    hz, hw = tri[..., 2], tri[..., 3]
+    front = hz >= 0.0  # z_clip >= -w  <=>  (Z + W)/2 >= 0
+    in_far = hz <= hw
+    pts, ok = [tri[:, i] for i in range(3)], [front[:, i] for i in range(3)]
+    for i in range(3):
+        j = (i + 1) % 3
+        di, dj = hz[:, i], hz[:, j]
+        crosses = (di >= 0.0) != (dj >= 0.0)
+        t = jnp.where(crosses, di / jnp.where(crosses, di - dj, 1.0), 0.0)
+        pts.append(tri[:, i] + t[:, None] * (tri[:, j] - tri[:, i]))
+        ok.append(crosses)
+    pts = jnp.stack(pts, 1)  # (F, 6, 4)
+    ok = jnp.stack(ok, 1)
+    w = pts[..., 3]
+    bad_w = jnp.any(ok & ~(w > 0.0), axis=1)  # a kept point not in front of the eye
+    w_safe = jnp.where(ok & (w > 0.0), w, 1.0)
+    px, py = pts[..., 0] / w_safe, pts[..., 1] / w_safe
+    big = jnp.asarray(np.finfo(np.float32).max, px.dtype)
+    xmin = jnp.min(jnp.where(ok, px, big), 1)
+    xmax = jnp.max(jnp.where(ok, px, -big), 1)
+    ymin = jnp.min(jnp.where(ok, py, big), 1)
+    ymax = jnp.max(jnp.where(ok, py, -big), 1)
+    # a weird projection (kept point with w <= 0): fall back to the whole screen
+    xmin = jnp.where(bad_w, 0.0, xmin)
+    ymin = jnp.where(bad_w, 0.0, ymin)
+    xmax = jnp.where(bad_w, float(width), xmax)
+    ymax = jnp.where(bad_w, float(height), ymax)
+    # pixel-centre ranges: i + 1/2 in [xmin, xmax], widened by a hair for rounding in the
+    # division above (exact coverage is decided per pixel, so a wider box is only slower)
+    lim = float(1 << 24)
+
+    def lo(v):
+        v = jnp.clip(v - 0.5, -lim, lim)
+        return jnp.ceil(v - (1e-3 + 1e-6 * jnp.abs(v))).astype(jnp.int32)
+
+    def hi(v):
+        v = jnp.clip(v - 0.5, -lim, lim)
+        return jnp.floor(v + (1e-3 + 1e-6 * jnp.abs(v))).astype(jnp.int32)
+
+    i0, i1, j0, j1 = lo(xmin), hi(xmax), lo(ymin), hi(ymax)
+    i0, j0 = jnp.maximum(i0, 0), jnp.maximum(j0, 0)
+    i1, j1 = jnp.minimum(i1, width - 1), jnp.minimum(j1, height - 1)
+
+    finite = jnp.all(jnp.isfinite(tri), axis=(1, 2))
+    valid = (
+        finite
+        & (sigma != 0)
+        & jnp.any(front, 1)
+        & jnp.any(in_far, 1)
+        & (i0 <= i1)
+        & (j0 <= j1)
+    )
+    if cull_back:
+        valid = valid & (sigma > 0)
+    bx0, by0 = i0 // block, j0 // block
+    nbx = jnp.where(valid, i1 // block - bx0 + 1, 0)
+    nby = jnp.where(valid, j1 // block - by0 + 1, 0)
+    return tri, sigma, bx0, by0, nbx, nby
+
+
+# --------------------------------------------------------------------------------------
+# slot evaluation
+# --------------------------------------------------------------------------------------
+
+
+def _slot_fragments(slot0, tri_h, sigma, bx0, by0, nbx, counts, starts, total, *, width,
+                    height, block, slots):
+    """Evaluate ``slots`` consecutive (triangle, block) slots starting at ``slot0``.
+
+    Returns, per candidate pixel, its flat image-layout index (out of range when
+    not covered), its depth and its triangle index, each ``(slots * block**2,)``.
+    """
+    s = slot0 + jnp.arange(slots, dtype=jnp.int32)
+    live = s < total
+    ends = starts + counts
+    t = jnp.searchsorted(ends, s, side="right").astype(jnp.int32)
+    t = jnp.minimum(t, tri_h.shape[0] - 1)
+    local = s - starts[t]
+    nx = jnp.maximum(nbx[t], 1)
+    bx = bx0[t] + local % nx
+    by = by0[t] + local // nx
+    x0 = (bx * block).astype(tri_h.dtype) + 0.5
+    y0 = (by * block).astype(tri_h.dtype) + 0.5
+
+    th = tri_h[t]  # (S, 3, 4)
+    sg = sigma[t][:, None]
+    hxyw = th[..., (0, 1, 3)]
+    a, b, c = [], [], []
+    for i in range(3):
+        ai, bi, ci = _edge_coefficients(hxyw[:, (i + 1) % 3], hxyw[:, (i + 2) % 3], x0, y0)
+        a.append(ai)
+        b.append(bi)
+        c.append(ci)
+    a, b, c = jnp.stack(a, -1), jnp.stack(b, -1), jnp.stack(c, -1)  # (S, 3)
+    tie = _tie_inside(sg * a, sg * b)  # (S, 3)
+    det = jnp.sum(c * hxyw[..., 2], -1)  # sum_i E_i(p) w_i = det M at any p
+    det = jnp.where(det == 0, 1.0, det)
+    hz = th[..., 2]
+    dz_c = jnp.sum(c * hz, -1) / det
+    dz_a = jnp.sum(a * hz, -1) / det
+    dz_b = jnp.sum(b * hz, -1) / det
+
+    d = jnp.arange(block, dtype=tri_h.dtype)
+    dx = jnp.tile(d, block)  # pixel (dx, dy) in the block, dx fastest
+    dy = jnp.repeat(d, block)
+    e = c[:, None, :] + a[:, None, :] * dx[None, :, None] + b[:, None, :] * dy[None, :, None]
+    se = sg[:, None, :] * e  # (S, P, 3)
+    inside = jnp.all((se > 0) | ((e == 0) & tie[:, None, :]), -1)
+    depth = dz_c[:, None] + dz_a[:, None] * dx[None] + dz_b[:, None] * dy[None]
+    inside = inside & (depth >= 0.0) & (depth <= 1.0)
+    pi = bx[:, None] * block + dx.astype(jnp.int32)[None]
+    pj = by[:, None] * block + dy.astype(jnp.int32)[None]
+    inside = inside & live[:, None] & (pi < width) & (pj < height)
+    flat = jnp.where(inside, (height - 1 - pj) * width + pi, height * width)
+    tri_index = jnp.broadcast_to(t[:, None], flat.shape)
+    return flat.reshape(-1), depth.reshape(-1), tri_index.reshape(-1)
+
+
+@functools.partial(
+    jax.jit, static_argnames=("width", "height", "cull_back", "block", "slots", "subpixel_bits")
+)
+def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits):
+    clip = jax.lax.stop_gradient(clip)
+    h_unsnapped = window_homogeneous(clip, width, height)
+    h = _snap_vertices(h_unsnapped, subpixel_bits)
+    tri_h, sigma, bx0, by0, nbx, nby = _triangle_setup(h, faces, width, height, block, cull_back)
+    counts = nbx * nby
+    ends = jnp.cumsum(counts)
+    starts = ends - counts
+    total = ends[-1] if counts.shape[0] else jnp.int32(0)
+    n_pix = height * width
+    fragments = functools.partial(
+        _slot_fragments, tri_h=tri_h, sigma=sigma, bx0=bx0, by0=by0, nbx=nbx, counts=counts,
+        starts=starts, total=total, width=width, height=height, block=block, slots=slots,
+    )
+
+    def depth_pass(carry):
+        q, zbuf = carry
+        flat, depth, _ = fragments(q * slots)
+        return q + 1, zbuf.at[flat].min(depth, mode="drop")
+
+    def id_pass(carry):
+        q, ids = carry
+        flat, depth, t = fragments(q * slots)
+        win = depth == zbuf[jnp.minimum(flat, n_pix - 1)]
+        return q + 1, ids.at[jnp.where(win, flat, n_pix)].min(t, mode="drop")
+
+    def more(carry):
+        return carry[0] * slots < total
+
+    zbuf0 = jnp.full((n_pix,), jnp.inf, clip.dtype)
+    _, zbuf = jax.lax.while_loop(more, depth_pass, (jnp.int32(0), zbuf0))
+    ids0 = jnp.full((n_pix,), _NO_TRIANGLE, jnp.int32)
+    _, ids = jax.lax.while_loop(more, id_pass, (jnp.int32(0), ids0))
+
+    shape = (height, width)
+    covered = (ids != _NO_TRIANGLE).reshape(shape)
+    tid = jnp.where(covered, ids.reshape(shape), -1)
+    front = covered & (sigma[jnp.maximum(tid, 0)] > 0)
+    depth = jnp.where(covered, _pixel_depth(h_unsnapped, faces, tid), 1.0)
+    return tid, depth, front
+
+
+def _pixel_depth(h: Array, faces: Array, tid: Array) -> Array:
+    """Window depth of each pixel's triangle at the pixel centre, from unsnapped vertices."""
+    height, width = tid.shape
+    hv = h[faces[jnp.maximum(tid, 0)]]  # (H, W, 3, 4)
+    x = jnp.arange(width, dtype=h.dtype)[None, :, None] + 0.5
+    y = (height - 1 - jnp.arange(height, dtype=h.dtype))[:, None, None] + 0.5
+    hx = hv[..., 0] - x * hv[..., 3]
+    hy = hv[..., 1] - y * hv[..., 3]
+    j, k = (1, 2, 0), (2, 0, 1)
+    e = hx[..., j] * hy[..., k] - hy[..., j] * hx[..., k]
+    num = jnp.sum(e * hv[..., 2], -1)
+    den = jnp.sum(e * hv[..., 3], -1)
+    return num / jnp.where(den == 0, 1.0, den)
+
+
+def _max_triangles_per_chunk(width: int, height: int, block: int) -> int:
+    """Triangles per chunk such that the int32 slot count cannot overflow."""
+    n_blocks = (-(-width // block)) * (-(-height // block))
+    return max(1, (2**31 - 1) // n_blocks)
+
+
+def default_slots(num_faces: int, width: int, height: int, block: int) -> int:
+    """Slot buffer size: enough for a typical mesh in one round, at most 2**17."""
+    n_blocks = (-(-width // block)) * (-(-height // block))
+    want = max(4 * num_faces, n_blocks, 256)
+    return int(min(1 << 17, 1 << (want - 1).bit_length()))
+
+
+def rasterize(clip: Array, faces: Array, *, width: int, height: int, cull_back: bool = False,
+              subpixel_bits: int | None = SUBPIXEL_BITS, block: int = 4,
+              slots: int | None = None) -> Fragments:
+    """Rasterize triangles given in clip space (see the module docstring for the conventions).
+
+    **Arguments:**
+    - `clip`: (V, 4) float clip-space vertex positions (``projection @ view @ p``).
+    - `faces`: (F, 3) int vertex indices.
+    - `width`, `height`: image size in pixels (static).
+    - `cull_back`: drop clockwise (back-facing) triangles.
+    - `subpixel_bits`: snap vertex positions to this sub-pixel grid for the
+      coverage test (8, like llvmpipe and most GPUs), or None for exact
+      (unsnapped) coverage. Interpolation always uses the unsnapped positions.
+    - `block`: side of the pixel blocks a triangle's bounding box is split into.
+    - `slots`: number of (triangle, block) pairs evaluated per round; more rounds
+      run automatically when a frame needs more. Defaults to `default_slots`.
+
+    **Returns:** a `Fragments`. Visibility is not differentiable; gradients of
+    interpolated attributes flow through `Fragments.clip` instead.
+    """
+    if width <= 0 or height <= 0:
+        raise ValueError(f"rasterize: image size must be positive, got width={width}, "
+                         f"height={height}")
+    clip = jnp.asarray(clip)
+    faces = jnp.asarray(faces, jnp.int32)
+    if clip.ndim != 2 or clip.shape[1] != 4:
+        raise ValueError(f"rasterize: `clip` must have shape (V, 4), got {clip.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"rasterize: `faces` must have shape (F, 3), got {faces.shape}")
+    if not jnp.issubdtype(clip.dtype, jnp.floating):
+        clip = clip.astype(jnp.float32)
+    num_faces = faces.shape[0]
+    if slots is None:
+        slots = default_slots(num_faces, width, height, block)
+    chunk = _max_triangles_per_chunk(width, height, block)
+    kw = dict(width=width, height=height, cull_back=cull_back, block=block, slots=slots,
+              subpixel_bits=subpixel_bits)
+    if num_faces == 0:
+        tid = jnp.full((height, width), -1, jnp.int32)
+        return Fragments(tid, jnp.ones((height, width), clip.dtype),
+                         jnp.zeros((height, width), bool), clip, faces)
+    if num_faces <= chunk:
+        tid, depth, front = _rasterize(clip, faces, **kw)
+    else:
+        tid, depth, front = _rasterize_chunked(clip, faces, chunk=chunk, **kw)
+    return Fragments(tid, depth, front, clip, faces)
+
+
+def _rasterize_chunked(clip, faces, *, chunk, **kw):
+    """Visibility of a mesh too large for one int32 slot count: merge per-chunk results."""
+    tid = depth = front = None
+    for start in range(0, faces.shape[0], chunk):
+        t, d, f = _rasterize(clip, faces[start:start + chunk], **kw)
+        t = jnp.where(t >= 0, t + start, -1)
+        if tid is None:
+            tid, depth, front = t, d, f
+        else:
+            # nearer wins; on equal depth the earlier chunk (lower index) wins
+            take = (t >= 0) & ((tid < 0) | (d < depth))
+            tid, depth, front = (jnp.where(take, t, tid), jnp.where(take, d, depth),
+                                 jnp.where(take, f, front))
+    return tid, depth, front
