@@ -1,0 +1,148 @@
+"""Triangle meshes: the `Mesh` pytree, validation, and vertex normals.
+
+A mesh is a set of arrays: ``positions`` (V, 3), ``faces`` (F, 3) int32 with
+counter-clockwise front faces, and optional per-vertex ``uv`` (V, 2) (origin
+at the **bottom-left** of the texture image, OpenGL/OBJ convention) and
+``normals`` (V, 3). Vertices that differ in any attribute (e.g. at a uv seam)
+are separate vertices that share a position.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from .numerics import angle_between, safe_normalize
+
+__all__ = ["Mesh", "face_normals", "vertex_normals", "validate_arrays"]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Mesh:
+    """A triangle mesh (see the module docstring for conventions).
+
+    **Fields:**
+    - `positions`: (V, 3) float32 world-space positions.
+    - `faces`: (F, 3) int32 vertex indices, counter-clockwise = front.
+    - `uv`: (V, 2) float32 texture coordinates, origin bottom-left, or None.
+    - `normals`: (V, 3) float32 unit vertex normals, or None.
+    """
+
+    positions: Array
+    faces: Array
+    uv: Array | None = None
+    normals: Array | None = None
+
+    @property
+    def num_vertices(self) -> int:
+        return self.positions.shape[0]
+
+    @property
+    def num_faces(self) -> int:
+        return self.faces.shape[0]
+
+    def with_normals(self, weighting: str = "angle") -> Mesh:
+        """This mesh with ``normals`` computed by `vertex_normals` (replacing any it had)."""
+        return dataclasses.replace(
+            self, normals=vertex_normals(self.positions, self.faces, weighting=weighting))
+
+    def transformed(self, model) -> Mesh:
+        """This mesh with positions and normals transformed by a 4x4 affine ``model`` matrix.
+
+        Normals use the inverse transpose (they are covectors), renormalised.
+        """
+        m = np.asarray(model, np.float64)
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise ValueError(f"model matrix must be a finite 4x4 matrix, got shape {m.shape}")
+        if not np.allclose(m[3], [0, 0, 0, 1]):
+            raise ValueError("model matrix must be affine (last row 0, 0, 0, 1)")
+        lin = m[:3, :3]
+        if abs(np.linalg.det(lin)) < 1e-12:
+            raise ValueError("model matrix is singular")
+        pos = jnp.asarray(self.positions) @ jnp.asarray(lin.T, jnp.float32) + jnp.asarray(
+            m[:3, 3], jnp.float32)
+        normals = self.normals
+        faces = self.faces
+        if normals is not None:
+            nmat = np.linalg.inv(lin).T
+            normals = safe_normalize(jnp.asarray(normals) @ jnp.asarray(nmat.T, jnp.float32))
+        if np.linalg.det(lin) < 0:  # a mirror flips the winding; keep CCW = front
+            faces = jnp.asarray(faces)[:, ::-1]
+        return dataclasses.replace(self, positions=pos, normals=normals, faces=faces)
+
+
+def face_normals(positions: Array, faces: Array, *, normalize: bool = True) -> Array:
+    """(F, 3) face normals ``(p1 - p0) x (p2 - p0)``; unit length (zero for degenerate faces)
+    if ``normalize``, else with length twice the face area."""
+    p = jnp.asarray(positions)[jnp.asarray(faces)]
+    n = jnp.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    return safe_normalize(n) if normalize else n
+
+
+def vertex_normals(positions: Array, faces: Array, *, weighting: str = "angle") -> Array:
+    """(V, 3) unit vertex normals from the faces around each vertex.
+
+    ``weighting="angle"`` weights each face normal by the corner angle at the
+    vertex (robust to uneven tessellation); ``"area"`` by the face area.
+    Degenerate faces contribute nothing; a vertex with no (non-degenerate)
+    face gets the zero vector.
+    """
+    positions = jnp.asarray(positions)
+    faces = jnp.asarray(faces, jnp.int32)
+    p = positions[faces]  # (F, 3, 3)
+    cross = jnp.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    if weighting == "area":
+        w = jnp.broadcast_to(cross[:, None, :], p.shape)  # |cross| = 2 area
+    elif weighting == "angle":
+        unit = safe_normalize(cross)
+        e_next = jnp.roll(p, -1, axis=1) - p  # corner i: edges to i+1 and i-1
+        e_prev = jnp.roll(p, 1, axis=1) - p
+        angle = angle_between(e_next, e_prev)  # (F, 3)
+        w = unit[:, None, :] * angle[..., None]
+    else:
+        raise ValueError(f"vertex_normals: unknown weighting {weighting!r}; use 'angle' or 'area'")
+    acc = jnp.zeros_like(positions).at[faces.reshape(-1)].add(w.reshape(-1, 3))
+    return safe_normalize(acc)
+
+
+def validate_arrays(positions, faces, uv=None, normals=None, *, source: str = "mesh") -> None:
+    """Raise ``ValueError`` naming ``source`` if the mesh arrays are unusable.
+
+    Checks shapes, non-empty faces, finite values, and face indices in range.
+    Degenerate (zero-area) triangles are allowed: they cover no pixel.
+    """
+    positions = np.asarray(positions)
+    faces = np.asarray(faces)
+    if positions.ndim != 2 or positions.shape[1] != 3:
+        raise ValueError(f"{source}: positions must have shape (V, 3), got {positions.shape}")
+    if positions.shape[0] == 0:
+        raise ValueError(f"{source}: the mesh has no vertices")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"{source}: faces must be triangles with shape (F, 3), got "
+                         f"{faces.shape}")
+    if faces.shape[0] == 0:
+        raise ValueError(f"{source}: the mesh has no faces")
+    if not np.issubdtype(faces.dtype, np.integer):
+        raise ValueError(f"{source}: faces must be integer indices, got dtype {faces.dtype}")
+    bad = ~np.all(np.isfinite(positions), axis=1)
+    if bad.any():
+        raise ValueError(f"{source}: {int(bad.sum())} vertex positions are NaN or infinite "
+                         f"(first: vertex {int(np.argmax(bad))})")
+    lo, hi = int(faces.min()), int(faces.max())
+    if lo < 0 or hi >= positions.shape[0]:
+        raise ValueError(f"{source}: face indices must be in [0, {positions.shape[0] - 1}], "
+                         f"found {lo if lo < 0 else hi}")
+    for name, arr, c in (("uv", uv, 2), ("normals", normals, 3)):
+        if arr is None:
+            continue
+        arr = np.asarray(arr)
+        if arr.shape != (positions.shape[0], c):
+            raise ValueError(f"{source}: {name} must have shape ({positions.shape[0]}, {c}), "
+                             f"got {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{source}: {name} contain NaN or infinite values")
