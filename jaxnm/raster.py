@@ -305,10 +305,8 @@ def _slot_fragments(slot0, tri_h, sigma, bx0, by0, nbx, counts, starts, total, *
     return flat.reshape(-1), depth.reshape(-1), tri_index.reshape(-1)
 
 
-@functools.partial(
-    jax.jit, static_argnames=("width", "height", "cull_back", "block", "slots", "subpixel_bits")
-)
-def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits):
+def _fragment_source(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits):
+    """Triangle setup; returns ``(fragments(slot0), total_slots, sigma, h_unsnapped)``."""
     clip = jax.lax.stop_gradient(clip)
     h_unsnapped = window_homogeneous(clip, width, height)
     h = _snap_vertices(h_unsnapped, subpixel_bits)
@@ -316,12 +314,23 @@ def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_
     counts = nbx * nby
     ends = jnp.cumsum(counts)
     starts = ends - counts
-    total = ends[-1] if counts.shape[0] else jnp.int32(0)
-    n_pix = height * width
+    total = ends[-1]
     fragments = functools.partial(
         _slot_fragments, tri_h=tri_h, sigma=sigma, bx0=bx0, by0=by0, nbx=nbx, counts=counts,
         starts=starts, total=total, width=width, height=height, block=block, slots=slots,
     )
+    return fragments, total, sigma, h_unsnapped
+
+
+_STATIC = ("width", "height", "cull_back", "block", "slots", "subpixel_bits")
+
+
+@functools.partial(jax.jit, static_argnames=_STATIC)
+def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits):
+    fragments, total, sigma, h_unsnapped = _fragment_source(
+        clip, faces, width=width, height=height, cull_back=cull_back, block=block, slots=slots,
+        subpixel_bits=subpixel_bits)
+    n_pix = height * width
 
     def depth_pass(carry):
         q, zbuf = carry
@@ -365,6 +374,43 @@ def _pixel_depth(h: Array, faces: Array, tid: Array) -> Array:
     return num / jnp.where(den == 0, 1.0, den)
 
 
+@functools.partial(jax.jit, static_argnames=_STATIC)
+def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits):
+    fragments, total, _, _ = _fragment_source(
+        clip, faces, width=width, height=height, cull_back=cull_back, block=block, slots=slots,
+        subpixel_bits=subpixel_bits)
+
+    def body(carry):
+        q, count = carry
+        flat, _, _ = fragments(q * slots)
+        return q + 1, count.at[flat].add(1, mode="drop")
+
+    _, count = jax.lax.while_loop(lambda c: c[0] * slots < total, body,
+                                  (jnp.int32(0), jnp.zeros((height * width,), jnp.int32)))
+    return count.reshape(height, width)
+
+
+def overdraw(clip: Array, faces: Array, *, width: int, height: int, cull_back: bool = False,
+             subpixel_bits: int | None = SUBPIXEL_BITS, block: int = 4,
+             slots: int | None = None) -> Array:
+    """(H, W) int32: how many triangles cover each pixel, before the depth test.
+
+    Same coverage rules as `rasterize` (fill rule, clipping, culling). Useful to
+    visualise overdraw and to check watertightness: a closed mesh seen from
+    outside covers every pixel 0 or 2 times, from inside exactly once.
+    """
+    clip, faces, kw = _prepare_args(clip, faces, width, height, cull_back, subpixel_bits, block,
+                                    slots)
+    if faces.shape[0] == 0:
+        return jnp.zeros((height, width), jnp.int32)
+    chunk = _max_triangles_per_chunk(width, height, block)
+    total = None
+    for start in range(0, faces.shape[0], chunk):
+        c = _overdraw(clip, faces[start:start + chunk], **kw)
+        total = c if total is None else total + c
+    return total
+
+
 def _max_triangles_per_chunk(width: int, height: int, block: int) -> int:
     """Triangles per chunk such that the int32 slot count cannot overflow."""
     n_blocks = (-(-width // block)) * (-(-height // block))
@@ -398,23 +444,10 @@ def rasterize(clip: Array, faces: Array, *, width: int, height: int, cull_back: 
     **Returns:** a `Fragments`. Visibility is not differentiable; gradients of
     interpolated attributes flow through `Fragments.clip` instead.
     """
-    if width <= 0 or height <= 0:
-        raise ValueError(f"rasterize: image size must be positive, got width={width}, "
-                         f"height={height}")
-    clip = jnp.asarray(clip)
-    faces = jnp.asarray(faces, jnp.int32)
-    if clip.ndim != 2 or clip.shape[1] != 4:
-        raise ValueError(f"rasterize: `clip` must have shape (V, 4), got {clip.shape}")
-    if faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"rasterize: `faces` must have shape (F, 3), got {faces.shape}")
-    if not jnp.issubdtype(clip.dtype, jnp.floating):
-        clip = clip.astype(jnp.float32)
+    clip, faces, kw = _prepare_args(clip, faces, width, height, cull_back, subpixel_bits, block,
+                                    slots)
     num_faces = faces.shape[0]
-    if slots is None:
-        slots = default_slots(num_faces, width, height, block)
     chunk = _max_triangles_per_chunk(width, height, block)
-    kw = dict(width=width, height=height, cull_back=cull_back, block=block, slots=slots,
-              subpixel_bits=subpixel_bits)
     if num_faces == 0:
         tid = jnp.full((height, width), -1, jnp.int32)
         return Fragments(tid, jnp.ones((height, width), clip.dtype),
@@ -424,6 +457,45 @@ def rasterize(clip: Array, faces: Array, *, width: int, height: int, cull_back: 
     else:
         tid, depth, front = _rasterize_chunked(clip, faces, chunk=chunk, **kw)
     return Fragments(tid, depth, front, clip, faces)
+
+
+def _prepare_args(clip, faces, width, height, cull_back, subpixel_bits, block, slots):
+    """Validate `rasterize` arguments (eagerly where values are concrete)."""
+    if not all(isinstance(v, (int, np.integer)) and v > 0 for v in (width, height)):
+        raise ValueError(f"rasterize: image size must be positive integers, got width={width!r}, "
+                         f"height={height!r}")
+    width, height = int(width), int(height)
+    clip = jnp.asarray(clip)
+    faces = jnp.asarray(faces)
+    if clip.ndim != 2 or clip.shape[1] != 4:
+        raise ValueError(f"rasterize: `clip` must have shape (V, 4), got {clip.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"rasterize: `faces` must have shape (F, 3), got {faces.shape}")
+    if not jnp.issubdtype(faces.dtype, jnp.integer):
+        raise ValueError(f"rasterize: `faces` must be integers, got {faces.dtype}")
+    faces = faces.astype(jnp.int32)
+    if not jnp.issubdtype(clip.dtype, jnp.floating):
+        clip = clip.astype(jnp.float32)
+    if subpixel_bits is not None and not 0 <= subpixel_bits <= 12:
+        raise ValueError(f"rasterize: `subpixel_bits` must be in [0, 12] or None, got "
+                         f"{subpixel_bits}")
+    if block < 1:
+        raise ValueError(f"rasterize: `block` must be >= 1, got {block}")
+    if not isinstance(clip, jax.core.Tracer) and clip.size:
+        bad = ~np.all(np.isfinite(np.asarray(clip)), axis=1)
+        if bad.any():
+            raise ValueError(f"rasterize: `clip` has {int(bad.sum())} non-finite vertices "
+                             f"(first: {int(np.argmax(bad))})")
+    if not isinstance(faces, jax.core.Tracer) and faces.size:
+        lo, hi = int(faces.min()), int(faces.max())
+        if lo < 0 or hi >= clip.shape[0]:
+            raise ValueError(f"rasterize: face indices must be in [0, {clip.shape[0] - 1}], "
+                             f"found {lo if lo < 0 else hi}")
+    if slots is None:
+        slots = default_slots(faces.shape[0], width, height, block)
+    kw = dict(width=width, height=height, cull_back=cull_back, block=block, slots=slots,
+              subpixel_bits=subpixel_bits)
+    return clip, faces, kw
 
 
 def _rasterize_chunked(clip, faces, *, chunk, **kw):

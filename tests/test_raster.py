@@ -1,0 +1,217 @@
+"""Visibility against an independent float64 reference, watertightness, clipping, bad input."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import box, clip_of, grid_plane, icosphere, perspective_mvp, random_soup
+from refraster import rasterize_ref
+
+import jaxnm
+from jaxnm.raster import overdraw
+
+
+def _unsnapped_depth(ref, clip, faces):
+    """Window depth from the reference's (unsnapped) perspective-correct barycentrics."""
+    c = np.asarray(clip, np.float64)[np.asarray(faces)[np.maximum(ref["triangle_id"], 0)]]
+    b = ref["bary"][..., None]
+    w = (b * c[..., 3:4]).sum(-2)[..., 0]
+    z = (b * c[..., 2:3]).sum(-2)[..., 0] / np.where(ref["triangle_id"] >= 0, w, 1.0)
+    return (z + 1) / 2
+
+
+def _ambiguous(ref, tol=1e-3):
+    return np.minimum(ref["edge_distance"], ref["any_edge_distance"]) < tol
+
+
+@pytest.mark.parametrize("seed,size", [(0, (64, 48)), (1, (33, 21)), (2, (40, 40))])
+@pytest.mark.parametrize("cull", [False, True])
+def test_matches_float64_reference(seed, size, cull):
+    """Same coverage, winner, depth and facing as a clip-divide-2D-edge float64 rasterizer."""
+    w, h = size
+    pos, faces = random_soup(seed)
+    clip = clip_of(pos, perspective_mvp((0.3, 0.4, 2.5), aspect=w / h)).astype(np.float32)
+    ref = rasterize_ref(clip.astype(np.float64), faces, w, h, cull_back=cull, subpixel_bits=8)
+    fr = jaxnm.rasterize(clip, faces, width=w, height=h, cull_back=cull)
+    tid = np.asarray(fr.triangle_id)
+    amb = _ambiguous(ref)
+    assert (tid >= 0).sum() > 0.2 * w * h
+    assert np.array_equal(tid[~amb], ref["triangle_id"][~amb])
+    assert (tid != ref["triangle_id"]).sum() <= 2  # only within 1e-3 px of an edge
+    cov = (tid >= 0) & (tid == ref["triangle_id"])
+    np.testing.assert_allclose(np.asarray(fr.depth)[cov], _unsnapped_depth(ref, clip, faces)[cov],
+                               atol=2e-6)
+    assert np.array_equal(np.asarray(fr.front_facing)[cov], ref["front_facing"][cov])
+    assert np.all(np.asarray(fr.depth)[tid < 0] == 1.0)
+
+
+def test_unsnapped_coverage_matches_exact_reference():
+    pos, faces = random_soup(3)
+    clip = clip_of(pos, perspective_mvp((0.5, -0.2, 2.2))).astype(np.float32)
+    ref = rasterize_ref(clip.astype(np.float64), faces, 48, 48)
+    fr = jaxnm.rasterize(clip, faces, width=48, height=48, subpixel_bits=None)
+    amb = _ambiguous(ref, 1e-4)
+    assert np.array_equal(np.asarray(fr.triangle_id)[~amb], ref["triangle_id"][~amb])
+
+
+def _quad(ndc=1.0, diagonal="main"):
+    c = np.array([[-ndc, -ndc, 0, 1], [ndc, -ndc, 0, 1], [ndc, ndc, 0, 1], [-ndc, ndc, 0, 1]],
+                 np.float32)
+    faces = [[0, 1, 2], [0, 2, 3]] if diagonal == "main" else [[0, 1, 3], [1, 2, 3]]
+    return c, np.array(faces)
+
+
+@pytest.mark.parametrize("diagonal", ["main", "anti"])
+@pytest.mark.parametrize("size", [(8, 8), (7, 5), (16, 9)])
+def test_shared_edge_covers_each_pixel_once(diagonal, size):
+    """A viewport-filling quad: its diagonal passes exactly through pixel centres (8x8)."""
+    clip, faces = _quad(1.0, diagonal)
+    w, h = size
+    count = np.asarray(overdraw(clip, faces, width=w, height=h))
+    assert np.all(count == 1)
+    fr = jaxnm.rasterize(clip, faces, width=w, height=h)
+    assert np.all(np.asarray(fr.triangle_id) >= 0)
+
+
+def test_tie_rule_left_bottom_window():
+    """Centres exactly on an edge: left and bottom edges (window y up) own them (llvmpipe)."""
+    # a rectangle [2, 6] x [2, 6] in window pixels of an 8x8 image, edges through centres?
+    # NDC -0.375 -> window 2.5 (a centre); 0.625 -> 6.5
+    lo, hi = -0.375, 0.625
+    clip = np.array([[lo, lo, 0, 1], [hi, lo, 0, 1], [hi, hi, 0, 1], [lo, hi, 0, 1]], np.float32)
+    fr = jaxnm.rasterize(clip, [[0, 1, 2], [0, 2, 3]], width=8, height=8)
+    mask = np.asarray(fr.mask)[::-1]  # window layout: row j = window y
+    # window x centres 2.5 .. 6.5 on the left edge (2.5) included, right (6.5) excluded
+    expected = np.zeros((8, 8), bool)
+    expected[2:6, 2:6] = True
+    assert np.array_equal(mask, expected)
+
+
+def test_closed_mesh_is_watertight():
+    """A closed sphere seen from outside: every pixel is covered 0 or 2 times (front + back)."""
+    pos, faces = icosphere(3)
+    for eye in [(0.0, 0.0, 3.0), (1.3, 0.7, 2.1)]:
+        clip = clip_of(pos, perspective_mvp(eye)).astype(np.float32)
+        count = np.asarray(overdraw(clip, faces, width=64, height=64))
+        assert set(np.unique(count)) == {0, 2}
+        fr = jaxnm.rasterize(clip, faces, width=64, height=64, cull_back=True)
+        assert np.array_equal(np.asarray(fr.mask), count == 2)
+        assert np.all(np.asarray(fr.front_facing) == np.asarray(fr.mask))
+
+
+def test_grid_plane_has_no_cracks():
+    pos, faces, _ = grid_plane(7)
+    clip = clip_of(pos * 0.9, perspective_mvp((0.4, 0.3, 1.6))).astype(np.float32)
+    count = np.asarray(overdraw(clip, faces, width=64, height=64))
+    assert count.max() == 1
+    # inside the projected outline every pixel is covered: compare with one big quad
+    outline = np.array([0, 7, 63, 56])  # corners of the 8x8 vertex grid
+    big = np.asarray(overdraw(clip[outline], [[0, 1, 2], [0, 2, 3]], width=64, height=64))
+    assert np.array_equal(count, big)
+
+
+def test_camera_inside_box_sees_every_pixel_once():
+    """Near-plane clipping: triangles crossing the near plane, camera inside a closed box."""
+    pos, faces = box(2.0)
+    mvp = perspective_mvp((0.3, -0.2, 0.5), (1.0, 0.4, -0.3), fov=100.0, near=0.05)
+    clip = clip_of(pos, mvp).astype(np.float32)
+    assert (clip[:, 3] < 0).any()  # some vertices are behind the camera
+    count = np.asarray(overdraw(clip, faces, width=48, height=48))
+    assert np.all(count == 1)
+    ref = rasterize_ref(clip.astype(np.float64), faces, 48, 48, subpixel_bits=8)
+    fr = jaxnm.rasterize(clip, faces, width=48, height=48)
+    amb = _ambiguous(ref, 2e-3)  # clipped triangles are not snapped (see raster docs)
+    assert np.array_equal(np.asarray(fr.triangle_id)[~amb], ref["triangle_id"][~amb])
+    # interpolated positions lie on the box surface and on each pixel's view ray
+    p = np.asarray(jaxnm.interpolate(pos.astype(np.float32), fr, derivatives="none").value)
+    # (a pixel next to an edge may be covered only thanks to the 1/256 px vertex snapping; its
+    # unsnapped interpolant then extrapolates slightly past the face, as on a GPU)
+    assert np.allclose(np.abs(p).max(-1), 1.0, atol=2e-4)
+    ndc = clip_of(p.reshape(-1, 3), mvp)
+    ndc = ndc[:, :2] / ndc[:, 3:]
+    x = (np.arange(48) + 0.5) / 24 - 1
+    y = 1 - (np.arange(48) + 0.5) / 24
+    np.testing.assert_allclose(ndc.reshape(48, 48, 2)[..., 0], np.broadcast_to(x, (48, 48)),
+                               atol=1e-4)
+    np.testing.assert_allclose(ndc.reshape(48, 48, 2)[..., 1],
+                               np.broadcast_to(y[:, None], (48, 48)), atol=1e-4)
+
+
+def test_triangle_crossing_near_plane():
+    mvp = perspective_mvp((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), near=0.5)
+    pos = np.array([[-1.0, -0.3, -2.0], [1.0, -0.3, -2.0], [0.0, -0.3, 3.0]])  # third behind eye
+    clip = clip_of(pos, mvp).astype(np.float32)
+    assert clip[2, 3] < 0
+    ref = rasterize_ref(clip.astype(np.float64), [[0, 1, 2]], 32, 32, subpixel_bits=8)
+    fr = jaxnm.rasterize(clip, [[0, 1, 2]], width=32, height=32)
+    amb = _ambiguous(ref, 2e-3)
+    assert (ref["triangle_id"] >= 0).sum() > 100
+    assert np.array_equal(np.asarray(fr.triangle_id)[~amb], ref["triangle_id"][~amb])
+    cov = np.asarray(fr.mask) & (ref["triangle_id"] >= 0)
+    np.testing.assert_allclose(np.asarray(fr.depth)[cov],
+                               _unsnapped_depth(ref, clip, [[0, 1, 2]])[cov], atol=2e-6)
+    p = np.asarray(jaxnm.interpolate(pos.astype(np.float32), fr, derivatives="none").value)
+    # every visible point is in front of the near plane (eye z = 1, looking down -z)
+    assert np.all(p[np.asarray(fr.mask)][:, 2] <= 0.5 + 1e-5)
+
+
+def test_fully_clipped_and_degenerate_triangles_draw_nothing():
+    clip = np.array([
+        [0, 0, -3, 1], [1, 0, -3, 1], [0, 1, -3, 1],   # in front of near plane entirely
+        [0, 0, 0, 1], [1, 1, 0, 1], [2, 2, 0, 1],      # collinear: zero area
+        [0, 0, 0, 1], [0, 0, 0, 1], [0, 0, 0, 1],      # a point
+        [-9, -9, 0, 1], [-8, -9, 0, 1], [-9, -8, 0, 1],  # off screen
+    ], np.float32)
+    faces = np.arange(12).reshape(4, 3)
+    fr = jaxnm.rasterize(clip, faces, width=16, height=16)
+    assert not np.asarray(fr.mask).any()
+    b = jaxnm.barycentrics(fr, derivatives="fine")
+    assert np.all(np.isfinite(np.asarray(b.ddx)))
+
+
+def test_depth_test_nearest_wins_and_ties_go_to_lower_index():
+    near = [[-1, -1, -0.5, 1], [1, -1, -0.5, 1], [0, 1, -0.5, 1]]
+    far = [[-1, -1, 0.5, 1], [1, -1, 0.5, 1], [0, 1, 0.5, 1]]
+    clip = np.array(far + near + near, np.float32)
+    faces = np.arange(9).reshape(3, 3)
+    tid = np.asarray(jaxnm.rasterize(clip, faces, width=16, height=16).triangle_id)
+    assert set(np.unique(tid)) == {-1, 1}
+
+
+def test_many_rounds_and_chunks_give_the_same_image():
+    """A tiny slot budget forces many rounds: the result must not change."""
+    pos, faces = icosphere(2)
+    clip = clip_of(pos, perspective_mvp((0.2, 0.5, 2.6))).astype(np.float32)
+    a = jaxnm.rasterize(clip, faces, width=40, height=40)
+    b = jaxnm.rasterize(clip, faces, width=40, height=40, slots=7, block=2)
+    assert np.array_equal(np.asarray(a.triangle_id), np.asarray(b.triangle_id))
+    from jaxnm import raster
+
+    c_tid, _, _ = raster._rasterize_chunked(jnp.asarray(clip), jnp.asarray(faces, jnp.int32),
+                                            chunk=50, width=40, height=40, cull_back=False,
+                                            block=4, slots=64, subpixel_bits=8)
+    assert np.array_equal(np.asarray(a.triangle_id), np.asarray(c_tid))
+
+
+@pytest.mark.parametrize(
+    "clip,faces,kw,match",
+    [
+        (np.zeros((3, 4)), [[0, 1, 2]], dict(width=0, height=8), "image size"),
+        (np.zeros((3, 4)), [[0, 1, 2]], dict(width=8, height=-1), "image size"),
+        (np.zeros((3, 3)), [[0, 1, 2]], dict(width=8, height=8), r"\(V, 4\)"),
+        (np.zeros((3, 4)), [[0, 1]], dict(width=8, height=8), r"\(F, 3\)"),
+        (np.zeros((3, 4)), [[0, 1, 3]], dict(width=8, height=8), "face indices"),
+        (np.zeros((3, 4)), [[0, -1, 2]], dict(width=8, height=8), "face indices"),
+        (np.array([[0, 0, 0, 1], [np.nan, 0, 0, 1], [0, 1, 0, 1]]), [[0, 1, 2]],
+         dict(width=8, height=8), "non-finite"),
+        (np.zeros((3, 4)), [[0.0, 1.0, 2.0]], dict(width=8, height=8), "integers"),
+    ],
+)
+def test_bad_arguments_raise_clear_errors(clip, faces, kw, match):
+    with pytest.raises(ValueError, match=match):
+        jaxnm.rasterize(clip, np.asarray(faces), **kw)
+
+
+def test_no_faces_gives_background():
+    fr = jaxnm.rasterize(np.zeros((3, 4), np.float32), np.zeros((0, 3), np.int32), width=4,
+                         height=4)
+    assert np.all(np.asarray(fr.triangle_id) == -1)
