@@ -139,6 +139,6 @@ def to_clip(positions: Array, camera: Camera) -> Array:
     precision.
     """
     p = jnp.asarray(positions)
-    eye_space = (p - camera.eye) @ camera.view[:3, :3].T
+    eye_space = (p - camera.eye[None, :]) @ camera.view[:3, :3].T
     proj = camera.projection
-    return eye_space @ proj[:, :3].T + proj[:, 3]
+    return eye_space @ proj[:, :3].T + proj[None, :, 3]

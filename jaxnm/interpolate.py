@@ -48,6 +48,7 @@ to cancellation; the values are the same up to rounding.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Mapping
 
 import jax
@@ -146,6 +147,7 @@ def _pixel_setup(frags: Fragments):
     return e, a, b, mask
 
 
+@functools.partial(jax.jit, static_argnames=("derivatives",))
 def barycentrics(frags: Fragments, *, derivatives: str = "fine") -> Barycentrics:
     """Barycentrics of each pixel's triangle at its centre, and their screen derivatives.
 
@@ -235,6 +237,7 @@ def _gbuffer_derivatives(value: Array, mask: Array) -> tuple[Array, Array]:
     return jnp.where(m, ddx, 0.0), jnp.where(m, ddy, 0.0)
 
 
+@functools.partial(jax.jit, static_argnames=("derivatives",))
 def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
                 derivatives: str = "fine",
                 bary: Barycentrics | None = None) -> Attribute | dict[str, Attribute]:

@@ -399,10 +399,11 @@ def to_display(linear: ArrayLike, *, exposure: ArrayLike = 1.0) -> Array:
 
     **Returns:** the sRGB encoding (IEC 61966-2-1) of ``clip(exposure * linear, 0, 1)``,
     same shape; quantise to uint8 at save time. Differentiable (gradient 0 where
-    clamped).
+    clamped, one-sided at exactly 0 and 1).
     """
     linear = jnp.asarray(linear)
     if not jnp.issubdtype(linear.dtype, jnp.floating):
         linear = linear.astype(jnp.float32)
-    x = jnp.clip(linear * jnp.asarray(exposure, linear.dtype), 0.0, 1.0)
+    x = linear * jnp.asarray(exposure, linear.dtype)
+    x = jnp.where(x < 0.0, 0.0, jnp.where(x > 1.0, 1.0, x))  # clamp; gradient 1 at 0 and 1
     return _srgb_encode(x)

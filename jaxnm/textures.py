@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.custom_derivatives import SymbolicZero
 from jax.typing import ArrayLike
 
 from .interpolate import Attribute
@@ -407,9 +408,45 @@ def apply_plan(plan: SamplePlan, mips: ArrayLike | Sequence[ArrayLike]) -> Array
     channels = used[0].shape[-1]
     dtype = jnp.result_type(*used)
     flat = jnp.concatenate([m.reshape(-1, channels).astype(dtype) for m in used], 0)
-    texels = flat.at[plan.index].get(mode="promise_in_bounds")  # (..., T, C)
-    weight = plan.weight.astype(dtype)
-    return jnp.sum(weight[..., None] * texels, axis=-2)
+    return _gather_weighted(flat, plan.index, plan.weight.astype(dtype))
+
+
+def _gather(flat: Array, index: Array) -> Array:
+    return flat.at[index].get(mode="promise_in_bounds")  # (..., T, C); plans are in bounds
+
+
+def _weighted_taps(weight: Array, texels: Array) -> Array:
+    # unrolled over the few taps: XLA fuses it into the gather (a reduction over the
+    # tap axis, or a batched dot, is several times slower on CPU)
+    out = weight[..., 0, None] * texels[..., 0, :]
+    for t in range(1, weight.shape[-1]):
+        out = out + weight[..., t, None] * texels[..., t, :]
+    return out
+
+
+@jax.custom_jvp
+def _gather_weighted(flat: Array, index: Array, weight: Array) -> Array:
+    """``sum_t weight[..., t] * flat[index[..., t]]``, shape ``(..., C)``."""
+    return _weighted_taps(weight, _gather(flat, index))
+
+
+def _gather_weighted_jvp(primals, tangents):
+    # Same values; the tangents are written as contractions so that their transposes
+    # (the backward pass) are one outer product feeding one scatter-add, rather than
+    # the chain of padded slices that transposing `_weighted_taps` would give.
+    flat, index, weight = primals
+    dflat, _, dweight = tangents
+    texels = _gather(flat, index)
+    out = _weighted_taps(weight, texels)
+    dout = jnp.zeros_like(out)
+    if not isinstance(dflat, SymbolicZero):
+        dout = dout + jnp.einsum("...t,...tc->...c", weight, _gather(dflat, index))
+    if not isinstance(dweight, SymbolicZero):
+        dout = dout + jnp.einsum("...t,...tc->...c", dweight, texels)
+    return out, dout
+
+
+_gather_weighted.defjvp(_gather_weighted_jvp, symbolic_zeros=True)
 
 
 def sample(mips_or_tex: ArrayLike | Sequence[ArrayLike], uv: ArrayLike | Attribute,

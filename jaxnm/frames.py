@@ -1,0 +1,534 @@
+r"""Tangent-space frames for normal mapping, and the perturbed normal.
+
+Every method returns a `Frame` ``(T, B, N)`` such that the perturbed normal for a
+decoded tangent-space map vector ``m`` (``m.x`` along ``+u``, ``m.y`` along
+``+v``, ``m.z`` along ``N``) is
+
+.. math:: N' = \operatorname{normalize}(T\, m_x + B\, m_y + N\, m_z)
+
+(`perturb_normal`). The methods (static string ``frame=`` of `compute_frame`):
+
+- ``"cotangent"`` (`cotangent_frame`): Schüler's per-pixel cotangent frame from
+  screen-space derivatives, exactly as published (2013). ``T`` and ``B`` are
+  the gradients of ``u`` and ``v`` (covectors), not ``dp/du``, ``dp/dv``.
+- ``"nonperspective"`` (`nonperspective_frame`): the article's "non-perspective
+  optimisation", where the perpendiculars are replaced by the edges.
+- ``"exact"`` (`exact_frame`): the 3x3 solution from the pixel's own triangle
+  (the geometry-shader variant).
+- ``"vertex"`` (`vertex_tangents` + `vertex_frame`): precomputed per-vertex
+  tangents with a handedness sign, Gram-Schmidt per pixel.
+- ``"axis"`` (`axis_frame`): the fixed-axis approximation (GLSL Hacker); it
+  ignores the uv mapping.
+
+**Conventions.** Screen derivatives are jaxnm's (`jaxnm.interpolate`):
+``dp1 = dFdx(p)`` per pixel step to the right, ``dp2 = dFdy(p)`` per pixel step
+*up* in window coordinates (OpenGL). ``p`` may be the world position or the
+camera-relative position ``p - eye`` (Schüler's ``-V``): only differences enter.
+``N`` is the unit interpolated normal; `compute_frame` normalises it.
+
+**Degenerate input** (zero uv derivatives, zero ``N``, background/helper
+pixels, grazing views, back faces) never gives NaN or Inf, in value or
+gradient: a frame whose ``T`` and ``B`` cannot be formed returns ``T = B = 0``,
+so `perturb_normal` falls back to the unperturbed normal.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from .interpolate import Attribute
+from .numerics import eps, safe_norm, safe_normalize, safe_rsqrt, tiny
+from .raster import Fragments
+
+__all__ = [
+    "FRAME_METHODS",
+    "Frame",
+    "axis_frame",
+    "compute_frame",
+    "cotangent_frame",
+    "exact_frame",
+    "face_forward",
+    "nonperspective_frame",
+    "perturb_normal",
+    "triangle_corners",
+    "vertex_frame",
+    "vertex_tangents",
+]
+
+FRAME_METHODS = ("cotangent", "nonperspective", "exact", "vertex", "axis")
+_NORMALIZE_MODES = ("max", "none")
+
+#: A summed per-vertex tangent shorter than this fraction of the summed face weights
+#: (the face tangents around the vertex cancel, e.g. on a mirrored-uv seam) is invalid.
+VERTEX_TANGENT_CANCELLATION = 1e-3
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Frame:
+    """A tangent-space frame; the perturbed normal is ``normalize(T m.x + B m.y + N m.z)``.
+
+    **Fields** (each ``(..., 3)``):
+    - `T`: the vector multiplying ``m.x`` (``+u`` direction; for the cotangent
+      methods a scaled gradient of ``u``).
+    - `B`: the vector multiplying ``m.y`` (``+v`` direction).
+    - `N`: the unperturbed normal.
+    """
+
+    T: Array
+    B: Array
+    N: Array
+
+    @property
+    def matrix(self) -> Array:
+        """``(..., 3, 3)`` with columns ``T, B, N`` (GLSL ``mat3(T, B, N)``)."""
+        return jnp.stack([self.T, self.B, self.N], -1)
+
+    @property
+    def handedness(self) -> Array:
+        """``(...)`` the triple product ``det[T, B, N] = (T x B) . N``; its sign is the handedness."""
+        return _dot(jnp.cross(self.T, self.B), self.N)
+
+
+# --------------------------------------------------------------------------------------
+# small helpers
+# --------------------------------------------------------------------------------------
+
+
+def _dot(a: Array, b: Array, keepdims: bool = False) -> Array:
+    return jnp.sum(a * b, axis=-1, keepdims=keepdims)
+
+
+def _check_normalize(normalize: str) -> None:
+    if normalize not in _NORMALIZE_MODES:
+        raise ValueError(f"unknown normalize mode {normalize!r}; expected one of "
+                         f"{', '.join(_NORMALIZE_MODES)}")
+
+
+def _check_ddy_sign(ddy_sign: int) -> None:
+    if ddy_sign not in (1, -1):
+        raise ValueError(f"ddy_sign must be 1 (GLSL dFdy, window y up) or -1 (HLSL ddy, y down), "
+                         f"got {ddy_sign!r}")
+
+
+def _max_normalize(T: Array, B: Array) -> tuple[Array, Array]:
+    r"""Schüler's scale-invariant normalisation ``(T, B) / sqrt(max(T.T, B.B))``.
+
+    ``T`` and ``B`` are first divided by their largest absolute component (a
+    constant for AD, which is exact because the result does not depend on it),
+    so ``T.T`` cannot underflow in float32 close-ups; ``T = B = 0`` stays zero.
+    """
+    s = jnp.maximum(jnp.max(jnp.abs(T), -1, keepdims=True), jnp.max(jnp.abs(B), -1, keepdims=True))
+    s = jax.lax.stop_gradient(s)
+    ok = s > tiny(T.dtype)
+    s_safe = jnp.where(ok, s, jnp.ones_like(s))
+    T1, B1 = T / s_safe, B / s_safe
+    m = jnp.maximum(_dot(T1, T1, True), _dot(B1, B1, True))  # in [1, 2] where ok
+    inv = safe_rsqrt(jnp.where(ok, m, jnp.ones_like(m)))
+    return jnp.where(ok, T1 * inv, 0.0), jnp.where(ok, B1 * inv, 0.0)
+
+
+def _relative_div(T: Array, B: Array, det: Array, scale: Array) -> tuple[Array, Array]:
+    """``(T, B) / det`` where ``|det| > eps * scale``, else zero (double where)."""
+    ok = jnp.abs(det) > eps(det.dtype) * scale
+    ok = ok & (jnp.abs(det) > tiny(det.dtype))
+    d = jnp.where(ok, det, jnp.ones_like(det))
+    return jnp.where(ok, T / d, 0.0), jnp.where(ok, B / d, 0.0)
+
+
+def _cotangent_TB(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Array,
+                  normalize: str) -> tuple[Array, Array]:
+    """The published solution of the linear system, then the chosen normalisation."""
+    dp2perp = jnp.cross(dp2, N)
+    dp1perp = jnp.cross(N, dp1)
+    T = dp2perp * duv1[..., 0:1] + dp1perp * duv2[..., 0:1]
+    B = dp2perp * duv1[..., 1:2] + dp1perp * duv2[..., 1:2]
+    if normalize == "max":
+        return _max_normalize(T, B)
+    # det [dp1; dp2; N] = dp1 . (dp2 x N) = N . (dp1 x dp2): the 3x3 system's determinant
+    det = _dot(dp1, dp2perp, True)
+    scale = safe_norm(dp1, keepdims=True) * safe_norm(dp2, keepdims=True) * safe_norm(
+        N, keepdims=True)
+    return _relative_div(T, B, det, scale)
+
+
+def _axis_tangent(n: Array) -> Array:
+    """GLSL Hacker's tangent: the longer of ``n x (0,0,1)`` and ``n x (0,1,0)``, normalised."""
+    c1 = jnp.stack([n[..., 1], -n[..., 0], jnp.zeros_like(n[..., 0])], -1)  # n x z
+    c2 = jnp.stack([-n[..., 2], jnp.zeros_like(n[..., 0]), n[..., 0]], -1)  # n x y
+    t = jnp.where(_dot(c1, c1, True) > _dot(c2, c2, True), c1, c2)
+    return safe_normalize(t)
+
+
+# --------------------------------------------------------------------------------------
+# the methods
+# --------------------------------------------------------------------------------------
+
+
+def cotangent_frame(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Array, *,
+                    normalize: str = "max", ddy_sign: int = 1) -> Frame:
+    r"""Schüler's cotangent frame from screen-space derivatives (exactly as published).
+
+    .. code-block:: glsl
+
+        vec3 dp2perp = cross(dp2, N);  vec3 dp1perp = cross(N, dp1);
+        vec3 T = dp2perp * duv1.x + dp1perp * duv2.x;
+        vec3 B = dp2perp * duv1.y + dp1perp * duv2.y;
+        float invmax = inversesqrt(max(dot(T, T), dot(B, B)));
+        return mat3(T * invmax, B * invmax, N);
+
+    This is the adjugate of the system ``T.dp1 = du1, T.dp2 = du2, T.N = 0``
+    (likewise ``B`` with ``v``) without its determinant
+    ``D = det[dp1; dp2; N] = N . (dp1 x dp2)``. The true solution is
+    ``T/D = grad u`` and ``B/D = grad v`` (the gradients along the plane
+    orthogonal to ``N``; the exact gradients when ``N`` is the face normal).
+
+    **Arguments:**
+    - `N`: ``(..., 3)`` unit normal (not renormalised, as in the GLSL).
+    - `dp1`, `dp2`: ``(..., 3)`` ``dFdx(p)``, ``dFdy(p)`` (world or camera-relative ``p``).
+    - `duv1`, `duv2`: ``(..., 2)`` ``dFdx(uv)``, ``dFdy(uv)``.
+    - `normalize`: ``"max"`` (published): ``(T, B) / sqrt(max(T.T, B.B))``,
+      invariant to scaling uv or world space; keeps the *sign* of ``D``, which
+      is positive when ``N`` faces the viewer (``dp1 x dp2`` points at the eye
+      for GL's y-up derivatives). ``"none"``: ``(T, B) / D``, the true gradients:
+      the bump strength then scales with uv density / geometry size. Where
+      ``|D| <= eps |dp1||dp2||N|`` (grazing, degenerate) ``T = B = 0``.
+    - `ddy_sign`: ``-1`` emulates a naive port to HLSL, whose ``ddy`` is
+      ``-dFdy`` (window y down): ``dp2 -> -dp2`` and ``duv2 -> -duv2``. Both
+      terms of ``T`` (and of ``B``) change sign while ``|D|`` does not enter,
+      so with ``"max"`` the frame becomes ``(-T, -B, N)``: the handedness
+      ``det[T, B, N]`` is *unchanged* (neither T nor B flips alone) and the
+      tangential part of the perturbation is negated (the map rotated by 180
+      degrees about N: bumps read as dents). With ``"none"`` ``D`` changes sign
+      too and the frame is unchanged.
+
+    **Returns:** a `Frame` ``(T, B, N)``; ``T = B = 0`` where the uv derivatives vanish.
+    """
+    _check_normalize(normalize)
+    _check_ddy_sign(ddy_sign)
+    if ddy_sign == -1:
+        dp2, duv2 = -dp2, -duv2
+    T, B = _cotangent_TB(N, dp1, dp2, duv1, duv2, normalize)
+    return Frame(T, B, N)
+
+
+def nonperspective_frame(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Array, *,
+                         normalize: str = "max", ddy_sign: int = 1) -> Frame:
+    r"""The article's "non-perspective optimisation" of `cotangent_frame`.
+
+    The perpendiculars are replaced by the edges themselves
+    (``dp2perp -> dp1``, ``dp1perp -> dp2``):
+
+    .. math:: T = dp_1\, du_1 + dp_2\, du_2, \qquad B = dp_1\, dv_1 + dp_2\, dv_2,
+
+    i.e. ``T = J J^T grad u`` with ``J = [dp1 dp2]`` the screen-to-surface
+    Jacobian. It is exact (up to scale) only where ``J^T J`` is a multiple of
+    the identity, ``dp1 _|_ dp2`` and ``|dp1| = |dp2|``: the surface is seen
+    without *any* foreshortening (parallel to the image plane). Under
+    perspective, and also for a tilted surface under an orthographic camera,
+    it is wrong. ``T`` and ``B`` are not made orthogonal to ``N``.
+
+    **Arguments:** as `cotangent_frame`. ``normalize="none"`` divides by
+    ``|dp1 x dp2|`` (``= |dp1|^2`` in the exact case). ``ddy_sign=-1`` has no
+    effect: every term is a product ``dp2 * duv2``.
+
+    **Returns:** a `Frame` ``(T, B, N)``.
+    """
+    _check_normalize(normalize)
+    _check_ddy_sign(ddy_sign)
+    if ddy_sign == -1:
+        dp2, duv2 = -dp2, -duv2
+    T = dp1 * duv1[..., 0:1] + dp2 * duv2[..., 0:1]
+    B = dp1 * duv1[..., 1:2] + dp2 * duv2[..., 1:2]
+    if normalize == "max":
+        T, B = _max_normalize(T, B)
+    else:
+        area = safe_norm(jnp.cross(dp1, dp2), keepdims=True)
+        scale = safe_norm(dp1, keepdims=True) * safe_norm(dp2, keepdims=True)
+        T, B = _relative_div(T, B, area, scale)
+    return Frame(T, B, N)
+
+
+def exact_frame(tri_p: Array, tri_uv: Array, N: Array | None = None, *,
+                use_face_normal: bool = False, normalize: str = "max") -> Frame:
+    r"""The cotangent frame from the triangle's own edges (the geometry-shader variant).
+
+    With ``dp_1 = p_1 - p_0``, ``dp_2 = p_2 - p_0`` (and ``duv`` likewise) this
+    solves the article's 3x3 system
+
+    .. math:: T \cdot dp_1 = du_1, \quad T \cdot dp_2 = du_2, \quad T \cdot n = 0
+
+    (``B`` likewise with ``v``) by the same perpendiculars as `cotangent_frame`:
+    ``T = (cross(dp2, n) du1 + cross(n, dp1) du2) / D`` with ``D = n . (dp1 x dp2)``.
+    With ``n`` the face normal, ``T = grad u`` and ``B = grad v`` within the
+    triangle's plane, exactly, whatever the camera.
+
+    **Arguments:**
+    - `tri_p`: ``(..., 3, 3)`` the triangle's corner positions (see `triangle_corners`).
+    - `tri_uv`: ``(..., 3, 2)`` the corner uvs.
+    - `N`: ``(..., 3)`` unit interpolated normal, or None for the face normal.
+      It is the frame's ``N``, and builds the perpendiculars unless
+      ``use_face_normal``.
+    - `use_face_normal`: build the perpendiculars with the unit face normal
+      ``normalize(dp1 x dp2)`` even when `N` is given (``N`` stays the frame's
+      normal: faceted T and B, smooth N).
+    - `normalize`: ``"max"`` or ``"none"`` as in `cotangent_frame`. ``D`` is
+      positive when ``n`` is on the counter-clockwise side of the triangle,
+      independently of the view.
+
+    **Returns:** a `Frame`; zero ``T``, ``B`` for degenerate triangles.
+    """
+    _check_normalize(normalize)
+    tri_p = jnp.asarray(tri_p)
+    tri_uv = jnp.asarray(tri_uv)
+    dp1 = tri_p[..., 1, :] - tri_p[..., 0, :]
+    dp2 = tri_p[..., 2, :] - tri_p[..., 0, :]
+    duv1 = tri_uv[..., 1, :] - tri_uv[..., 0, :]
+    duv2 = tri_uv[..., 2, :] - tri_uv[..., 0, :]
+    face_n = safe_normalize(jnp.cross(dp1, dp2))
+    n = face_n if (N is None or use_face_normal) else N
+    T, B = _cotangent_TB(n, dp1, dp2, duv1, duv2, normalize)
+    return Frame(T, B, face_n if N is None else N)
+
+
+def vertex_tangents(positions: Array, normals: Array, uv: Array, faces: Array) -> Array:
+    r"""Per-vertex tangents with handedness, the traditional (Lengyel / MikkTSpace-like) way.
+
+    Per triangle, with edges ``e_1, e_2``, uv edges ``(du_i, dv_i)`` and
+    ``r = du_1 dv_2 - du_2 dv_1``, the tangent ``dp/du`` and bitangent
+    ``dp/dv`` are
+
+    .. math:: t = (e_1 dv_2 - e_2 dv_1) / r, \qquad b = (e_2 du_1 - e_1 du_2) / r.
+
+    Their *unit* directions are accumulated at the triangle's three vertices,
+    weighted by the triangle's world-space area (so neither sliver triangles nor
+    the uv density decide the average). Triangles with a degenerate uv mapping
+    (``|r| <= eps (|duv_1|^2 + |duv_2|^2)``) contribute nothing. The sum is
+    made orthogonal to the unit vertex normal (Gram-Schmidt) and normalised;
+    the handedness is ``w = sign((N x T) . b_sum)`` (``+1`` when that is 0).
+
+    A vertex whose summed tangent is shorter than `VERTEX_TANGENT_CANCELLATION`
+    times its summed weights (no valid triangle, tangents parallel to ``N``, or
+    cancelling tangents on a shared mirrored-uv seam) gets the deterministic
+    fallback `axis_frame` tangent of its normal (zero if the normal is zero).
+
+    **Arguments:**
+    - `positions`: ``(V, 3)``; `normals`: ``(V, 3)``; `uv`: ``(V, 2)``; `faces`: ``(F, 3)`` int.
+
+    **Returns:** ``(V, 4)``: unit tangent ``xyz`` and handedness ``w = +-1``.
+    Interpolate it and pass it to `vertex_frame`.
+    """
+    positions = jnp.asarray(positions)
+    uv = jnp.asarray(uv, positions.dtype)
+    faces = jnp.asarray(faces, jnp.int32)
+    n = safe_normalize(jnp.asarray(normals, positions.dtype))
+    p = positions[faces]  # (F, 3, 3)
+    t = uv[faces]  # (F, 3, 2)
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    d1, d2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    r = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+    valid = jnp.abs(r) > eps(positions.dtype) * (_dot(d1, d1) + _dot(d2, d2))
+    sgn = jnp.where(valid, jnp.sign(r), 0.0)[:, None]
+    t_dir = safe_normalize((e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) * sgn)
+    b_dir = safe_normalize((e2 * d1[:, 0:1] - e1 * d2[:, 0:1]) * sgn)
+    area = 0.5 * safe_norm(jnp.cross(e1, e2))
+    wgt = jnp.where(valid, area, 0.0)[:, None]
+    idx = faces.reshape(-1)
+    num_v = positions.shape[0]
+
+    def scatter(x):  # (F, C) per face -> (V, C), added at each of the 3 corners
+        x3 = jnp.broadcast_to(x[:, None, :], (x.shape[0], 3, x.shape[1])).reshape(-1, x.shape[1])
+        return jnp.zeros((num_v, x.shape[1]), x.dtype).at[idx].add(x3)
+
+    t_sum = scatter(wgt * t_dir)
+    b_sum = scatter(wgt * b_dir)
+    w_sum = scatter(wgt)
+    t_perp = t_sum - n * _dot(n, t_sum, True)
+    ok = (safe_norm(t_perp, keepdims=True) > VERTEX_TANGENT_CANCELLATION * w_sum) & (w_sum > 0)
+    fallback = _axis_tangent(n)
+    T = jnp.where(ok, safe_normalize(t_perp, fallback=fallback), fallback)
+    hand = jnp.where(_dot(jnp.cross(n, T), b_sum, True) < 0, -1.0, 1.0).astype(T.dtype)
+    return jnp.concatenate([T, hand], -1)
+
+
+def vertex_frame(T_interp: Array, w_interp: Array, N: Array) -> Frame:
+    r"""Frame from an interpolated per-vertex tangent (see `vertex_tangents`).
+
+    ``T = normalize(T_i - N (N . T_i))`` (re-orthogonalised per pixel, as the
+    interpolated tangent is neither unit nor orthogonal to the interpolated
+    normal), ``B = sign(w) (N x T)`` with ``sign(0) = +1``, ``N = normalize(N)``.
+    Where the projected tangent vanishes the `axis_frame` tangent is used.
+
+    **Arguments:**
+    - `T_interp`: ``(..., 3)`` interpolated tangent.
+    - `w_interp`: ``(...)`` or ``(..., 1)`` interpolated handedness.
+    - `N`: ``(..., 3)`` interpolated normal.
+
+    **Returns:** an orthonormal `Frame` (zero where ``N`` is zero).
+    """
+    T_interp = jnp.asarray(T_interp)
+    w_interp = jnp.asarray(w_interp)
+    if w_interp.ndim == T_interp.ndim:
+        w_interp = w_interp[..., 0]
+    n = safe_normalize(N)
+    t = T_interp - n * _dot(n, T_interp, True)
+    T = safe_normalize(t, fallback=_axis_tangent(n))
+    s = jnp.where(w_interp < 0, -1.0, 1.0).astype(T.dtype)[..., None]
+    return Frame(T, s * jnp.cross(n, T), n)
+
+
+def axis_frame(N: Array) -> Frame:
+    r"""GLSL Hacker's fixed-axis approximation; ignores the uv mapping entirely.
+
+    ``c1 = N x (0,0,1)``, ``c2 = N x (0,1,0)``, ``T = normalize(the longer one)``
+    (``c2`` on a tie), ``B = normalize(N x T)``, ``N = normalize(N)``. ``T``
+    jumps where ``|c1| = |c2|`` (the visible seam lines of the method).
+
+    **Returns:** an orthonormal `Frame` (zero where ``N`` is zero).
+    """
+    n = safe_normalize(N)
+    T = _axis_tangent(n)
+    return Frame(T, safe_normalize(jnp.cross(n, T)), n)
+
+
+# --------------------------------------------------------------------------------------
+# using frames
+# --------------------------------------------------------------------------------------
+
+
+def perturb_normal(frame: Frame, m: Array, *, fallback: Array | None = None) -> Array:
+    r"""``normalize(T m.x + B m.y + N m.z)`` (GLSL ``normalize(TBN * map)``).
+
+    **Arguments:**
+    - `frame`: a `Frame` ``(..., 3)``.
+    - `m`: ``(..., 3)`` decoded tangent-space map vector.
+    - `fallback`: ``(..., 3)`` returned where the sum is (numerically) zero;
+      defaults to ``normalize(frame.N)`` (the unperturbed normal; zero if N is).
+
+    **Returns:** ``(..., 3)`` unit perturbed normals.
+    """
+    m = jnp.asarray(m)
+    v = frame.T * m[..., 0:1] + frame.B * m[..., 1:2] + frame.N * m[..., 2:3]
+    if fallback is None:
+        fallback = safe_normalize(frame.N)
+    return safe_normalize(v, fallback=fallback)
+
+
+def face_forward(frame: Frame, front_facing: Array) -> Frame:
+    r"""Flip ``T``, ``B`` *and* ``N`` of back-facing fragments (double-sided surfaces).
+
+    The perturbed normal of a back-facing fragment becomes exactly the negative
+    of the front side's: a thin sheet whose front has a bump has a dent at the
+    back, and the back is lit with the reversed normal. The handedness
+    ``det[T, B, N]`` changes sign, as it must: seen from behind, the uv layout
+    is mirrored (a decal seen through glass); for vertex tangents this is
+    ``w -> -w`` with ``B = w (N x T)`` for the flipped ``N`` and ``T``. Flipping
+    ``N`` alone would keep the bump a bump on both sides.
+
+    The input must be *oriented by the surface*: ``T``, ``B`` along ``+grad u``,
+    ``+grad v`` on both sides. All methods are, when built from the unflipped
+    interpolated normal, except `cotangent_frame` with ``normalize="max"``,
+    whose ``T``, ``B`` carry ``sign(N . (dp1 x dp2))``, negative on back
+    faces; `compute_frame` re-orients it first (net effect: only its ``N``
+    flips). This is three.js' recipe (``normal *= faceDirection`` before the
+    frame is built, then ``tbn[0], tbn[1] *= faceDirection``).
+
+    **Arguments:**
+    - `frame`: ``(..., 3)`` fields.
+    - `front_facing`: ``(...)`` bool (`Fragments.front_facing`).
+    """
+    s = jnp.where(jnp.asarray(front_facing)[..., None], 1.0, -1.0).astype(frame.N.dtype)
+    return Frame(frame.T * s, frame.B * s, frame.N * s)
+
+
+def triangle_corners(attr: Array, frags: Fragments) -> Array:
+    """Each pixel's triangle's corner values, ``(H, W, 3, C)``; zero on background.
+
+    **Arguments:**
+    - `attr`: per-vertex ``(V, C)`` or per-face-corner ``(F, 3, C)``.
+    - `frags`: from `jaxnm.rasterize`.
+    """
+    attr = jnp.asarray(attr)
+    tri = jnp.maximum(frags.triangle_id, 0)
+    num_faces = frags.faces.shape[0]
+    if attr.ndim == 3 and attr.shape[:2] == (num_faces, 3):
+        corners = attr[tri]
+    elif attr.ndim == 2 and attr.shape[0] == frags.clip.shape[0]:
+        corners = attr[frags.faces[tri]]
+    else:
+        raise ValueError("triangle_corners: `attr` must be per-vertex (V, C) with V = "
+                         f"{frags.clip.shape[0]} or per face corner (F, 3, C) with F = "
+                         f"{num_faces}; got shape {attr.shape}")
+    return jnp.where(frags.mask[..., None, None], corners, 0.0)
+
+
+def _value(x):
+    return x.value if isinstance(x, Attribute) else jnp.asarray(x)
+
+
+def _derivs(attr, name: str, frame: str):
+    if not isinstance(attr, Attribute) or attr.ddx is None or attr.ddy is None:
+        raise ValueError(f"compute_frame(frame={frame!r}) needs `{name}` as an Attribute with "
+                         "ddx and ddy (interpolate with derivatives other than 'none')")
+    return attr.ddx, attr.ddy
+
+
+def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None = None,
+                  uv_attr: Attribute | None = None, tri_p: Array | None = None,
+                  tri_uv: Array | None = None, tangent: Array | Attribute | None = None,
+                  front_facing: Array | None = None, double_sided: bool = False,
+                  normalize: str = "max", ddy_sign: int = 1,
+                  use_face_normal: bool = False) -> Frame:
+    r"""Build the frame named by `frame` (one of `FRAME_METHODS`) per pixel.
+
+    **Arguments** (keyword-only; `frame`, `normalize`, `ddy_sign`,
+    `double_sided`, `use_face_normal` are static):
+    - `N`: ``(..., 3)`` interpolated normal (or its `Attribute`); normalised here.
+    - `p_attr`, `uv_attr`: position (world or camera-relative) and uv
+      `Attribute`s with derivatives: ``"cotangent"``, ``"nonperspective"``.
+    - `tri_p`, `tri_uv`: ``(..., 3, 3)``, ``(..., 3, 2)`` corners
+      (`triangle_corners`): ``"exact"`` (with `use_face_normal`).
+    - `tangent`: ``(..., 4)`` interpolated `vertex_tangents`: ``"vertex"``.
+    - `front_facing`: ``(...)`` bool, required when `double_sided`.
+    - `double_sided`: apply `face_forward` to back-facing fragments (after
+      re-orienting the published cotangent frame, see there).
+    - `normalize`, `ddy_sign`: see `cotangent_frame` (``normalize`` also for
+      ``"nonperspective"`` and ``"exact"``; ``ddy_sign`` for the screen-space ones).
+
+    **Returns:** a `Frame` for `perturb_normal`.
+    """
+    if frame not in FRAME_METHODS:
+        raise ValueError(f"unknown frame {frame!r}; expected one of {', '.join(FRAME_METHODS)}")
+    _check_normalize(normalize)
+    _check_ddy_sign(ddy_sign)
+    n = safe_normalize(_value(N))
+    if frame in ("cotangent", "nonperspective"):
+        dp1, dp2 = _derivs(p_attr, "p_attr", frame)
+        duv1, duv2 = _derivs(uv_attr, "uv_attr", frame)
+        fn = cotangent_frame if frame == "cotangent" else nonperspective_frame
+        out = fn(n, dp1, dp2, duv1, duv2, normalize=normalize, ddy_sign=ddy_sign)
+    elif frame == "exact":
+        if tri_p is None or tri_uv is None:
+            raise ValueError("compute_frame(frame='exact') needs `tri_p` and `tri_uv` "
+                             "(see triangle_corners)")
+        out = exact_frame(tri_p, tri_uv, n, use_face_normal=use_face_normal, normalize=normalize)
+    elif frame == "vertex":
+        if tangent is None:
+            raise ValueError("compute_frame(frame='vertex') needs `tangent` (interpolated "
+                             "vertex_tangents, (..., 4))")
+        t = _value(tangent)
+        out = vertex_frame(t[..., :3], t[..., 3], n)
+    else:
+        out = axis_frame(n)
+    if double_sided:
+        if front_facing is None:
+            raise ValueError("compute_frame(double_sided=True) needs `front_facing`")
+        if frame == "cotangent" and normalize == "max":
+            s = jnp.where(jnp.asarray(front_facing)[..., None], 1.0, -1.0).astype(out.T.dtype)
+            out = Frame(out.T * s, out.B * s, out.N)
+        out = face_forward(out, front_facing)
+    return out

@@ -1,0 +1,745 @@
+"""Files in and out: meshes, textures, images, AOVs and JSON.
+
+This is the only module of jaxnm that touches files, trimesh or imageio. Every
+other module sees plain arrays. Errors about bad input are raised here,
+because only here is the file name at hand: every message starts with the path.
+
+Conventions:
+
+- **Images** are float32 arrays ``(H, W, C)`` in IMAGE layout: row 0 is the top
+  row of the file as displayed, column 0 its left column. Values are in
+  ``[0, 1]`` for integer files. No colour transform is applied on load or save
+  (sRGB encoding and decoding is the caller's job).
+- **uv** origin is the BOTTOM-left of the texture image as displayed
+  (OpenGL/OBJ convention), whatever the file format; glTF's top-left uvs are
+  flipped (``v -> 1 - v``) on load.
+- **Meshes** come back as `jaxnm.geometry.Mesh` with float32 positions (V, 3),
+  int32 faces (F, 3), float32 uv (V, 2) or None, and float32 unit normals (V, 3).
+"""
+
+from __future__ import annotations
+
+import copy
+import importlib.util
+import io
+import json
+import os
+import re
+import struct
+import warnings
+import zlib
+from pathlib import Path
+from typing import Any
+
+import imageio.v3 as iio
+import jax
+import jax.numpy as jnp
+import numpy as np
+import trimesh
+
+from .geometry import Mesh, validate_arrays, vertex_normals
+
+__all__ = [
+    "JaxnmWarning",
+    "load_mesh",
+    "load_texture",
+    "load_image_float",
+    "save_png",
+    "save_aovs",
+    "load_aovs",
+    "load_json",
+]
+
+PathLike = str | os.PathLike
+
+MESH_EXTENSIONS = (".obj", ".ply", ".gltf", ".glb", ".stl", ".off")
+TEXTURE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".npy", ".npz")
+IMAGE_EXTENSIONS = TEXTURE_EXTENSIONS + (".exr",)
+
+_CHANNEL_NAMES = {1: "grayscale", 2: "grayscale+alpha", 3: "RGB", 4: "RGBA"}
+
+
+_vertex_normals_jit = jax.jit(vertex_normals, static_argnames="weighting")
+
+
+class JaxnmWarning(UserWarning):
+    """Something in an input file was repaired or guessed (e.g. normals computed)."""
+
+
+# ----------------------------------------------------------------------------- common
+
+
+def _existing_file(path: PathLike) -> Path:
+    """``path`` as a `Path`, or FileNotFoundError / ValueError naming it."""
+    p = Path(os.fspath(path))
+    if not p.exists():
+        raise FileNotFoundError(f"{p}: no such file")
+    if not p.is_file():
+        raise ValueError(f"{p}: not a regular file")
+    return p
+
+
+def _check_extension(p: Path, allowed: tuple[str, ...], what: str) -> str:
+    ext = p.suffix.lower()
+    if ext not in allowed:
+        raise ValueError(f"{p}: unsupported {what} format {ext or '(no extension)'!r}; "
+                         f"supported: {', '.join(allowed)}")
+    return ext
+
+
+def _parse_json_text(text: str | bytes, source: str) -> Any:
+    """``json.loads`` with errors naming ``source`` and the line and column."""
+    try:
+        if isinstance(text, bytes):
+            text = text.decode("utf-8-sig")
+        return json.loads(text)
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{source}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{source}: invalid JSON at line {e.lineno}, column {e.colno}: "
+                         f"{e.msg}") from None
+
+
+def load_json(path: PathLike) -> dict:
+    """The JSON object in ``path`` (a dict); errors name the file, and the line and
+    column of a syntax error."""
+    p = _existing_file(path)
+    data = _parse_json_text(p.read_bytes(), str(p))
+    if not isinstance(data, dict):
+        raise ValueError(f"{p}: expected a JSON object {{...}} at the top level, got "
+                         f"{type(data).__name__}")
+    return data
+
+
+# ----------------------------------------------------------------------------- meshes
+
+
+def load_mesh(path: PathLike, *, require_uv: bool = False,
+              normals: str = "file_or_angle") -> Mesh:
+    """Load a triangle mesh (OBJ, PLY, glTF/GLB, STL, OFF) as a `Mesh`.
+
+    Vertices are not merged: a vertex at a uv seam stays two vertices. PLY, OFF,
+    STL and glTF keep the file's vertex order. OBJ indexes positions, uvs and
+    normals separately, so each distinct ``v/vt/vn`` corner becomes a vertex,
+    sorted by its ``v`` index (vertices no face uses are dropped). A scene with
+    several meshes (glTF nodes, OBJ materials) is concatenated with the
+    scene-graph transforms applied (normals by the inverse transpose; a mirroring
+    transform reverses the winding so that counter-clockwise stays front).
+    Polygons are triangulated; degenerate triangles are kept.
+
+    **uv orientation.** uvs are returned with the origin at the bottom-left of
+    the image for every format. OBJ and PLY already use that convention. glTF
+    puts the origin at the top-left; trimesh (5.x, ``exchange/gltf``) flips it
+    on load with ``uv[:, 1] = 1 - uv[:, 1]``, but only for primitives that have a
+    material; for a primitive without one it silently drops ``TEXCOORD_0``. This
+    function gives every primitive a bare material before trimesh parses the
+    file, so glTF uvs are always loaded and always flipped (tested on a
+    hand-written glTF).
+
+    **Arguments:**
+    - `path`: the mesh file. Extensions: .obj .ply .gltf .glb .stl .off.
+    - `require_uv`: raise if the mesh has no texture coordinates.
+    - `normals`: ``"file_or_angle"`` uses the file's vertex normals
+      (renormalised; zero-length or non-finite ones are replaced by computed
+      ones with a `JaxnmWarning`) and computes angle-weighted normals with a
+      `JaxnmWarning` where the file has none. ``"angle"`` or ``"area"`` always
+      recompute them with `jaxnm.geometry.vertex_normals`.
+
+    **Returns:** a `Mesh` of jax arrays; ``uv`` is None if the file has none.
+
+    **Raises:** `FileNotFoundError` for a missing file; `ValueError` (message
+    starting with the path) for an unsupported extension, an unparsable file,
+    no faces, NaN/inf positions or uvs, out-of-range face indices, or missing
+    uvs when ``require_uv``.
+    """
+    if normals not in ("file_or_angle", "angle", "area"):
+        raise ValueError(f"load_mesh: unknown normals={normals!r}; use 'file_or_angle', "
+                         f"'angle' or 'area'")
+    p = _existing_file(path)
+    ext = _check_extension(p, MESH_EXTENSIONS, "mesh")
+    src = str(p)
+    scene = _load_scene(p, ext)
+    pos, faces, uv, file_n, has_n = _concatenate_scene(scene, src)
+
+    pos = pos.astype(np.float32)
+    validate_arrays(pos, faces, source=src)  # before any normal is computed from them
+    faces = faces.astype(np.int32)
+    if uv is not None:
+        uv = uv.astype(np.float32)
+        validate_arrays(pos, faces, uv, source=src)
+    elif require_uv:
+        hint = (" STL and OFF files cannot store uv; use OBJ, PLY or glTF."
+                if ext in (".stl", ".off") else
+                " Unwrap it and export it with uvs (OBJ 'vt', PLY s/t, glTF TEXCOORD_0).")
+        raise ValueError(f"{src}: the mesh has no texture coordinates (uv); normal mapping "
+                         f"needs them.{hint}")
+
+    n = _resolve_normals(pos, faces, file_n, has_n, normals, src)
+    validate_arrays(pos, faces, uv, n, source=src)
+    return Mesh(positions=jnp.asarray(pos), faces=jnp.asarray(faces),
+                uv=None if uv is None else jnp.asarray(uv), normals=jnp.asarray(n))
+
+
+def _load_scene(p: Path, ext: str) -> trimesh.Scene:
+    """Parse ``p`` with trimesh into a Scene, with errors naming the file."""
+    data = p.read_bytes()
+    kwargs: dict[str, Any] = {"process": False}
+    if ext == ".obj":
+        data = _clean_obj(data, str(p))
+        # materials are not used; skipping them avoids decoding texture images and
+        # keeps the uvs (trimesh keeps them on a material-less OBJ mesh)
+        kwargs["skip_materials"] = True
+        # NOT maintain_order=True: for OBJ it keeps one uv per position (the median
+        # of the vt's used with it) and so merges the vertices of uv seams
+    elif ext == ".gltf":
+        data = _gltf_for_geometry(data, str(p))
+    elif ext == ".glb":
+        data = _glb_for_geometry(data, str(p))
+    try:
+        return trimesh.load_scene(io.BytesIO(data), file_type=ext[1:],
+                                  resolver=trimesh.resolvers.FilePathResolver(str(p)),
+                                  **kwargs)
+    except Exception as e:  # trimesh raises anything from IndexError to KeyError
+        raise ValueError(f"{p}: trimesh cannot parse this {ext[1:].upper()} file "
+                         f"({type(e).__name__}: {e})") from None
+
+
+def _concatenate_scene(scene: trimesh.Scene, src: str):
+    """(positions f64, faces i64, uv f64 | None, file normals f64, bool mask of the
+    vertices that have file normals) of all triangle meshes in ``scene``, in world
+    space."""
+    parts, skipped = [], 0
+    for node in scene.graph.nodes_geometry:
+        transform, name = scene.graph[node]
+        geom = scene.geometry[name]
+        if isinstance(geom, trimesh.Trimesh) and len(geom.faces) > 0:
+            parts.append((geom, np.asarray(transform, np.float64)))
+        else:
+            skipped += 1
+    if not parts:
+        found = " (it holds only points or lines)" if skipped else ""
+        raise ValueError(f"{src}: the mesh has no faces{found}")
+    if skipped:
+        warnings.warn(f"{src}: ignored {skipped} geometries without triangles (points or "
+                      f"lines)", JaxnmWarning, stacklevel=3)
+
+    pos, faces, uvs, nrm, has_n, offset = [], [], [], [], [], 0
+    for geom, t in parts:
+        # trimesh computes vertex normals lazily and caches them under the same key
+        # as the normals it was given by the loader, so the file had normals iff the
+        # key is in the cache before anything reads `vertex_normals` (trimesh's own
+        # OBJ exporter uses the same test)
+        had_normals = "vertex_normals" in geom._cache
+        v = np.array(geom.vertices, np.float64)
+        f = np.array(geom.faces, np.int64)
+        n = (np.array(geom._cache["vertex_normals"], np.float64) if had_normals
+             else np.zeros_like(v))
+        uv = getattr(geom.visual, "uv", None)
+        if uv is not None:
+            uv = np.array(uv, np.float64)
+            if uv.ndim != 2 or uv.shape[0] != len(v) or uv.shape[1] < 2:
+                raise ValueError(f"{src}: {uv.shape[0]} texture coordinates for {len(v)} "
+                                 f"vertices")
+            uv = uv[:, :2]
+        if not np.allclose(t, np.eye(4)):
+            lin = t[:3, :3]
+            det = np.linalg.det(lin)
+            if not np.isfinite(det) or abs(det) < 1e-12:
+                raise ValueError(f"{src}: a scene node has a singular transform")
+            v = v @ lin.T + t[:3, 3]
+            n = n @ np.linalg.inv(lin)  # inverse transpose, as row vectors
+            if det < 0:
+                f = f[:, ::-1]
+        pos.append(v)
+        faces.append(f + offset)
+        uvs.append(uv)
+        nrm.append(n)
+        has_n.append(np.full(len(v), had_normals))
+        offset += len(v)
+
+    with_uv = sum(u is not None for u in uvs)
+    if with_uv == len(uvs):
+        uv_all = np.concatenate(uvs)
+    else:
+        uv_all = None
+        if with_uv:
+            warnings.warn(f"{src}: only {with_uv} of {len(uvs)} meshes have texture "
+                          f"coordinates; ignoring them all", JaxnmWarning, stacklevel=3)
+    return (np.concatenate(pos), np.concatenate(faces), uv_all, np.concatenate(nrm),
+            np.concatenate(has_n))
+
+
+def _resolve_normals(pos: np.ndarray, faces: np.ndarray, file_n: np.ndarray,
+                     has_n: np.ndarray, mode: str, src: str) -> np.ndarray:
+    """Final (V, 3) float32 unit normals: the file's where ``has_n`` (and usable)."""
+    if mode != "file_or_angle":
+        return _vertex_normals(pos, faces, mode).astype(np.float32)
+    absent = ~has_n
+    length = np.linalg.norm(file_n, axis=1)
+    bad = ~absent & ~(np.isfinite(length) & (length > 1e-12))
+    out = file_n / np.where(absent | bad, 1.0, length)[:, None]
+    fill = absent | bad
+    if fill.any():
+        computed = _vertex_normals(pos, faces, "angle").astype(np.float64)
+        out[fill] = computed[fill]
+    if absent.all():
+        warnings.warn(f"{src}: no vertex normals in the file; computed angle-weighted normals",
+                      JaxnmWarning, stacklevel=3)
+    elif absent.any():
+        warnings.warn(f"{src}: no vertex normals in the file for {int(absent.sum())} of "
+                      f"{len(absent)} vertices; computed angle-weighted normals for them",
+                      JaxnmWarning, stacklevel=3)
+    if bad.any():
+        warnings.warn(f"{src}: {int(bad.sum())} vertex normals in the file are zero-length or "
+                      f"not finite (first: vertex {int(np.argmax(bad))}); replaced them by "
+                      f"computed angle-weighted normals", JaxnmWarning, stacklevel=3)
+    return out.astype(np.float32)
+
+
+def _vertex_normals(pos: np.ndarray, faces: np.ndarray, weighting: str) -> np.ndarray:
+    """`vertex_normals`, jitted on arrays padded to power-of-two sizes so that meshes of
+    similar size share one XLA compilation. Padding: vertices at the origin used only
+    by padding faces ``(V, V, V)``, which are degenerate and touch no real vertex."""
+    v, f = len(pos), len(faces)
+    vb, fb = max(64, 1 << v.bit_length()), max(64, 1 << (f - 1).bit_length())  # vb > v
+    pos_p = np.zeros((vb, 3), np.float32)
+    pos_p[:v] = pos
+    faces_p = np.full((fb, 3), v, np.int32)
+    faces_p[:f] = faces
+    return np.asarray(_vertex_normals_jit(pos_p, faces_p, weighting=weighting))[:v]
+
+
+_OBJ_COMMENT = re.compile(rb"#[^\n]*")
+_OBJ_FACE_LINE = re.compile(rb"\nf[ \t]([^\n]*)")
+_OBJ_KINDS = (("v", "vertex"), ("vt", "texture coordinate"), ("vn", "normal"))
+
+
+def _clean_obj(data: bytes, src: str) -> bytes:
+    """OBJ text without comments, after checking that every face index exists.
+
+    trimesh crashes with an IndexError on a bad ``v`` index, silently drops all
+    uvs (normals) on a bad ``vt`` (``vn``) index and reads index 0 as 1, so check
+    them first; and it cannot parse a comment after a face (``f 1 2 3 # ...``).
+    """
+    data = _OBJ_COMMENT.sub(b"", data)
+    text = b"\n" + data.replace(b"\r", b"")
+    indices = _obj_corner_indices(b" ".join(_OBJ_FACE_LINE.findall(text)))
+    for (kind, name), idx in zip(_OBJ_KINDS, indices):
+        n = text.count(b"\n" + kind.encode() + b" ") + text.count(b"\n" + kind.encode() + b"\t")
+        bad = (idx == 0) | (idx > n) | (idx < -n)
+        if bad.any():
+            i = int(idx[np.argmax(bad)])
+            raise ValueError(f"{src}: line {_obj_face_line_with(text, kind, i)}: a face refers to "
+                             f"{name} {i}, but the file has {n} ('{kind}' lines; indices are "
+                             f"1..{n} or -{n}..-1)")
+    return data
+
+
+def _obj_corner_indices(corners: bytes) -> list[np.ndarray]:
+    """The v, vt and vn indices in whitespace-separated ``v[/[vt][/vn]]`` face corners,
+    parsed with array operations (a Python loop takes seconds on large files)."""
+    b = np.frombuffer(corners, np.uint8)
+    digit = (b >= ord("0")) & (b <= ord("9"))
+    num = digit | (b == ord("-"))
+    first = np.flatnonzero(num & ~np.r_[False, num[:-1]])
+    last = np.flatnonzero(num & ~np.r_[num[1:], False])
+    run = np.cumsum(num & ~np.r_[False, num[:-1]]) - 1  # number id of each character
+    pos = np.flatnonzero(digit)
+    weights = (b[pos] - ord("0")) * 10.0 ** (last[run[pos]] - pos)
+    value = np.bincount(run[pos], weights, minlength=len(first))
+    value = np.where(b[first] == ord("-"), -value, value)
+    slash = np.cumsum(b == ord("/"))
+    blank = np.maximum.accumulate(np.where(np.isin(b, list(b" \t\n")), np.arange(len(b)), -1))
+    slot = slash[first] - np.where(blank[first] >= 0, slash[np.maximum(blank[first], 0)], 0)
+    return [value[slot == k] for k in range(3)]
+
+
+def _obj_face_line_with(text: bytes, kind: str, index: int) -> int | str:
+    """Line number of the first face using ``index`` for ``kind`` (for error messages)."""
+    k = [name for name, _ in _OBJ_KINDS].index(kind)
+    for lineno, line in enumerate(text[1:].split(b"\n"), 1):
+        if line.startswith((b"f ", b"f\t")):
+            for corner in line.split()[1:]:
+                parts = corner.split(b"/")
+                if len(parts) > k and parts[k].lstrip(b"-").isdigit() and int(parts[k]) == index:
+                    return lineno
+    return "?"
+
+
+# glTF: trimesh reads TEXCOORD_0 only for primitives with a material (and then
+# flips v), and decodes every texture image of the file. jaxnm needs the geometry
+# alone, so it hands trimesh a copy of the JSON in which every material is bare,
+# every primitive has one, and there are no images.
+
+_GLTF_FLOAT = 5126
+_GLTF_UNSUPPORTED_EXTENSIONS = ("KHR_draco_mesh_compression", "EXT_meshopt_compression",
+                                "KHR_mesh_quantization")
+
+
+def _gltf_tree_for_geometry(tree: Any, src: str) -> dict:
+    if not isinstance(tree, dict):
+        raise ValueError(f"{src}: not a glTF file (the JSON is not an object)")
+    used = set(tree.get("extensionsUsed", [])) | set(tree.get("extensionsRequired", []))
+    for ext in _GLTF_UNSUPPORTED_EXTENSIONS:
+        if ext in used:
+            raise ValueError(f"{src}: uses the glTF extension {ext}, which jaxnm cannot read; "
+                             f"re-export without compression or quantisation")
+    tree = copy.deepcopy(tree)
+    accessors = tree.get("accessors", [])
+    bare = len(tree.get("materials", []))
+    tree["materials"] = [{} for _ in range(bare + 1)]
+    for key in ("textures", "images", "samplers"):
+        tree.pop(key, None)
+    try:
+        for mesh in tree.get("meshes", []):
+            for prim in mesh.get("primitives", []):
+                prim.setdefault("material", bare)
+                for attr in ("POSITION", "NORMAL", "TEXCOORD_0"):
+                    if attr in prim.get("attributes", {}):
+                        ctype = accessors[prim["attributes"][attr]].get("componentType")
+                        if ctype != _GLTF_FLOAT:
+                            raise ValueError(f"{src}: {attr} is stored as componentType {ctype}; "
+                                             f"jaxnm reads float ({_GLTF_FLOAT}) only")
+    except (AttributeError, TypeError, IndexError, KeyError) as e:
+        raise ValueError(f"{src}: malformed glTF meshes or accessors ({type(e).__name__}: "
+                         f"{e})") from None
+    return tree
+
+
+def _gltf_for_geometry(data: bytes, src: str) -> bytes:
+    tree = _gltf_tree_for_geometry(_parse_json_text(data, src), src)
+    return json.dumps(tree).encode()
+
+
+def _glb_for_geometry(data: bytes, src: str) -> bytes:
+    if len(data) < 20 or data[:4] != b"glTF":
+        raise ValueError(f"{src}: not a GLB file (it does not start with 'glTF')")
+    version, _ = struct.unpack_from("<II", data, 4)
+    json_len, json_type = struct.unpack_from("<I4s", data, 12)
+    if version != 2 or json_type != b"JSON" or 20 + json_len > len(data):
+        raise ValueError(f"{src}: not a valid glTF 2.0 binary (version {version}, first chunk "
+                         f"{json_type!r} of {json_len} bytes)")
+    tree = _gltf_tree_for_geometry(_parse_json_text(data[20:20 + json_len], src), src)
+    chunk = json.dumps(tree).encode()
+    chunk += b" " * (-len(chunk) % 4)  # chunks are 4-byte aligned, JSON padded with spaces
+    body = struct.pack("<I4s", len(chunk), b"JSON") + chunk + data[20 + json_len:]
+    return struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body
+
+
+# ----------------------------------------------------------------------------- images
+
+
+def load_texture(path: PathLike, *, channels: int | None = None) -> tuple[np.ndarray, int]:
+    """Load a texture as float32 ``(H, W, C)`` in ``[0, 1]``, IMAGE layout (row 0 = top).
+
+    **Arguments:**
+    - `path`: .png (8 or 16 bit, grayscale/RGB/RGBA, palette), .jpg/.jpeg, .npy or
+      .npz (one array, or one named ``image``; float arrays are taken as they are,
+      uint8/uint16 arrays scaled to [0, 1]; shape (H, W) or (H, W, C)).
+    - `channels`: None keeps the file's channels. 3 accepts RGB and RGBA (alpha
+      dropped) and refuses grayscale; 2 takes the first two of 2+ channels; 1
+      accepts grayscale (+alpha, dropped) and takes the red channel of a colour
+      image with a `JaxnmWarning`.
+
+    **Returns:** ``(image, bits)``: ``bits`` is the sample depth of the file: 8, 16,
+    or 32 for float arrays. 16-bit PNGs are decoded by jaxnm itself because
+    imageio's Pillow plugin reduces 16-bit colour PNGs to 8 bits.
+    """
+    p = _existing_file(path)
+    ext = _check_extension(p, TEXTURE_EXTENSIONS, "texture")
+    image, bits = _read_image(p, ext)
+    return _select_channels(image, channels, str(p)), bits
+
+
+def load_image_float(path: PathLike) -> tuple[np.ndarray, int]:
+    """Like `load_texture` (all channels) but also reads OpenEXR (.exr), e.g. target images.
+
+    EXR needs an imageio plugin that can read it (OpenCV); none is a jaxnm
+    dependency, and an `ImportError` says how to get one.
+    """
+    p = _existing_file(path)
+    ext = _check_extension(p, IMAGE_EXTENSIONS, "image")
+    return _read_image(p, ext)
+
+
+def _read_image(p: Path, ext: str) -> tuple[np.ndarray, int]:
+    """(float32 (H, W, C), bits) of any supported image file."""
+    src = str(p)
+    if ext in (".npy", ".npz"):
+        raw = _read_array_file(p, ext)
+    elif ext == ".exr":
+        raw = _read_exr(p)
+    else:
+        data = p.read_bytes()
+        if not data:
+            raise ValueError(f"{src}: empty file")
+        if data[:8] == _PNG_SIGNATURE and len(data) > 24 and data[24] == 16:
+            raw = _decode_png16(data, src)  # IHDR bit depth is byte 24
+        else:
+            raw = _read_pillow(data, ext, src)
+    return _image_to_float(raw, src)
+
+
+def _read_pillow(data: bytes, ext: str, src: str) -> np.ndarray:
+    try:
+        with iio.imopen(data, "r", plugin="pillow", extension=ext) as f:
+            mode = f.metadata(index=0).get("mode")
+            if mode not in ("1", "L", "LA", "P", "PA", "RGB", "RGBA", "CMYK", "I;16"):
+                raise ValueError(f"{src}: unsupported image mode {mode!r}")
+            return f.read(index=0, mode="RGB" if mode == "CMYK" else None)
+    except ValueError as e:
+        if str(e).startswith(src):
+            raise
+        raise ValueError(f"{src}: cannot read the image ({e})") from None
+    except Exception as e:  # noqa: BLE001 - imageio/Pillow raise OSError, SyntaxError, ...
+        raise ValueError(f"{src}: not an image or unreadable ({type(e).__name__}: {e})") from None
+
+
+def _read_array_file(p: Path, ext: str) -> np.ndarray:
+    src = str(p)
+    try:
+        if ext == ".npy":
+            return np.load(p, allow_pickle=False)
+        with np.load(p, allow_pickle=False) as z:
+            names = list(z.files)
+            if len(names) != 1 and "image" not in names:
+                raise ValueError(f"{src}: an .npz image must hold one array or one named "
+                                 f"'image'; found {names}")
+            return z[names[0] if len(names) == 1 else "image"]
+    except ValueError as e:
+        if str(e).startswith(src):
+            raise
+        raise ValueError(f"{src}: cannot read the array file ({e})") from None
+    except (OSError, EOFError) as e:
+        raise ValueError(f"{src}: cannot read the array file ({type(e).__name__}: {e})") from None
+
+
+def _read_exr(p: Path) -> np.ndarray:
+    src = str(p)
+    if importlib.util.find_spec("cv2") is None:
+        raise ImportError(
+            f"{src}: reading OpenEXR needs an imageio plugin that can read it, and none is "
+            f"installed. Install OpenCV (`pip install opencv-python-headless`) and set "
+            f"OPENCV_IO_ENABLE_OPENEXR=1 in the environment, or convert the image to .npy "
+            f"or 16-bit PNG.")
+    try:  # flags=-1 is cv2.IMREAD_UNCHANGED: keep float32 and the alpha channel
+        return iio.imread(p, plugin="opencv", flags=-1)
+    except Exception as e:  # noqa: BLE001
+        raise ValueError(f"{src}: OpenCV cannot read this EXR file ({type(e).__name__}: {e}); "
+                         f"is OPENCV_IO_ENABLE_OPENEXR=1 set?") from None
+
+
+def _image_to_float(raw: np.ndarray, src: str) -> tuple[np.ndarray, int]:
+    raw = np.asarray(raw)
+    if raw.ndim == 2:
+        raw = raw[:, :, None]
+    if raw.ndim != 3 or not 1 <= raw.shape[2] <= 4:
+        raise ValueError(f"{src}: expected an image of shape (H, W) or (H, W, C) with C in "
+                         f"1..4, got {raw.shape}")
+    if raw.shape[0] == 0 or raw.shape[1] == 0:
+        raise ValueError(f"{src}: the image is empty (shape {raw.shape})")
+    if raw.dtype == np.uint8 or raw.dtype == np.bool_:
+        return raw.astype(np.float32) / (1.0 if raw.dtype == np.bool_ else 255.0), 8
+    if raw.dtype == np.uint16:
+        return raw.astype(np.float32) / 65535.0, 16
+    if np.issubdtype(raw.dtype, np.floating):
+        image = raw.astype(np.float32)
+        if not np.all(np.isfinite(image)):
+            raise ValueError(f"{src}: the image contains NaN or infinite values")
+        return image, 32
+    raise ValueError(f"{src}: unsupported sample type {raw.dtype}; expected uint8, uint16 or "
+                     f"float")
+
+
+def _select_channels(image: np.ndarray, channels: int | None, src: str) -> np.ndarray:
+    if channels is None:
+        return image
+    c = image.shape[2]
+    if channels == 3:
+        if c < 3:
+            raise ValueError(f"{src}: a normal map needs 3 channels (RGB), got {c} "
+                             f"({_CHANNEL_NAMES[c]})")
+        return image[:, :, :3]
+    if channels == 2:
+        if c < 2:
+            raise ValueError(f"{src}: need 2 channels, got 1 (grayscale)")
+        return image[:, :, :2]
+    if channels == 1:
+        if c >= 3:
+            warnings.warn(f"{src}: expected a grayscale image, got {c} channels "
+                          f"({_CHANNEL_NAMES[c]}); using the first (red) channel",
+                          JaxnmWarning, stacklevel=3)
+        return image[:, :, :1]
+    raise ValueError(f"load_texture: channels must be None, 1, 2 or 3, got {channels!r}")
+
+
+def save_png(path: PathLike, image, *, bits: int = 8) -> None:
+    """Write a float image in IMAGE layout (row 0 = top) as an 8- or 16-bit PNG.
+
+    ``image`` is (H, W), (H, W, 1), (H, W, 2), (H, W, 3) or (H, W, 4). Values are
+    clipped to [0, 1] and quantised to ``round(x * (2**bits - 1))`` (halves round
+    up). No colour transform is applied: encode sRGB first if you want it.
+    Parent directories are created.
+    """
+    p = Path(os.fspath(path))
+    if p.suffix.lower() != ".png":
+        raise ValueError(f"{p}: save_png writes PNG files; the name must end in .png")
+    if bits not in (8, 16):
+        raise ValueError(f"{p}: bits must be 8 or 16, got {bits!r}")
+    img = np.asarray(image)
+    if not np.issubdtype(img.dtype, np.floating):
+        raise ValueError(f"{p}: save_png takes a float image in [0, 1], got dtype {img.dtype}")
+    if img.ndim == 2:
+        img = img[:, :, None]
+    if img.ndim != 3 or not 1 <= img.shape[2] <= 4 or img.shape[0] == 0 or img.shape[1] == 0:
+        raise ValueError(f"{p}: image must have shape (H, W) or (H, W, C) with C in 1..4 and "
+                         f"H, W > 0, got {np.shape(image)}")
+    if np.isnan(img).any():
+        raise ValueError(f"{p}: the image to save contains NaN values")
+    maxv = 2**bits - 1
+    q = np.floor(np.clip(img.astype(np.float64), 0.0, 1.0) * maxv + 0.5)
+    q = q.astype(np.uint8 if bits == 8 else np.uint16)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_bytes(_encode_png(q))  # not imageio: Pillow cannot write 16-bit colour PNGs
+
+
+def save_aovs(path: PathLike, aovs: dict[str, Any]) -> None:
+    """Write named image buffers (AOVs) to an .npz file as float32 ``(H, W, C)`` arrays.
+
+    2-D arrays get a trailing channel axis; bool and integer arrays become float32.
+    Parent directories are created.
+    """
+    p = Path(os.fspath(path))
+    if p.suffix.lower() != ".npz":
+        raise ValueError(f"{p}: save_aovs writes .npz files; the name must end in .npz")
+    out = {}
+    for name, value in aovs.items():
+        if not isinstance(name, str) or not name or "/" in name:
+            raise ValueError(f"{p}: AOV names must be non-empty strings without '/', got "
+                             f"{name!r}")
+        a = np.asarray(value)
+        if not (a.dtype == np.bool_ or np.issubdtype(a.dtype, np.integer)
+                or np.issubdtype(a.dtype, np.floating)):
+            raise ValueError(f"{p}: AOV {name!r} has unsupported dtype {a.dtype}")
+        if a.ndim == 2:
+            a = a[:, :, None]
+        if a.ndim != 3:
+            raise ValueError(f"{p}: AOV {name!r} must have shape (H, W) or (H, W, C), got "
+                             f"{a.shape}")
+        out[name] = a.astype(np.float32)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    with open(p, "wb") as f:  # a file object: np.savez would append .npz to other names
+        np.savez(f, **out)
+
+
+def load_aovs(path: PathLike) -> dict[str, np.ndarray]:
+    """The float32 arrays written by `save_aovs`, by name."""
+    p = _existing_file(path)
+    try:
+        z = np.load(p, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:
+        raise ValueError(f"{p}: cannot read AOVs ({type(e).__name__}: {e})") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise ValueError(f"{p}: not an .npz archive of AOVs")
+    with z:
+        return {k: np.asarray(z[k], np.float32) for k in z.files}
+
+
+# ----------------------------------------------------------------------------- PNG codec
+# imageio reads PNGs through Pillow, which turns 16-bit colour PNGs into 8-bit
+# images and cannot write them at all; 16-bit PNGs are therefore coded here.
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_COLOR_TYPES = {0: 1, 4: 2, 2: 3, 6: 4}  # PNG colour type -> channels
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return (struct.pack(">I", len(data)) + kind + data
+            + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
+
+
+def _encode_png(q: np.ndarray) -> bytes:
+    """PNG bytes of a uint8 or uint16 (H, W, C) image (filter type 0 on every row)."""
+    h, w, c = q.shape
+    bits = 16 if q.dtype == np.uint16 else 8
+    color_type = {v: k for k, v in _PNG_COLOR_TYPES.items()}[c]
+    rows = np.ascontiguousarray(q.astype(">u2" if bits == 16 else np.uint8)).view(np.uint8)
+    rows = rows.reshape(h, -1)
+    raw = np.concatenate([np.zeros((h, 1), np.uint8), rows], axis=1).tobytes()
+    ihdr = struct.pack(">IIBBBBB", w, h, bits, color_type, 0, 0, 0)
+    return (_PNG_SIGNATURE + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", zlib.compress(raw))
+            + _png_chunk(b"IEND", b""))
+
+
+def _decode_png16(data: bytes, src: str) -> np.ndarray:
+    """uint16 (H, W, C) pixels of a non-interlaced 16-bit PNG."""
+    pos, ihdr, idat = 8, None, []
+    while pos + 12 <= len(data):
+        (length,) = struct.unpack_from(">I", data, pos)
+        kind = data[pos + 4:pos + 8]
+        body = data[pos + 8:pos + 8 + length]
+        (crc,) = struct.unpack_from(">I", data, pos + 8 + length) if (
+            pos + 12 + length <= len(data)) else (None,)
+        if crc is None or zlib.crc32(kind + body) & 0xFFFFFFFF != crc:
+            raise ValueError(f"{src}: corrupt PNG (bad or truncated {kind!r} chunk)")
+        if kind == b"IHDR":
+            ihdr = struct.unpack(">IIBBBBB", body)
+        elif kind == b"IDAT":
+            idat.append(body)
+        elif kind == b"IEND":
+            break
+        pos += 12 + length
+    if ihdr is None or not idat:
+        raise ValueError(f"{src}: corrupt PNG (no IHDR or IDAT chunk)")
+    w, h, bits, color_type, _, _, interlace = ihdr
+    if color_type not in _PNG_COLOR_TYPES or bits != 16:
+        raise ValueError(f"{src}: unsupported PNG colour type {color_type} at {bits} bits")
+    if interlace:
+        raise ValueError(f"{src}: interlaced 16-bit PNGs are not supported; save it without "
+                         f"interlacing")
+    if w == 0 or h == 0:
+        raise ValueError(f"{src}: the image is empty ({w}x{h})")
+    c = _PNG_COLOR_TYPES[color_type]
+    try:
+        raw = zlib.decompress(b"".join(idat))
+    except zlib.error as e:
+        raise ValueError(f"{src}: corrupt PNG image data ({e})") from None
+    if len(raw) != h * (1 + w * 2 * c):
+        raise ValueError(f"{src}: corrupt PNG: {len(raw)} bytes of image data for a "
+                         f"{w}x{h}x{c} 16-bit image")
+    rows = np.frombuffer(raw, np.uint8).reshape(h, 1 + w * 2 * c)
+    if rows[:, 0].max() > 4:
+        raise ValueError(f"{src}: corrupt PNG: unknown row filter type {rows[:, 0].max()}")
+    pixels = _png_unfilter(rows[:, 1:].reshape(h, w, 2 * c), rows[:, 0])
+    return pixels.reshape(h, w * 2 * c).view(">u2").reshape(h, w, c).astype(np.uint16)
+
+
+def _png_unfilter(filtered: np.ndarray, ftype: np.ndarray) -> np.ndarray:
+    """Undo PNG row filters: (H, W, bytes per pixel) uint8 -> same, raw bytes.
+
+    Pixel (y, x) depends on its left, upper and upper-left neighbours, so all
+    pixels on one anti-diagonal y + x = k are independent: sweep the diagonals.
+    """
+    h, w, _ = filtered.shape
+    if ftype.max() <= 2:  # None / Sub / Up only: one vectorised step per row (uint8 wraps)
+        out8, prev = np.empty_like(filtered), np.zeros_like(filtered[0])
+        for y in range(h):
+            row = filtered[y]
+            if ftype[y] == 1:
+                row = np.cumsum(row, axis=0, dtype=np.uint8)
+            elif ftype[y] == 2:
+                row = row + prev
+            out8[y] = prev = row
+        return out8
+    f = filtered.astype(np.int32)
+    out = np.zeros((h + 1, w + 1, f.shape[2]), np.int32)  # row/column 0: zero padding
+    for k in range(h + w - 1):
+        y = np.arange(max(0, k - w + 1), min(h - 1, k) + 1)
+        x = k - y
+        a, b, c = out[y + 1, x], out[y, x + 1], out[y, x]  # left, up, up-left
+        t = ftype[y][:, None]
+        pa, pb, pc = np.abs(b - c), np.abs(a - c), np.abs(a + b - 2 * c)
+        paeth = np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))
+        pred = np.select([t == 1, t == 2, t == 3, t == 4], [a, b, (a + b) >> 1, paeth], 0)
+        out[y + 1, x + 1] = (f[y, x] + pred) & 0xFF
+    return out[1:, 1:].astype(np.uint8)

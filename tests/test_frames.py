@@ -1,0 +1,727 @@
+"""Tangent frames: GLSL fidelity, analytic truth, mirrored uv, invariants, HLSL ddy,
+double-sided surfaces, gradients and degenerate input.
+
+Run with ``pytest -s`` to see the measured numbers.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from jax.test_util import check_grads
+
+import jaxnm
+from jaxnm import frames as F
+from jaxnm.camera import Camera, look_at, orthographic, perspective, to_clip
+from jaxnm.geometry import vertex_normals
+from jaxnm.numerics import safe_normalize
+
+SIZE = 48
+METHODS = F.FRAME_METHODS
+MIRROR = np.array([-1.0, 1.0, 1.0])
+
+
+# --------------------------------------------------------------------------------------
+# scenes and helpers (float64 NumPy, cast to float32 for rendering)
+# --------------------------------------------------------------------------------------
+
+
+def grid(fn, nu, nv, u_range=(0.0, 1.0), v_range=(0.0, 1.0)):
+    """A (nu x nv)-cell grid; returns positions fn(U, V), the parameters (U, V) and CCW faces."""
+    us, vs = np.linspace(*u_range, nu + 1), np.linspace(*v_range, nv + 1)
+    U, V = np.meshgrid(us, vs, indexing="ij")
+    idx = np.arange((nu + 1) * (nv + 1)).reshape(nu + 1, nv + 1)
+    a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]
+    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
+                            np.stack([a, c, d], -1).reshape(-1, 3)])
+    return fn(U, V).reshape(-1, 3), np.stack([U, V], -1).reshape(-1, 2), faces
+
+
+def camera(eye, target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), *, fov=60.0, ortho=None):
+    proj = perspective(fov, 1.0, 0.05, 20.0) if ortho is None else orthographic(
+        -ortho, ortho, -ortho, ortho, 0.05, 20.0)
+    return Camera.from_matrices(look_at(eye, target, up), proj)
+
+
+def render(pos, faces, cam, size=SIZE):
+    clip = to_clip(jnp.asarray(pos, jnp.float32), cam)
+    return jaxnm.rasterize(clip, jnp.asarray(faces, jnp.int32), width=size, height=size)
+
+
+def procedural_map(uv):
+    """A smooth tangent-space map vector field (unnormalised) with non-zero x and y."""
+    u, v = uv[..., 0:1], uv[..., 1:2]
+    return jnp.concatenate([0.45 * jnp.sin(9.0 * u + 0.3) + 0.15, 0.35 * jnp.cos(7.0 * v),
+                            jnp.ones_like(u)], -1)
+
+
+@functools.partial(jax.jit, static_argnames=("mode", "double_sided", "normalize"))
+def pipeline(frags, pos, uv, nrm, eye, noise, *, mode="fine", double_sided=False,
+             normalize="max"):
+    """Every frame method on one rendered scene: {name: (T, B, N, perturbed)} plus inputs."""
+    tangents = F.vertex_tangents(pos, nrm, uv, frags.faces)
+    at = jaxnm.interpolate({"p": pos, "pc": pos - eye[None], "uv": uv, "n": nrm, "t": tangents}, frags,
+                           derivatives=mode)
+    m = procedural_map(at["uv"].value) + noise
+    kw = dict(N=at["n"], p_attr=at["p"], uv_attr=at["uv"], tri_p=F.triangle_corners(pos, frags),
+              tri_uv=F.triangle_corners(uv, frags), tangent=at["t"],
+              front_facing=frags.front_facing, double_sided=double_sided, normalize=normalize)
+    variants = {name: dict(frame=name) for name in METHODS}
+    variants["cotangent_cam"] = dict(frame="cotangent", p_attr=at["pc"])  # Schueler's -V
+    variants["exact_face"] = dict(frame="exact", use_face_normal=True)
+    out = {}
+    for name, extra in variants.items():
+        fr = F.compute_frame(**{**kw, **extra})
+        out[name] = (fr.T, fr.B, fr.N, F.perturb_normal(fr, m))
+    out["attrs"], out["m"] = at, m
+    return out
+
+
+def run(scene, cam, *, noise=None, size=SIZE, **kw):
+    pos, uv, nrm, faces = scene
+    frags = render(pos, faces, cam, size)
+    if noise is None:
+        noise = np.zeros((size, size, 3), np.float32)
+    out = pipeline(frags, jnp.asarray(pos, jnp.float32), jnp.asarray(uv, jnp.float32),
+                   jnp.asarray(nrm, jnp.float32), cam.eye, jnp.asarray(noise, jnp.float32), **kw)
+    return frags, jax.tree.map(np.asarray, out)
+
+
+def angle_deg(a, b):
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1)))
+
+
+def max_normalized(T, B):
+    s = np.sqrt(np.maximum((T * T).sum(-1), (B * B).sum(-1)))[..., None]
+    return T / s, B / s
+
+
+def glsl_perturb_normal(g_vertexnormal, dp1, dp2, duv1, duv2, mapv):
+    """Float64 NumPy port of the published GLSL, line by line (dFdx/dFdy given as inputs).
+
+    ``main``: ``N = normalize(g_vertexnormal)``; ``perturb_normal``:
+    ``TBN = cotangent_frame(N, -V, texcoord)``, ``normalize(TBN * map)``.
+    """
+    N = g_vertexnormal / np.linalg.norm(g_vertexnormal, axis=-1, keepdims=True)
+    # cotangent_frame( vec3 N, vec3 p, vec2 uv )
+    dp2perp = np.cross(dp2, N)
+    dp1perp = np.cross(N, dp1)
+    T = dp2perp * duv1[..., 0:1] + dp1perp * duv2[..., 0:1]
+    B = dp2perp * duv1[..., 1:2] + dp1perp * duv2[..., 1:2]
+    invmax = 1.0 / np.sqrt(np.maximum((T * T).sum(-1), (B * B).sum(-1)))[..., None]
+    T, B = T * invmax, B * invmax
+    # TBN * map: mat3 columns T, B, N times a column vector
+    v = T * mapv[..., 0:1] + B * mapv[..., 1:2] + N * mapv[..., 2:3]
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def torus_scene(R=1.0, r=0.42, nu=48, nv=24):
+    def fn(U, V):
+        a, b = 2 * np.pi * U, 2 * np.pi * V
+        return np.stack([(R + r * np.cos(b)) * np.cos(a), (R + r * np.cos(b)) * np.sin(a),
+                         r * np.sin(b)], -1)
+
+    pos, uv, faces = grid(fn, nu, nv)
+    a, b = 2 * np.pi * uv[:, 0], 2 * np.pi * uv[:, 1]
+    nrm = np.stack([np.cos(b) * np.cos(a), np.cos(b) * np.sin(a), np.sin(b)], -1)
+    return pos, uv * [3.0, 1.0], nrm, faces  # 3x tiling around the ring
+
+
+def sphere_angles(p):
+    """(lat, lon) of points, for p = (cos lat cos lon, sin lat, -cos lat sin lon)."""
+    q = p / np.linalg.norm(p, axis=-1, keepdims=True)
+    return np.arcsin(np.clip(q[..., 1], -1, 1)), np.arctan2(-q[..., 2], q[..., 0])
+
+
+def sphere_scene(nu=48, nv=24):
+    def fn(U, V):
+        lon, lat = 2 * np.pi * U - np.pi, np.pi * (V - 0.5)
+        return np.stack([np.cos(lat) * np.cos(lon), np.sin(lat), -np.cos(lat) * np.sin(lon)], -1)
+
+    pos, uv, faces = grid(fn, nu, nv)
+    return pos, uv, pos.copy(), faces
+
+
+PLANE_SHEAR = np.array([[0.8, 0.5], [-0.3, 1.2]])  # uv = A (x, y) + c over the plane
+
+
+def plane_scene(e1, e2, n_cells=6):
+    """A square in the plane spanned by orthonormal e1, e2, sheared affine uv; also grad u, v."""
+    e1, e2 = np.asarray(e1, np.float64), np.asarray(e2, np.float64)
+    pos, xy, faces = grid(lambda x, y: x[..., None] * e1 + y[..., None] * e2, n_cells, n_cells,
+                          (-1, 1), (-1, 1))
+    uv = xy @ PLANE_SHEAR.T + [0.2, 0.1]
+    nrm = np.broadcast_to(np.cross(e1, e2), pos.shape).copy()
+    grad_u = PLANE_SHEAR[0, 0] * e1 + PLANE_SHEAR[0, 1] * e2
+    grad_v = PLANE_SHEAR[1, 0] * e1 + PLANE_SHEAR[1, 1] * e2
+    return (pos, uv, nrm, faces), grad_u, grad_v
+
+
+def tilted_plane():
+    t, a = 0.3, 0.9
+    return plane_scene([np.cos(t), np.sin(t), 0.0],
+                       [-np.sin(t) * np.cos(a), np.cos(t) * np.cos(a), -np.sin(a)])
+
+
+def mirror_scene(split_seam: bool):
+    """Plane z = 0, x, y in [-1, 1]; u = 1 - |x| (right half mirrors the left), v = (y + 1)/2.
+
+    Triangulated mirror-symmetrically; the seam column x = 0 is shared by both halves,
+    or duplicated (``split_seam``). Always 50 vertices (unused padding when shared).
+    """
+    nx, ny = 8, 4
+    xs, ys = -1.0 + np.arange(nx + 1) / 4.0, -1.0 + np.arange(ny + 1) / 2.0
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    pos = np.stack([X, Y, np.zeros_like(X)], -1).reshape(-1, 3)
+    uv = np.stack([1.0 - np.abs(X), (Y + 1.0) / 2.0], -1).reshape(-1, 2)
+    idx = np.arange(pos.shape[0]).reshape(nx + 1, ny + 1)
+    right_idx = idx.copy()
+    extra = pos[idx[nx // 2]], uv[idx[nx // 2]]
+    right_idx[nx // 2] = pos.shape[0] + np.arange(ny + 1)
+    pos, uv = np.concatenate([pos, extra[0]]), np.concatenate([uv, extra[1]])
+    faces = []
+    for i in range(nx):
+        ids = idx if (i < nx // 2 or not split_seam) else right_idx
+        for j in range(ny):
+            a, b, c, d = ids[i, j], ids[i + 1, j], ids[i + 1, j + 1], ids[i, j + 1]
+            faces += [[a, b, c], [a, c, d]] if i < nx // 2 else [[a, b, d], [b, c, d]]
+    nrm = np.broadcast_to([0.0, 0.0, 1.0], pos.shape).copy()
+    return pos, uv, nrm, np.asarray(faces)
+
+
+def report(name, **numbers):
+    print(f"\n[{name}] " + ", ".join(f"{k}={v:.3g}" for k, v in numbers.items()))
+
+
+# --------------------------------------------------------------------------------------
+# GLSL fidelity
+# --------------------------------------------------------------------------------------
+
+
+def test_glsl_fidelity_torus():
+    """jaxnm (float32) matches a float64 port of the published GLSL fed the same derivatives."""
+    scene = torus_scene()
+    cam = camera((0.3, -2.1, 1.9), up=(0.0, 0.0, 1.0), fov=55.0)
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0.0, 0.6, (SIZE, SIZE, 3)) * [1.0, 1.0, 0.3]  # random map vectors
+    frags, out = run(scene, cam, noise=noise)
+    mask = np.asarray(frags.mask)
+    assert mask.sum() > 600
+    at, m = out["attrs"], out["m"].astype(np.float64)
+    f64 = lambda x: x.astype(np.float64)  # noqa: E731
+    ref = glsl_perturb_normal(f64(at["n"].value), f64(at["pc"].ddx), f64(at["pc"].ddy),
+                              f64(at["uv"].ddx), f64(at["uv"].ddy), m)
+    err = angle_deg(out["cotangent"][3], ref)[mask]
+    # world position and camera-relative position (-V) give the same frame
+    cam_err = angle_deg(out["cotangent"][3], out["cotangent_cam"][3])[mask]
+    report("glsl fidelity", mean_deg=err.mean(), max_deg=err.max(), p99_deg=np.quantile(err, .99),
+           world_vs_camrel_max_deg=cam_err.max())
+    assert err.mean() < 0.01
+    assert np.quantile(err, 0.99) < 0.05
+    assert cam_err.mean() < 0.01
+    np.testing.assert_allclose(out["cotangent"][0][mask], out["cotangent_cam"][0][mask], atol=2e-3)
+    # the perturbation is real: the map moves the normals by tens of degrees
+    assert angle_deg(out["cotangent"][3], at["n"].value)[mask].mean() > 10.0
+
+
+# --------------------------------------------------------------------------------------
+# analytic truth
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("mode", ["analytic", "fine"])
+@pytest.mark.parametrize("projection", ["perspective", "orthographic"])
+def test_plane_frames_equal_affine_uv_gradients(mode, projection):
+    """Tilted plane, sheared affine uv: cotangent and exact give grad u, grad v exactly."""
+    scene, gu, gv = tilted_plane()
+    cam = camera((0.3, 0.4, 1.6), fov=80.0, ortho=None if projection == "perspective" else 1.2)
+    frags, out = run(scene, cam, mode=mode)
+    mask = np.asarray(frags.mask)
+    assert mask.sum() > 400
+    t_ref, b_ref = max_normalized(gu, gv)
+    errors = {}
+    for name in ("cotangent", "cotangent_cam", "exact", "exact_face"):
+        T, B = out[name][0][mask], out[name][1][mask]
+        errors[name] = max(np.abs(T - t_ref).max(), np.abs(B - b_ref).max())
+        assert errors[name] < 1e-5, name
+    # normalize="none": the true gradients themselves (sign and magnitude)
+    _, out_none = run(scene, cam, mode=mode, normalize="none")
+    for name in ("cotangent", "exact_face"):
+        T, B = out_none[name][0][mask], out_none[name][1][mask]
+        rel = max(np.abs(T - gu).max(), np.abs(B - gv).max()) / np.linalg.norm(gu)
+        errors[name + "_none_rel"] = rel
+        assert rel < 2e-5, name
+    # non-perspective: the pixel Jacobian is not a similarity (foreshortening), so it is wrong
+    T, B = out["nonperspective"][0][mask], out["nonperspective"][1][mask]
+    errors["nonperspective"] = max(np.abs(T - t_ref).max(), np.abs(B - b_ref).max())
+    np_angle = angle_deg(out["nonperspective"][3], out["cotangent"][3])[mask]
+    report(f"plane {projection} {mode}", **errors, nonpersp_normal_err_mean_deg=np_angle.mean(),
+           nonpersp_normal_err_max_deg=np_angle.max())
+    assert errors["nonperspective"] > 0.04
+    assert np_angle.max() > 1.0
+
+
+@pytest.mark.parametrize("projection", ["perspective", "orthographic"])
+def test_nonperspective_exact_without_foreshortening(projection):
+    """Plane parallel to the image plane (any in-plane rotation, sheared uv): nonperspective is right."""
+    t = 0.4
+    scene, gu, gv = plane_scene([np.cos(t), np.sin(t), 0.0], [-np.sin(t), np.cos(t), 0.0])
+    cam = camera((0.0, 0.0, 2.0), fov=70.0, ortho=None if projection == "perspective" else 1.3)
+    frags, out = run(scene, cam, mode="fine")
+    mask = np.asarray(frags.mask)
+    t_ref, b_ref = max_normalized(gu, gv)
+    for name in ("nonperspective", "cotangent"):
+        err = max(np.abs(out[name][0][mask] - t_ref).max(), np.abs(out[name][1][mask] - b_ref).max())
+        assert err < 1e-5, name
+
+
+def test_sphere_latlong_analytic_gradients():
+    """UV sphere, lat-long uv: cotangent frame vs the analytic grad u, grad v of the smooth sphere."""
+    scene = sphere_scene()
+    cam = camera((2.6, 0.6, 0.4), fov=50.0)
+    frags, out = run(scene, cam, mode="fine")
+    _, out_a = run(scene, cam, mode="analytic")
+    mask = np.asarray(frags.mask)
+    p = out["attrs"]["p"].value.astype(np.float64)
+    lat, lon = sphere_angles(p)
+    sel = mask & (np.abs(lat) < np.radians(60)) & (np.abs(lon) < np.radians(150))
+    assert sel.sum() > 500
+    e_lon = np.stack([-np.sin(lon), np.zeros_like(lon), -np.cos(lon)], -1)
+    e_lat = np.stack([-np.sin(lat) * np.cos(lon), np.cos(lat), np.sin(lat) * np.sin(lon)], -1)
+    gu = e_lon / (2 * np.pi * np.cos(lat))[..., None]
+    gv = e_lat / np.pi
+    t_ref, b_ref = max_normalized(gu, gv)
+    nums = {}
+    for label, o in (("fine", out), ("analytic", out_a)):
+        T, B = o["cotangent"][0], o["cotangent"][1]
+        ang_t, ang_b = angle_deg(T, gu)[sel], angle_deg(B, gv)[sel]
+        len_err = np.abs(np.linalg.norm(T, axis=-1) - np.linalg.norm(t_ref, axis=-1))[sel]
+        len_err = np.maximum(len_err, np.abs(np.linalg.norm(B, axis=-1)
+                                             - np.linalg.norm(b_ref, axis=-1))[sel])
+        nums.update({f"{label}_T_mean_deg": ang_t.mean(), f"{label}_T_max_deg": ang_t.max(),
+                     f"{label}_B_mean_deg": ang_b.mean(), f"{label}_B_max_deg": ang_b.max(),
+                     f"{label}_len_max": len_err.max()})
+        assert ang_t.mean() < 1.0 and ang_b.mean() < 1.0
+        assert ang_t.max() < 4.0 and ang_b.max() < 4.0
+        assert len_err.max() < 0.06
+    report("sphere lat-long", **nums)
+
+
+# --------------------------------------------------------------------------------------
+# mirrored uv
+# --------------------------------------------------------------------------------------
+
+
+def _mirror_errors(out, mask, name):
+    n = out[name][3]
+    both = mask & mask[:, ::-1]
+    mirrored = angle_deg(n, n[:, ::-1] * MIRROR)  # vs the mirror image of the mirror pixel
+    unmirrored = angle_deg(n, n[:, ::-1])
+    return mirrored, unmirrored, both
+
+
+def test_mirrored_uv():
+    """Right half's uv mirrors the left's: which methods shade mirror-symmetrically."""
+    cam = camera((0.0, -1.5, 1.6), fov=60.0)
+    shared = mirror_scene(split_seam=False)
+    frags, out = run(shared, cam)
+    _, out_split = run(mirror_scene(split_seam=True), cam)
+    mask = np.asarray(frags.mask)
+    tid = np.asarray(frags.triangle_id)
+    faces = shared[3]
+    seam_vertices = set(np.flatnonzero(np.isclose(shared[0][:45, 0], 0.0)))
+    touches_seam = np.array([len(seam_vertices & set(f)) > 0 for f in faces])[np.maximum(tid, 0)]
+    left = np.zeros_like(mask)
+    left[:, : SIZE // 2] = True
+    nums = {}
+    for name in ("cotangent", "nonperspective", "exact", "exact_face"):
+        mirr, _, both = _mirror_errors(out, mask, name)
+        nums[name + "_max_deg"] = mirr[both].max()
+        assert mirr[both].max() < 0.01, name
+    # vertex tangents with a split (duplicated) seam: symmetric
+    mirr, _, both = _mirror_errors(out_split, mask, "vertex")
+    nums["vertex_split_max_deg"] = mirr[both].max()
+    assert mirr[both].max() < 0.01
+    # shared seam vertices: the two halves' tangents (+x, -x) cancel, the vertex falls back to
+    # the axis tangent (-x for N = +z), so left-half triangles touching the seam interpolate
+    # +x -> -x: symmetric away from the seam, broken next to it (on the left half)
+    mirr, _, both = _mirror_errors(out, mask, "vertex")
+    away = both & ~touches_seam & ~touches_seam[:, ::-1]
+    near_left = both & touches_seam & left
+    nums["vertex_shared_away_max_deg"] = mirr[away].max()
+    nums["vertex_shared_seam_mean_deg"] = mirr[near_left].mean()
+    assert mirr[away].max() < 0.01
+    assert mirr[near_left].mean() > 5.0
+    tangents = np.asarray(F.vertex_tangents(*[jnp.asarray(x, jnp.float32) for x in
+                                              (shared[0], shared[2], shared[1])], shared[3]))
+    for v in seam_vertices:
+        np.testing.assert_allclose(tangents[v], [-1.0, 0.0, 0.0, -1.0], atol=1e-6)
+    # axis: ignores uv; N is constant, so both halves get the *same* (unmirrored) normals
+    mirr, unmirr, both = _mirror_errors(out, mask, "axis")
+    nums["axis_mirror_mean_deg"] = mirr[both].mean()
+    nums["axis_unmirrored_max_deg"] = unmirr[both].max()
+    assert unmirr[both].max() < 1e-3
+    assert mirr[both].mean() > 5.0
+    report("mirrored uv", **nums)
+
+
+# --------------------------------------------------------------------------------------
+# invariants (hypothesis), function level
+# --------------------------------------------------------------------------------------
+
+
+def random_derivatives(seed, n=64):
+    """Random pixel derivatives: N unit, dp1, dp2 in a plane near N's, random duv (float32)."""
+    rng = np.random.default_rng(seed)
+    N = rng.normal(size=(n, 3))
+    N /= np.linalg.norm(N, axis=-1, keepdims=True)
+    nf = N + 0.3 * rng.normal(size=(n, 3))
+    nf /= np.linalg.norm(nf, axis=-1, keepdims=True)
+    dp1, dp2 = (x - nf * (x * nf).sum(-1, keepdims=True) for x in rng.normal(size=(2, n, 3)))
+    duv1, duv2 = rng.normal(size=(2, n, 2))
+    good = (np.abs((N * np.cross(dp1, dp2)).sum(-1)) > 0.2 * np.linalg.norm(dp1, axis=-1)
+            * np.linalg.norm(dp2, axis=-1)) & (np.abs(duv1[:, 0] * duv2[:, 1] - duv1[:, 1]
+                                                      * duv2[:, 0]) > 0.2)
+    cast = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    return tuple(map(cast, (N, dp1, dp2, duv1, duv2))), good
+
+
+@functools.partial(jax.jit, static_argnames=("normalize",))
+def all_frames(N, dp1, dp2, duv1, duv2, *, normalize="max"):
+    """Every method on pixel-level inputs; exact/vertex use the triangle (0, dp1, dp2)."""
+    tri_p = jnp.stack([jnp.zeros_like(dp1), dp1, dp2], -2) + 3.0
+    tri_uv = jnp.stack([jnp.zeros_like(duv1), duv1, duv2], -2) + 0.5
+    out = {
+        "cotangent": F.cotangent_frame(N, dp1, dp2, duv1, duv2, normalize=normalize),
+        "nonperspective": F.nonperspective_frame(N, dp1, dp2, duv1, duv2, normalize=normalize),
+        "exact": F.exact_frame(tri_p, tri_uv, N, normalize=normalize),
+        "exact_face": F.exact_frame(tri_p, tri_uv, normalize=normalize),
+        "axis": F.axis_frame(N),
+    }
+    # per-vertex tangents of the single triangle, all three vertices with normal N
+    vt = jax.vmap(lambda p, n, t: F.vertex_tangents(p, jnp.stack([n] * 3), t, jnp.array(
+        [[0, 1, 2]])))(tri_p, N, tri_uv)
+    out["vertex"] = F.vertex_frame(vt[:, 0, :3], vt[:, 0, 3], N)
+    return out
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), s_uv=st.floats(1e-3, 1e3), s_p=st.floats(1e-3, 1e3))
+def test_frames_scale_invariant(seed, s_uv, s_p):
+    """normalize='max': invariant to scaling uv and world space; 'none' scales as s_uv / s_p."""
+    (N, dp1, dp2, duv1, duv2), good = random_derivatives(seed)
+    base = all_frames(N, dp1, dp2, duv1, duv2)
+    scaled = all_frames(N, dp1 * s_p, dp2 * s_p, duv1 * s_uv, duv2 * s_uv)
+    for name in ("cotangent", "nonperspective", "exact", "exact_face", "vertex", "axis"):
+        for a, b in ((base[name].T, scaled[name].T), (base[name].B, scaled[name].B)):
+            np.testing.assert_allclose(np.asarray(a)[good], np.asarray(b)[good], atol=2e-5,
+                                       err_msg=name)
+    base_n = all_frames(N, dp1, dp2, duv1, duv2, normalize="none")
+    scaled_n = all_frames(N, dp1 * s_p, dp2 * s_p, duv1 * s_uv, duv2 * s_uv, normalize="none")
+    for name in ("cotangent", "exact", "exact_face"):
+        np.testing.assert_allclose(np.asarray(scaled_n[name].T)[good],
+                                   np.asarray(base_n[name].T)[good] * (s_uv / s_p), rtol=1e-3,
+                                   atol=1e-4 * s_uv / s_p, err_msg=name)
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_frames_orthogonal_to_N_and_handedness(seed):
+    """T, B _|_ N (cotangent, exact); u -> -u flips det[T, B, N] for every uv-aware method."""
+    (N, dp1, dp2, duv1, duv2), good = random_derivatives(seed)
+    base = all_frames(N, dp1, dp2, duv1, duv2)
+    for name in ("cotangent", "exact", "vertex", "axis"):
+        for v in (base[name].T, base[name].B):
+            assert np.abs((np.asarray(v) * np.asarray(N)).sum(-1))[good].max() < 1e-5, name
+    flip = jnp.asarray([[-1.0, 1.0]], jnp.float32)
+    mirrored = all_frames(N, dp1, dp2, duv1 * flip, duv2 * flip)
+    for name in ("cotangent", "nonperspective", "exact", "exact_face", "vertex"):
+        h0, h1 = np.asarray(base[name].handedness)[good], np.asarray(mirrored[name].handedness)[good]
+        assert np.all(np.sign(h0) == -np.sign(h1)), name
+        assert np.all(np.abs(h0) > 1e-3), name
+        # only T changes, and it is negated (B is the same covector)
+        np.testing.assert_allclose(np.asarray(mirrored[name].B)[good], np.asarray(base[name].B)[good],
+                                   atol=2e-5, err_msg=name)
+    np.testing.assert_array_equal(np.asarray(mirrored["axis"].T), np.asarray(base["axis"].T))
+
+
+def test_frames_broadcast_batch_shapes():
+    (N, dp1, dp2, duv1, duv2), _ = random_derivatives(1, n=24)
+    r = lambda x: x.reshape(2, 3, 4, -1)  # noqa: E731
+    flat = F.cotangent_frame(N, dp1, dp2, duv1, duv2)
+    shaped = F.cotangent_frame(r(N), r(dp1), r(dp2), r(duv1), r(duv2))
+    assert shaped.T.shape == (2, 3, 4, 3) and shaped.handedness.shape == (2, 3, 4)
+    np.testing.assert_allclose(np.asarray(shaped.T).reshape(-1, 3), np.asarray(flat.T), atol=1e-6)
+    assert F.perturb_normal(shaped, r(N)).shape == (2, 3, 4, 3)
+
+
+# --------------------------------------------------------------------------------------
+# HLSL ddy
+# --------------------------------------------------------------------------------------
+
+
+def test_hlsl_ddy_sign():
+    """ddy_sign=-1: cotangent 'max' -> (-T, -B, N), handedness kept; 'none' and nonperspective same."""
+    (N, dp1, dp2, duv1, duv2), good = random_derivatives(7)
+    m = jnp.asarray(np.random.default_rng(3).normal(size=(64, 3)) * [1, 1, 0.2] + [0, 0, 1],
+                    jnp.float32)
+    gl = F.cotangent_frame(N, dp1, dp2, duv1, duv2)
+    hl = F.cotangent_frame(N, dp1, dp2, duv1, duv2, ddy_sign=-1)
+    np.testing.assert_allclose(hl.T, -gl.T, atol=1e-6)
+    np.testing.assert_allclose(hl.B, -gl.B, atol=1e-6)
+    np.testing.assert_array_equal(hl.N, gl.N)
+    np.testing.assert_allclose(hl.handedness, gl.handedness, atol=1e-5)
+    # the map's tangential part is negated (180 degree rotation about N): bumps read as dents
+    np.testing.assert_allclose(F.perturb_normal(hl, m),
+                               F.perturb_normal(gl, m * jnp.asarray([[-1.0, -1.0, 1.0]])), atol=1e-5)
+    for fn, kw in ((F.cotangent_frame, dict(normalize="none")), (F.nonperspective_frame, {}),
+                   (F.nonperspective_frame, dict(normalize="none"))):
+        a = fn(N, dp1, dp2, duv1, duv2, **kw)
+        b = fn(N, dp1, dp2, duv1, duv2, ddy_sign=-1, **kw)
+        np.testing.assert_allclose(np.asarray(b.T)[good], np.asarray(a.T)[good], rtol=1e-5,
+                                   atol=1e-5)
+    # Schueler's advice: with N = the face normal from the same derivatives, T and B do not
+    # depend on the convention (the face normal flips instead)
+    nf = lambda a, b: safe_normalize(jnp.cross(a, b))  # noqa: E731
+    a = F.cotangent_frame(nf(dp1, dp2), dp1, dp2, duv1, duv2)
+    b = F.cotangent_frame(nf(dp1, -dp2), dp1, -dp2, duv1, -duv2)
+    np.testing.assert_allclose(b.T, a.T, atol=1e-6)
+    np.testing.assert_allclose(b.N, -a.N, atol=1e-6)
+    with pytest.raises(ValueError, match="ddy_sign"):
+        F.cotangent_frame(N, dp1, dp2, duv1, duv2, ddy_sign=0)
+
+
+def test_hlsl_ddy_sign_rendered_plane():
+    scene, gu, gv = tilted_plane()
+    cam = camera((0.3, 0.4, 1.6), fov=80.0)
+    frags, out = run(scene, cam)
+    at, mask = out["attrs"], np.asarray(frags.mask)
+    fr = F.compute_frame("cotangent", N=at["n"], p_attr=at["p"], uv_attr=at["uv"], ddy_sign=-1)
+    t_ref, b_ref = max_normalized(gu, gv)
+    np.testing.assert_allclose(np.asarray(fr.T)[mask], np.broadcast_to(-t_ref, (mask.sum(), 3)),
+                               atol=1e-5)
+    np.testing.assert_allclose(np.asarray(fr.B)[mask], np.broadcast_to(-b_ref, (mask.sum(), 3)),
+                               atol=1e-5)
+
+
+# --------------------------------------------------------------------------------------
+# double-sided
+# --------------------------------------------------------------------------------------
+
+
+def test_face_forward_flips_all_three():
+    (N, dp1, dp2, duv1, duv2), _ = random_derivatives(2, n=8)
+    fr = F.cotangent_frame(N, dp1, dp2, duv1, duv2)
+    front = jnp.asarray([True, False] * 4)
+    ff = F.face_forward(fr, front)
+    s = np.where(np.asarray(front), 1.0, -1.0)[:, None]
+    for a, b in ((ff.T, fr.T), (ff.B, fr.B), (ff.N, fr.N)):
+        np.testing.assert_array_equal(a, np.asarray(b) * s)
+    # the published cotangent frame is linear in N: flipping the frame == building it from -N
+    # except for N itself (that is why compute_frame re-orients it before face_forward)
+    flipped_n = F.cotangent_frame(-N, dp1, dp2, duv1, duv2)
+    np.testing.assert_allclose(flipped_n.T, -np.asarray(fr.T), atol=1e-6)
+
+
+def test_double_sided_thin_sheet():
+    """Seen from behind, every method gives exactly the negated front-side perturbed normal."""
+    scene, _, _ = plane_scene([1.0, 0.0, 0.0], [0.0, 1.0, 0.0], n_cells=4)
+    pos, uv, _, faces = scene
+    nrm = np.concatenate([0.3 * pos[:, :2], np.ones((len(pos), 1))], 1)  # smooth, non-constant
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    scene = (pos, uv, nrm, faces)
+    eye = np.array([0.4, -1.0, 1.7])
+    front_cam, back_cam = camera(eye, fov=70.0), camera(eye * [1, 1, -1], fov=70.0)
+    fr_front, out_f = run(scene, front_cam, double_sided=True)
+    fr_back, out_b = run(scene, back_cam, double_sided=True)
+    _, out_b1 = run(scene, back_cam, double_sided=False)
+    _, out_f1 = run(scene, front_cam, double_sided=False)
+    mf, mb = np.asarray(fr_front.mask), np.asarray(fr_back.mask)[:, ::-1]
+    assert np.all(np.asarray(fr_front.front_facing)[mf])
+    assert not np.any(np.asarray(fr_back.front_facing)[mb[:, ::-1]])
+    both = mf & mb
+    assert both.sum() > 800
+    nums = {}
+    for name in METHODS + ("exact_face", "cotangent_cam"):
+        nf, nb = out_f[name][3], out_b[name][3][:, ::-1]
+        np.testing.assert_array_equal(nf[mf], out_f1[name][3][mf])  # front: no change
+        err = angle_deg(nb, -nf)[both]
+        nums[name + "_max_deg"] = err.max()
+        assert err.max() < 0.01, name
+        np.testing.assert_allclose(out_b[name][2][:, ::-1][both], -out_f[name][2][both], atol=1e-6)
+    # without double-sided handling the published frame has T, B = -(front) and N unflipped
+    T1, B1, N1 = (x[:, ::-1][both] for x in out_b1["cotangent"][:3])
+    np.testing.assert_allclose(T1, -out_f["cotangent"][0][both], atol=1e-5)
+    np.testing.assert_allclose(B1, -out_f["cotangent"][1][both], atol=1e-5)
+    np.testing.assert_allclose(N1, out_f["cotangent"][2][both], atol=1e-6)
+    # ... so flipping all three of it (plain face_forward) would keep the bump a bump
+    naive = F.perturb_normal(F.face_forward(F.Frame(T1, B1, N1), np.zeros(T1.shape[0], bool)),
+                             out_b1["m"][:, ::-1][both])
+    nums["naive_cotangent_mean_deg"] = angle_deg(naive, -out_f["cotangent"][3][both]).mean()
+    assert nums["naive_cotangent_mean_deg"] > 5.0
+    report("double-sided", **nums)
+
+
+# --------------------------------------------------------------------------------------
+# degenerate input: values and gradients finite
+# --------------------------------------------------------------------------------------
+
+
+def degenerate_cases():
+    """Pixel-level inputs: ok, zero duv, zero N, flipped N, grazing, background, collinear uv."""
+    (N, dp1, dp2, duv1, duv2), _ = random_derivatives(5, n=8)
+    N, dp1, dp2, duv1, duv2 = (np.array(x) for x in (N, dp1, dp2, duv1, duv2))
+    duv1[1] = duv2[1] = 0.0  # degenerate uv mapping
+    N[2] = 0.0  # zero-length normal
+    N[3] = -N[3]  # back face (N away from the viewer)
+    dp2[4] = 2.0 * dp1[4]  # grazing: the pixel footprint collapses to a line
+    N[5] = dp1[5] = dp2[5] = duv1[5] = duv2[5] = 0.0  # background / helper pixel
+    duv2[6] = 3.0 * duv1[6]  # collinear uv derivatives
+    N[7] = dp1[7] / np.linalg.norm(dp1[7])  # N in the face plane: det[dp1, dp2, N] = 0
+    return tuple(jnp.asarray(x, jnp.float32) for x in (N, dp1, dp2, duv1, duv2))
+
+
+def _loss_all(N, dp1, dp2, duv1, duv2, m, tangent, normalize, ddy_sign):
+    tri_p = jnp.stack([jnp.zeros_like(dp1), dp1, dp2], -2)
+    tri_uv = jnp.stack([jnp.zeros_like(duv1), duv1, duv2], -2)
+    frames = [
+        F.cotangent_frame(N, dp1, dp2, duv1, duv2, normalize=normalize, ddy_sign=ddy_sign),
+        F.nonperspective_frame(N, dp1, dp2, duv1, duv2, normalize=normalize, ddy_sign=ddy_sign),
+        F.exact_frame(tri_p, tri_uv, N, normalize=normalize),
+        F.exact_frame(tri_p, tri_uv, normalize=normalize),
+        F.exact_frame(tri_p, tri_uv, N, use_face_normal=True, normalize=normalize),
+        F.vertex_frame(tangent, jnp.ones_like(tangent[..., 0]), N),
+        F.axis_frame(N),
+    ]
+    out = jnp.stack([F.perturb_normal(fr, m) for fr in frames])
+    return jnp.sum(out * jnp.asarray([[[0.3, -0.7, 0.5]]])), out
+
+
+@pytest.mark.parametrize("normalize,ddy_sign", [("max", 1), ("none", -1)])
+def test_degenerate_inputs_finite(normalize, ddy_sign):
+    args = degenerate_cases()
+    m = jnp.asarray(np.random.default_rng(0).normal(size=(8, 3)) * 0.5 + [0, 0, 1], jnp.float32)
+    tangent = jnp.asarray(np.array([[1, 0, 0], [0, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1],
+                                    [0, 0, 0], [1, 0, 1], [0, 1, 1]], np.float32))
+    tangent = tangent.at[7].set(args[0][7])  # tangent parallel to N
+    fn = jax.value_and_grad(_loss_all, argnums=(0, 1, 2, 3, 4, 5, 6), has_aux=True)
+    (_, out), grads = fn(*args, m, tangent, normalize, ddy_sign)
+    assert np.all(np.isfinite(out))
+    for g in grads:
+        assert np.all(np.isfinite(np.asarray(g)))
+    out = np.asarray(out)
+    n_unit = np.asarray(args[0]) / np.maximum(np.linalg.norm(args[0], axis=-1, keepdims=True),
+                                              1e-30)
+    # zero uv derivatives: T = B = 0 in the screen-space and exact frames -> the unperturbed N
+    np.testing.assert_allclose(out[:5, 1], np.broadcast_to(n_unit[1], (5, 3)), atol=1e-6)
+    # zero N everywhere and no derivatives (background): a zero, not NaN, normal
+    np.testing.assert_array_equal(out[:, 5], 0.0)
+    # unit everywhere else
+    norms = np.linalg.norm(out, axis=-1)
+    assert np.allclose(norms[:, [0, 1, 3, 4, 6]], 1.0, atol=1e-5)
+
+
+def test_degenerate_rendered_scene_gradients_finite():
+    """Degenerate-uv, back-facing, grazing and partly covered triangles: finite gradients."""
+    pos = np.array([[-1.0, -1.0, 0.0], [0.0, -1.0, 0.0], [-0.5, 0.0, 0.0],  # degenerate uv
+                    [0.1, -1.0, 0.0], [1.0, 0.0, 0.0], [1.0, -1.0, 0.0],  # back-facing (CW)
+                    [-1.0, 0.2, 0.0], [1.0, 0.2, 0.0], [0.0, 0.25, -3.0],  # grazing
+                    [-0.6, 0.6, 0.2], [0.9, 0.5, 0.1], [0.0, 1.1, 0.3]], np.float32)  # ordinary
+    faces = np.arange(12).reshape(4, 3)
+    uv = np.array([[0.5, 0.5]] * 3 + [[0, 0], [1, 1], [1, 0], [0, 0], [1, 0], [0.5, 1],
+                                      [0, 0], [1, 0], [0, 1]], np.float32)
+    cam = camera((0.0, 0.0, 2.5), fov=60.0)
+    frags = render(pos, faces, cam, size=16)
+    tid = np.asarray(frags.triangle_id)
+    assert all((tid == k).any() for k in range(4))
+    assert not np.asarray(frags.front_facing)[tid == 1].any()
+
+    @jax.jit
+    def loss(pos, uv):
+        fr = dataclasses.replace(frags, clip=to_clip(pos, cam))
+        nrm = vertex_normals(pos, frags.faces)
+        tangent = F.vertex_tangents(pos, nrm, uv, frags.faces)
+        at = jaxnm.interpolate({"p": pos, "uv": uv, "n": nrm, "t": tangent}, fr)
+        m = procedural_map(at["uv"].value)
+        total, outs = 0.0, []
+        for name in METHODS:
+            for ds in (False, True):
+                f = F.compute_frame(name, N=at["n"], p_attr=at["p"], uv_attr=at["uv"],
+                                    tri_p=F.triangle_corners(pos, fr),
+                                    tri_uv=F.triangle_corners(uv, fr), tangent=at["t"],
+                                    front_facing=fr.front_facing, double_sided=ds)
+                n = F.perturb_normal(f, m)
+                outs.append(n)
+                total = total + jnp.sum(n * jnp.asarray([[[0.2, 0.5, -0.3]]]))
+        return total, jnp.stack(outs)
+
+    (_, outs), grads = jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)(
+        jnp.asarray(pos), jnp.asarray(uv))
+    assert np.all(np.isfinite(np.asarray(outs)))
+    assert all(np.all(np.isfinite(np.asarray(g))) for g in grads)
+    assert np.abs(np.asarray(grads[0])).max() > 0
+
+
+# --------------------------------------------------------------------------------------
+# gradients (float64)
+# --------------------------------------------------------------------------------------
+
+
+def test_gradients_check_grads_float64():
+    """check_grads (order 1, fwd and rev) w.r.t. the map, vertex positions and uvs, every method."""
+    with jax.enable_x64(True):
+        pos0 = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.3], [1.0, 1.0, 0.0], [-1.0, 1.0, -0.2]])
+        uv0 = np.array([[0.0, 0.0], [1.1, 0.15], [1.3, 0.7], [0.1, 0.6]])
+        faces = jnp.asarray([[0, 1, 2], [0, 2, 3]], jnp.int32)
+        cam = camera((0.2, 0.3, 2.6), fov=55.0)
+        frags = jaxnm.rasterize(to_clip(jnp.asarray(pos0), cam), faces, width=8, height=8)
+        mask = np.asarray(frags.mask)
+        assert mask.sum() > 40
+        m0 = np.random.default_rng(0).normal(size=(8, 8, 3)) * [0.4, 0.4, 0.1] + [0, 0, 1]
+
+        def shade(pos, uv, m):
+            fr = dataclasses.replace(frags, clip=to_clip(pos, cam))
+            nrm = vertex_normals(pos, faces)
+            tangent = F.vertex_tangents(pos, nrm, uv, faces)
+            at = jaxnm.interpolate({"p": pos, "uv": uv, "n": nrm, "t": tangent}, fr)
+            kw = dict(N=at["n"], p_attr=at["p"], uv_attr=at["uv"],
+                      tri_p=F.triangle_corners(pos, fr), tri_uv=F.triangle_corners(uv, fr),
+                      tangent=at["t"])
+            outs = [F.perturb_normal(F.compute_frame(name, **kw), m) for name in METHODS]
+            outs.append(F.perturb_normal(F.compute_frame("cotangent", normalize="none", **kw), m))
+            return jnp.stack(outs)
+
+        pos, uv, m = jnp.asarray(pos0), jnp.asarray(uv0), jnp.asarray(m0)
+        assert shade(pos, uv, m).dtype == jnp.float64
+        check_grads(jax.jit(lambda m: shade(pos, uv, m)), (m,), order=1, modes=("fwd", "rev"))
+        check_grads(jax.jit(lambda p, t: shade(p, t, m)), (pos, uv), order=1,
+                    modes=("fwd", "rev"), eps=1e-6)
+
+
+# --------------------------------------------------------------------------------------
+# API
+# --------------------------------------------------------------------------------------
+
+
+def test_compute_frame_errors():
+    N = jnp.zeros((4, 3))
+    with pytest.raises(ValueError, match="unknown frame"):
+        F.compute_frame("tangent", N=N)
+    with pytest.raises(ValueError, match="p_attr"):
+        F.compute_frame("cotangent", N=N)
+    with pytest.raises(ValueError, match="tri_p"):
+        F.compute_frame("exact", N=N)
+    with pytest.raises(ValueError, match="tangent"):
+        F.compute_frame("vertex", N=N)
+    with pytest.raises(ValueError, match="front_facing"):
+        F.compute_frame("axis", N=N, double_sided=True)
+    with pytest.raises(ValueError, match="normalize"):
+        F.compute_frame("axis", N=N, normalize="unit")

@@ -1,0 +1,651 @@
+"""Tests of jaxnm.io against hand-written files whose content is known.
+
+Mesh and image files are written here (as text, or byte by byte with a
+reference PNG encoder written from the PNG spec), or come from
+tests/data/make_assets.py (glTF, written with numpy and json only).
+"""
+
+import json
+import re
+import struct
+import zlib
+from pathlib import Path
+
+import imageio.v3 as iio
+import jax
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+
+from jaxnm.geometry import vertex_normals
+from jaxnm.io import (
+    JaxnmWarning,
+    load_aovs,
+    load_image_float,
+    load_json,
+    load_mesh,
+    load_texture,
+    save_aovs,
+    save_png,
+)
+
+DATA = Path(__file__).parent / "data"
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def _named(path: Path) -> str:
+    """Regex matching an error message that names ``path``'s file."""
+    return re.escape(path.name)
+
+
+def _corners(mesh):
+    """Per face corner: (position, uv) as numpy arrays (F, 3, 3) and (F, 3, 2)."""
+    f = np.asarray(mesh.faces)
+    return np.asarray(mesh.positions)[f], np.asarray(mesh.uv)[f]
+
+
+def _reference_normals(pos, faces, weighting="angle"):
+    """Float64 reference: sum over faces of (corner angle * unit face normal) or of
+    (face area * unit face normal), normalised."""
+    pos = np.asarray(pos, np.float64)
+    acc = np.zeros_like(pos)
+    for tri in np.asarray(faces):
+        p = pos[tri]
+        n = np.cross(p[1] - p[0], p[2] - p[0])  # length: twice the area
+        for i in range(3):
+            e1, e2 = p[(i + 1) % 3] - p[i], p[(i + 2) % 3] - p[i]
+            angle = np.arccos(np.dot(e1, e2) / np.linalg.norm(e1) / np.linalg.norm(e2))
+            acc[tri[i]] += angle * n / np.linalg.norm(n) if weighting == "angle" else n
+    return acc / np.linalg.norm(acc, axis=1, keepdims=True)
+
+
+# ============================================================================ OBJ
+
+QUAD_OBJ = """\
+# a quad, with uv and normals; the MTL file does not exist
+mtllib quad_missing.mtl
+o quad
+v 0 0 0
+v 1 0 0
+v 1 1 0.5
+v 0 1 0
+vt 0 0
+vt 1 0
+vt 1 0.75
+vt 0 1
+vn 0 0 1
+vn 0 0.6 0.8
+usemtl paint
+f 1/1/1 2/2/1 3/3/2
+f 1/1/1 3/3/2 4/4/1
+"""
+
+
+def test_obj_with_uv_and_normals_exact(tmp_path):
+    m = load_mesh(_write(tmp_path / "quad.obj", QUAD_OBJ), require_uv=True)
+    np.testing.assert_array_equal(
+        m.positions, np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0.5], [0, 1, 0]], np.float32))
+    np.testing.assert_array_equal(m.faces, [[0, 1, 2], [0, 2, 3]])
+    np.testing.assert_array_equal(m.uv, np.array([[0, 0], [1, 0], [1, 0.75], [0, 1]], np.float32))
+    np.testing.assert_allclose(m.normals, [[0, 0, 1], [0, 0, 1], [0, 0.6, 0.8], [0, 0, 1]],
+                               atol=1e-7)
+    assert m.positions.dtype == np.float32 and m.faces.dtype == np.int32
+    assert m.uv.dtype == np.float32 and m.normals.dtype == np.float32
+
+
+def test_obj_uv_seam_vertices_are_not_merged(tmp_path):
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0]], np.float32)
+    vt = np.array([[0, 0], [0.5, 0], [0.5, 0.5], [0, 0.5], [0.75, 0], [1, 0.25]], np.float32)
+    fv = np.array([[1, 2, 4], [2, 5, 4]])  # both faces use vertices 2 and 4 ...
+    ft = np.array([[1, 2, 4], [5, 6, 3]])  # ... with different uvs: a seam
+    text = "".join(f"v {x} {y} {z}\n" for x, y, z in v)
+    text += "".join(f"vt {s} {t}\n" for s, t in vt)
+    text += "".join("f " + " ".join(f"{a}/{b}" for a, b in zip(rv, rt)) + "\n"
+                    for rv, rt in zip(fv, ft))
+    path = _write(tmp_path / "seam.obj", text)
+    with pytest.warns(JaxnmWarning, match="no vertex normals in the file"):
+        m = load_mesh(path)
+    assert m.num_vertices == 6  # distinct (v, vt) pairs
+    pos, uv = _corners(m)
+    np.testing.assert_array_equal(pos, v[fv - 1])
+    np.testing.assert_array_equal(uv, vt[ft - 1])
+
+
+def test_obj_without_normals_warns_and_computes_angle_weighted(tmp_path):
+    # an open pyramid: four triangles around the apex, uneven angles at the base
+    text = "v 0 0 1\nv -1 -1 0\nv 2 -1 0\nv 1 1 0\nv -1 1 0\n"
+    text += "f 1 2 3\nf 1 3 4\nf 1 4 5\nf 1 5 2\n"
+    path = _write(tmp_path / "pyramid.obj", text)
+    with pytest.warns(JaxnmWarning, match=re.escape(
+            f"{path}: no vertex normals in the file; computed angle-weighted normals")):
+        m = load_mesh(path)
+    assert m.uv is None
+    # jitted: one compilation instead of one per operation (keeps this file fast)
+    want = jax.jit(vertex_normals, static_argnames="weighting")(m.positions, m.faces,
+                                                                weighting="angle")
+    np.testing.assert_allclose(m.normals, want, atol=1e-6)
+    np.testing.assert_allclose(m.normals, _reference_normals(m.positions, m.faces),
+                               atol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(m.normals, axis=1), 1.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("weighting", ["angle", "area"])
+def test_normals_forced_recomputation_ignores_the_file(tmp_path, weighting):
+    m = load_mesh(_write(tmp_path / "quad.obj", QUAD_OBJ), normals=weighting)  # no warning
+    want = _reference_normals(m.positions, m.faces, weighting)
+    assert not np.allclose(want[1], [0, 0, 1])  # differs from the file's normal
+    np.testing.assert_allclose(m.normals, want, atol=1e-6)
+
+
+def test_bad_normals_option(tmp_path):
+    with pytest.raises(ValueError, match="normals="):
+        load_mesh(_write(tmp_path / "quad.obj", QUAD_OBJ), normals="flat")
+
+
+def test_obj_polygons_are_triangulated_and_degenerate_triangles_kept(tmp_path):
+    text = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 0 0\n"
+    text += "f 1 2 3 4   # a quad, with a comment that trimesh alone cannot parse\n"
+    text += "f 1 2 5\n"  # collinear: zero area
+    path = _write(tmp_path / "poly.obj", text)
+    with pytest.warns(JaxnmWarning):
+        m = load_mesh(path)
+    assert m.num_faces == 3
+    area = 0.5 * np.linalg.norm(np.cross(*(np.asarray(m.positions)[np.asarray(m.faces)][:, 1:]
+                                           - np.asarray(m.positions)[np.asarray(m.faces)][:, :1]
+                                           ).transpose(1, 0, 2)), axis=1)
+    np.testing.assert_allclose(np.sort(area), [0.0, 0.5, 0.5], atol=1e-7)
+    assert np.all(np.isfinite(m.normals))
+
+
+def test_obj_two_materials_are_concatenated(tmp_path):
+    text = QUAD_OBJ + "v 5 0 0\nvt 0.5 0.5\nvn 1 0 0\nusemtl other\nf 2/2/3 5/5/3 3/3/3\n"
+    m = load_mesh(_write(tmp_path / "two.obj", text))
+    pos, uv = _corners(m)
+    got = sorted(tuple(np.round(np.c_[p, t], 6).ravel()) for p, t in zip(pos, uv))
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0.5], [0, 1, 0], [5, 0, 0]])
+    vt = np.array([[0, 0], [1, 0], [1, 0.75], [0, 1], [0.5, 0.5]])
+    want = sorted(tuple(np.c_[v[f], vt[f]].ravel()) for f in ([0, 1, 2], [0, 2, 3], [1, 4, 2]))
+    np.testing.assert_allclose(got, want, atol=1e-6)
+
+
+def test_normals_partly_in_the_file(tmp_path):
+    text = ("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 5 0 0\nv 6 0 0\nv 5 1 0\nvn 0 0 1\n"
+            "usemtl a\nf 1//1 2//1 3//1\nusemtl b\nf 4 5 6\n")
+    path = _write(tmp_path / "partial.obj", text)
+    with pytest.warns(JaxnmWarning, match="for 3 of 6 vertices"):
+        m = load_mesh(path)
+    np.testing.assert_allclose(m.normals, np.tile([0, 0, 1], (6, 1)), atol=1e-7)
+
+
+@pytest.mark.parametrize("face, what", [
+    ("f 1 2 9", "vertex 9"),
+    ("f 0 1 2", "vertex 0"),
+    ("f -5 1 2", "vertex -5"),
+    ("f 1/1 2/2 3/9", "texture coordinate 9"),
+    ("f 1//1 2//1 3//4", "normal 4"),
+])
+def test_obj_out_of_range_face_index(tmp_path, face, what):
+    text = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nvn 0 0 1\n" + face + "\n"
+    path = _write(tmp_path / "badindex.obj", text)
+    with pytest.raises(ValueError, match=_named(path) + ".*line 8.*" + what):
+        load_mesh(path)
+
+
+@pytest.mark.parametrize("value", ["nan", "inf"])
+def test_obj_non_finite_positions(tmp_path, value):
+    path = _write(tmp_path / "nanpos.obj", f"v {value} 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(ValueError, match=_named(path) + ".*NaN or infinite"):
+        load_mesh(path)
+
+
+def test_obj_nan_uv(tmp_path):
+    text = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt nan 0\nvt 1 0\nvt 0 1\nf 1/1 2/2 3/3\n"
+    path = _write(tmp_path / "nanuv.obj", text)
+    with pytest.raises(ValueError, match=_named(path) + ".*uv"):
+        load_mesh(path)
+
+
+def test_require_uv(tmp_path):
+    path = _write(tmp_path / "nouv.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1//1 2//1 3//1\n")
+    assert load_mesh(path).uv is None
+    with pytest.raises(ValueError, match=re.escape(
+            f"{path}: the mesh has no texture coordinates (uv)")):
+        load_mesh(path, require_uv=True)
+
+
+def test_obj_without_faces(tmp_path):
+    path = _write(tmp_path / "points.obj", "v 0 0 0\nv 1 0 0\n")
+    with pytest.raises(ValueError, match=_named(path) + ".*no faces"):
+        load_mesh(path)
+
+
+# ============================================================================ PLY, STL, OFF
+
+PLY_HEADER = """\
+ply
+format ascii 1.0
+element vertex {nv}
+property float x
+property float y
+property float z
+{props}element face {nf}
+property list uchar int vertex_indices
+end_header
+"""
+
+
+def _ply(path, vertices, faces, props=""):
+    text = PLY_HEADER.format(nv=len(vertices), nf=len(faces), props=props)
+    text += "".join(" ".join(map(str, v)) + "\n" for v in vertices)
+    text += "".join(f"{len(f)} " + " ".join(map(str, f)) + "\n" for f in faces)
+    return _write(path, text)
+
+
+UV_NORMAL_PROPS = "".join(f"property float {p}\n" for p in ("nx", "ny", "nz", "s", "t"))
+
+
+def test_ply_with_uv_and_normals_exact(tmp_path):
+    verts = [[0, 0, 0, 0, 0, 2, 0, 0],  # a non-unit normal: renormalised
+             [1, 0, 0, 0, 0.6, 0.8, 1, 0],
+             [0, 1, 0, 0, 0, 1, 0.25, 1]]
+    m = load_mesh(_ply(tmp_path / "tri.ply", verts, [[0, 1, 2]], UV_NORMAL_PROPS))
+    v = np.array(verts, np.float32)
+    np.testing.assert_array_equal(m.positions, v[:, :3])
+    np.testing.assert_array_equal(m.faces, [[0, 1, 2]])
+    np.testing.assert_array_equal(m.uv, v[:, 6:])
+    np.testing.assert_allclose(m.normals, [[0, 0, 1], [0, 0.6, 0.8], [0, 0, 1]], atol=1e-7)
+
+
+def test_zero_length_file_normal_is_replaced(tmp_path):
+    verts = [[0, 0, 0, 0, 0, 0, 0, 0], [1, 0, 0, 1, 0, 0, 1, 0], [0, 1, 0, 1, 0, 0, 0, 1]]
+    path = _ply(tmp_path / "zeronormal.ply", verts, [[0, 1, 2]], UV_NORMAL_PROPS)
+    with pytest.warns(JaxnmWarning, match=_named(path) + ".*1 vertex normals.*zero-length"):
+        m = load_mesh(path)
+    np.testing.assert_allclose(m.normals, [[0, 0, 1], [1, 0, 0], [1, 0, 0]], atol=1e-7)
+
+
+@pytest.mark.parametrize("face", [[0, 1, 7], [0, 1, -1]])
+def test_ply_out_of_range_face_index(tmp_path, face):
+    path = _ply(tmp_path / "badindex.ply", [[0, 0, 0], [1, 0, 0], [0, 1, 0]], [face])
+    with pytest.raises(ValueError, match=_named(path) + ".*face indices"):
+        load_mesh(path)
+
+
+def test_ply_point_cloud_has_no_faces(tmp_path):
+    text = PLY_HEADER.split("element face")[0].format(nv=2, props="") + "end_header\n0 0 0\n1 0 0\n"
+    path = _write(tmp_path / "cloud.ply", text)
+    with pytest.raises(ValueError, match=_named(path) + ".*no faces"):
+        load_mesh(path)
+
+
+def test_stl_and_off(tmp_path):
+    stl = _write(tmp_path / "tri.stl", "solid t\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\n"
+                 "vertex 1 0 0\nvertex 0 1 0\nendloop\nendfacet\nendsolid t\n")
+    off = _write(tmp_path / "quad.off", "OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n")
+    for path, nf in ((stl, 1), (off, 2)):
+        with pytest.warns(JaxnmWarning, match="no vertex normals"):
+            m = load_mesh(path)
+        assert m.uv is None and m.num_faces == nf
+        np.testing.assert_allclose(m.normals, np.tile([0, 0, 1], (m.num_vertices, 1)), atol=1e-7)
+    with pytest.raises(ValueError, match=_named(stl) + ".*no texture coordinates.*STL"):
+        load_mesh(stl, require_uv=True)
+
+
+# ============================================================================ glTF
+
+
+def _gltf_accessor(gltf_path: Path, attribute: str) -> np.ndarray:
+    """Read a float accessor of the first primitive straight from the .bin."""
+    tree = json.loads(gltf_path.read_text())
+    acc = tree["accessors"][tree["meshes"][0]["primitives"][0]["attributes"][attribute]]
+    view = tree["bufferViews"][acc["bufferView"]]
+    blob = (gltf_path.parent / tree["buffers"][0]["uri"]).read_bytes()
+    n = {"VEC2": 2, "VEC3": 3}[acc["type"]]
+    start = view["byteOffset"] + acc.get("byteOffset", 0)
+    return np.frombuffer(blob, "<f4", acc["count"] * n, start).reshape(-1, n)
+
+
+def test_gltf_uv_origin_is_flipped_to_bottom_left():
+    path = DATA / "tri_uv.gltf"
+    raw_uv = _gltf_accessor(path, "TEXCOORD_0")  # glTF: origin at the TOP-left
+    np.testing.assert_array_equal(raw_uv, [[0.25, 0.125], [0.75, 0.125], [0.25, 0.625]])
+    m = load_mesh(path, require_uv=True)  # file normals: no warning
+    np.testing.assert_array_equal(m.uv, np.c_[raw_uv[:, 0], 1 - raw_uv[:, 1]])
+    np.testing.assert_array_equal(m.positions, _gltf_accessor(path, "POSITION"))
+    np.testing.assert_allclose(m.normals, _gltf_accessor(path, "NORMAL"), atol=1e-7)
+
+
+def test_trimesh_gltf_behaviour_that_load_mesh_corrects():
+    """Pins trimesh's glTF loader: it flips v (1 - v) for primitives with a material,
+    drops TEXCOORD_0 of primitives without one, and exposes file normals only
+    through its cache (the `vertex_normals` property computes them otherwise)."""
+    raw_uv = _gltf_accessor(DATA / "tri_uv.gltf", "TEXCOORD_0")
+    (tri,) = trimesh.load_scene(DATA / "tri_uv.gltf", process=False).geometry.values()
+    np.testing.assert_allclose(tri.visual.uv, np.c_[raw_uv[:, 0], 1 - raw_uv[:, 1]])
+    assert "vertex_normals" in tri._cache
+    (two,) = trimesh.load_scene(DATA / "two_nodes.glb", process=False).geometry.values()
+    assert getattr(two.visual, "uv", None) is None  # no material: uvs dropped
+    assert "vertex_normals" not in two._cache
+
+
+def _rotations(tri):
+    return [np.roll(tri, k, axis=0) for k in range(3)]
+
+
+def test_glb_scene_nodes_are_concatenated_with_transforms():
+    path = DATA / "two_nodes.glb"
+    with pytest.warns(JaxnmWarning, match="no vertex normals in the file"):
+        m = load_mesh(path, require_uv=True)  # no material in the file: uvs kept anyway
+    p = np.array([[0, 0, 0], [2, 0, 0], [0, 1, 0]], np.float32)
+    uv = np.array([[0.25, 0.875], [0.75, 0.875], [0.25, 0.375]], np.float32)
+    want = [  # node 0: translated; node 1: mirrored in x, so its winding is reversed
+        np.c_[p + [10, 0, 0], uv],
+        np.c_[p * [-1, 2, 1] + [0, 0, 5], uv][::-1],
+    ]
+    assert m.num_faces == 2 and m.num_vertices == 6
+    pos, tex = _corners(m)
+    for got in (np.c_[pos[i], tex[i]] for i in range(2)):
+        assert sum(any(np.allclose(r, w) for r in _rotations(got)) for w in want) == 1
+    # both instances face +z (the mirrored one thanks to the reversed winding)
+    np.testing.assert_allclose(m.normals, np.tile([0, 0, 1], (6, 1)), atol=1e-6)
+
+
+def test_gltf_errors(tmp_path):
+    tree = json.loads((DATA / "tri_uv.gltf").read_text())
+    lonely = tmp_path / "no_bin.gltf"
+    lonely.write_text(json.dumps(tree))  # its .bin is not beside it
+    with pytest.raises(ValueError, match=_named(lonely) + ".*cannot parse"):
+        load_mesh(lonely)
+    tree["buffers"][0]["uri"] = str(DATA / "tri_uv.bin")
+    tree["accessors"][1]["componentType"] = 5123  # TEXCOORD_0 as normalized uint16
+    quant = _write(tmp_path / "quantized.gltf", json.dumps(tree))
+    with pytest.raises(ValueError, match=_named(quant) + ".*TEXCOORD_0.*componentType 5123"):
+        load_mesh(quant)
+    broken = _write(tmp_path / "broken.gltf", '{"asset": {"version": "2.0"},\n  "meshes": [}')
+    with pytest.raises(ValueError, match=_named(broken) + ".*line 2, column 14"):
+        load_mesh(broken)
+    notglb = tmp_path / "not.glb"
+    notglb.write_bytes(b"PK\x03\x04" + bytes(40))
+    with pytest.raises(ValueError, match=_named(notglb) + ".*not a GLB"):
+        load_mesh(notglb)
+
+
+# ============================================================================ mesh file errors
+
+
+def test_mesh_file_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nothere.obj"):
+        load_mesh(tmp_path / "nothere.obj")
+    xyz = _write(tmp_path / "cloud.xyz", "0 0 0\n")
+    with pytest.raises(ValueError, match=_named(xyz) + r".*'\.xyz'.*\.obj, \.ply, \.gltf"):
+        load_mesh(xyz)
+    junk = tmp_path / "junk.ply"
+    junk.write_bytes(b"\x00\x01 not a ply file")
+    with pytest.raises(ValueError, match=_named(junk) + ".*cannot parse this PLY"):
+        load_mesh(junk)
+    with pytest.raises(ValueError, match="not a regular file"):
+        load_mesh(tmp_path)
+
+
+# ============================================================================ PNG
+
+def _paeth(a, b, c):
+    p = a + b - c
+    pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
+    return a if pa <= pb and pa <= pc else (b if pb <= pc else c)
+
+
+def _reference_png16(pixels: np.ndarray, filters) -> bytes:
+    """A 16-bit PNG of uint16 (H, W, C) ``pixels``, row y filtered with
+    ``filters[y % len(filters)]``, written from the PNG specification byte by byte."""
+    h, w, c = pixels.shape
+    bpp = 2 * c
+    lines = [list(row.astype(">u2").tobytes()) for row in pixels]
+    out = bytearray()
+    for y, line in enumerate(lines):
+        prior = lines[y - 1] if y else [0] * len(line)
+        ft = filters[y % len(filters)]
+        out.append(ft)
+        for i, x in enumerate(line):
+            a = line[i - bpp] if i >= bpp else 0
+            cc = prior[i - bpp] if i >= bpp else 0
+            pred = (0, a, prior[i], (a + prior[i]) // 2, _paeth(a, prior[i], cc))[ft]
+            out.append((x - pred) % 256)
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", w, h, 16, {1: 0, 2: 4, 3: 2, 4: 6}[c], 0, 0, 0)
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(bytes(out)))
+            + chunk(b"IEND", b""))
+
+
+@pytest.mark.parametrize("channels", [1, 2, 3, 4])
+@pytest.mark.parametrize("filters", [[0, 1, 2, 3, 4], [2, 1, 0]])
+def test_png16_every_row_filter(tmp_path, channels, filters):
+    rng = np.random.default_rng(channels)
+    pixels = rng.integers(0, 65536, (6, 5, channels)).astype(np.uint16)
+    pixels[2] = pixels[1]  # repeated rows and columns exercise the predictors
+    pixels[:, 3] = 65535
+    path = tmp_path / f"filters{channels}.png"
+    path.write_bytes(_reference_png16(pixels, filters))
+    image, bits = load_texture(path)
+    assert bits == 16 and image.dtype == np.float32 and image.shape == pixels.shape
+    np.testing.assert_array_equal(np.round(image * 65535).astype(np.uint16), pixels)
+
+
+def test_imageio_reads_16bit_grey_but_reduces_16bit_colour_to_8bit(tmp_path):
+    """Why jaxnm decodes 16-bit PNGs itself: imageio (Pillow) returns uint16 only for grey."""
+    rng = np.random.default_rng(1)
+    grey = rng.integers(0, 65536, (3, 4, 1)).astype(np.uint16)
+    rgb = rng.integers(0, 65536, (3, 4, 3)).astype(np.uint16)
+    (tmp_path / "g16.png").write_bytes(_reference_png16(grey, [4]))
+    (tmp_path / "c16.png").write_bytes(_reference_png16(rgb, [4]))
+    g = iio.imread(tmp_path / "g16.png", plugin="pillow")
+    assert g.dtype == np.uint16 and np.array_equal(g, grey[:, :, 0])
+    c = iio.imread(tmp_path / "c16.png", plugin="pillow")
+    assert c.dtype == np.uint8 and np.array_equal(c, rgb >> 8)
+    image, bits = load_texture(tmp_path / "c16.png")
+    assert bits == 16 and np.array_equal(np.round(image * 65535), rgb)
+
+
+@pytest.mark.parametrize("shape", [(5, 7), (5, 7, 1), (5, 7, 2), (5, 7, 3), (5, 7, 4)])
+@pytest.mark.parametrize("bits", [8, 16])
+def test_png_round_trip(tmp_path, shape, bits):
+    maxv = 2**bits - 1
+    q = np.random.default_rng(bits).integers(0, maxv + 1, shape)
+    path = tmp_path / "sub" / "dir" / f"rt{bits}.png"  # parents are created
+    save_png(path, (q / maxv).astype(np.float32), bits=bits)
+    image, got_bits = load_texture(path)
+    assert got_bits == bits and image.shape == (5, 7, shape[2] if len(shape) == 3 else 1)
+    np.testing.assert_array_equal(image, (q.reshape(image.shape) / maxv).astype(np.float32))
+    if bits == 8 or len(shape) == 2 or shape[2] == 1:  # Pillow reads these correctly
+        raw = np.asarray(Image.open(path))
+        np.testing.assert_array_equal(raw, q.reshape(raw.shape))
+
+
+def test_png_quantisation_levels(tmp_path):
+    x = np.array([[0.0, 0.49 / 255, 0.51 / 255, 1 / 255, 0.5, 254.49 / 255, 254.51 / 255, 1.0,
+                   -0.5, 1.5, np.inf, -np.inf]])
+    save_png(tmp_path / "q8.png", x)
+    assert np.asarray(Image.open(tmp_path / "q8.png")).tolist() == [
+        [0, 0, 1, 1, 128, 254, 255, 255, 0, 255, 255, 0]]
+    save_png(tmp_path / "q16.png", np.array([[0.4 / 65535, 0.6 / 65535, 0.5, 1.0]]), bits=16)
+    assert np.asarray(Image.open(tmp_path / "q16.png")).tolist() == [[0, 1, 32768, 65535]]
+    levels = np.arange(256, dtype=np.float32)[None, :] / 255
+    save_png(tmp_path / "levels.png", levels)
+    np.testing.assert_array_equal(load_texture(tmp_path / "levels.png")[0][:, :, 0], levels)
+
+
+def test_png_layout_row_zero_is_the_top_row(tmp_path):
+    image = np.zeros((4, 3, 3), np.float32)
+    image[0, 0] = [1, 0, 0]  # top-left red
+    image[3, 2] = [0, 0, 1]  # bottom-right blue
+    save_png(tmp_path / "layout.png", image)
+    pil = Image.open(tmp_path / "layout.png")
+    assert pil.getpixel((0, 0)) == (255, 0, 0) and pil.getpixel((2, 3)) == (0, 0, 255)
+    np.testing.assert_array_equal(load_texture(tmp_path / "layout.png")[0], image)
+
+
+def test_save_png_errors(tmp_path):
+    with pytest.raises(ValueError, match="nan.png.*NaN"):
+        save_png(tmp_path / "nan.png", np.array([[0.5, np.nan]]))
+    with pytest.raises(ValueError, match="int.png.*float"):
+        save_png(tmp_path / "int.png", np.zeros((2, 2), np.uint8))
+    with pytest.raises(ValueError, match="shape.png.*shape"):
+        save_png(tmp_path / "shape.png", np.zeros((2, 2, 5)))
+    with pytest.raises(ValueError, match=r"image.jpg.*\.png"):
+        save_png(tmp_path / "image.jpg", np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="bits"):
+        save_png(tmp_path / "b.png", np.zeros((2, 2)), bits=12)
+    assert not any(tmp_path.iterdir())
+
+
+# ============================================================================ textures
+
+
+def test_palette_grey_alpha_and_jpeg(tmp_path):
+    rgb = np.array([[[255, 0, 0], [0, 255, 0]], [[0, 0, 255], [255, 255, 255]]], np.uint8)
+    Image.fromarray(rgb).convert("P").save(tmp_path / "palette.png")
+    image, bits = load_texture(tmp_path / "palette.png", channels=3)
+    assert bits == 8 and np.array_equal(image * 255, rgb)
+    la = np.dstack([np.full((2, 3), 10), np.full((2, 3), 200)]).astype(np.uint8)
+    Image.fromarray(la, "LA").save(tmp_path / "la.png")
+    assert np.array_equal(load_texture(tmp_path / "la.png")[0] * 255, la)
+    iio.imwrite(tmp_path / "flat.jpg", np.full((8, 8, 3), [200, 100, 50], np.uint8))
+    image, bits = load_texture(tmp_path / "flat.jpg")
+    assert bits == 8 and image.shape == (8, 8, 3)
+    np.testing.assert_allclose(image, np.broadcast_to([200 / 255, 100 / 255, 50 / 255], image.shape),
+                               atol=3 / 255)
+
+
+def _grey_rgb_rgba(tmp_path):
+    rng = np.random.default_rng(2)
+    grey, rgb, rgba = (rng.random((3, 4, c)).astype(np.float32) for c in (1, 3, 4))
+    for name, image in (("grey", grey), ("rgb", rgb), ("rgba", rgba)):
+        save_png(tmp_path / f"{name}.png", image)
+    return (tmp_path / "grey.png", tmp_path / "rgb.png", tmp_path / "rgba.png")
+
+
+def test_channels(tmp_path):
+    grey, rgb, rgba = _grey_rgb_rgba(tmp_path)
+    full = load_texture(rgba)[0]
+    assert np.array_equal(load_texture(rgba, channels=3)[0], full[:, :, :3])
+    assert load_texture(rgb, channels=3)[0].shape == (3, 4, 3)
+    assert np.array_equal(load_texture(rgb, channels=2)[0], load_texture(rgb)[0][:, :, :2])
+    assert load_texture(grey, channels=1)[0].shape == (3, 4, 1)
+    with pytest.warns(JaxnmWarning, match=_named(rgb) + ".*first \\(red\\) channel"):
+        red = load_texture(rgb, channels=1)[0]
+    assert np.array_equal(red, load_texture(rgb)[0][:, :, :1])
+    with pytest.raises(ValueError, match=re.escape(
+            f"{grey}: a normal map needs 3 channels (RGB), got 1 (grayscale)")):
+        load_texture(grey, channels=3)
+    with pytest.raises(ValueError, match=_named(grey) + ".*2 channels"):
+        load_texture(grey, channels=2)
+    with pytest.raises(ValueError, match="channels must be"):
+        load_texture(rgb, channels=4)
+
+
+def test_npy_and_npz(tmp_path):
+    hdr = np.array([[[0.5, 2.0, -1.0]]], np.float64)  # float arrays are taken as they are
+    np.save(tmp_path / "hdr.npy", hdr)
+    image, bits = load_texture(tmp_path / "hdr.npy")
+    assert bits == 32 and image.dtype == np.float32 and np.array_equal(image, hdr)
+    np.save(tmp_path / "u16.npy", np.array([[0, 65535]], np.uint16))
+    image, bits = load_texture(tmp_path / "u16.npy")
+    assert bits == 16 and image.shape == (1, 2, 1) and image.ravel().tolist() == [0, 1]
+    np.savez(tmp_path / "one.npz", anything=hdr)
+    assert np.array_equal(load_texture(tmp_path / "one.npz")[0], hdr)
+    np.savez(tmp_path / "named.npz", image=hdr, mask=np.ones((1, 1)))
+    assert np.array_equal(load_texture(tmp_path / "named.npz")[0], hdr)
+    np.savez(tmp_path / "two.npz", a=hdr, b=hdr)
+    with pytest.raises(ValueError, match="two.npz.*one array or one named 'image'"):
+        load_texture(tmp_path / "two.npz")
+    np.save(tmp_path / "nan.npy", np.array([[0.0, np.nan]], np.float32))
+    with pytest.raises(ValueError, match="nan.npy.*NaN"):
+        load_texture(tmp_path / "nan.npy")
+    np.save(tmp_path / "empty.npy", np.zeros((0, 4, 3), np.float32))
+    with pytest.raises(ValueError, match="empty.npy.*empty"):
+        load_texture(tmp_path / "empty.npy")
+    np.save(tmp_path / "ints.npy", np.zeros((2, 2), np.int64))
+    with pytest.raises(ValueError, match="ints.npy.*int64"):
+        load_texture(tmp_path / "ints.npy")
+
+
+def test_texture_file_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="missing.png"):
+        load_texture(tmp_path / "missing.png")
+    text = _write(tmp_path / "text.png", "not an image at all")
+    with pytest.raises(ValueError, match=_named(text) + ".*not an image"):
+        load_texture(text)
+    (tmp_path / "empty.png").write_bytes(b"")
+    with pytest.raises(ValueError, match="empty.png.*empty"):
+        load_texture(tmp_path / "empty.png")
+    truncated = tmp_path / "truncated.png"
+    truncated.write_bytes(_reference_png16(np.zeros((4, 4, 3), np.uint16), [0])[:45])
+    with pytest.raises(ValueError, match=_named(truncated) + ".*corrupt"):
+        load_texture(truncated)
+    bmp = _write(tmp_path / "image.bmp", "")
+    with pytest.raises(ValueError, match=_named(bmp) + r".*\.png, \.jpg"):
+        load_texture(bmp)
+    exr = _write(tmp_path / "image.exr", "")
+    with pytest.raises(ValueError, match=_named(exr) + ".*unsupported"):
+        load_texture(exr)  # EXR only through load_image_float
+
+
+def test_load_image_float(tmp_path):
+    _, rgb, _ = _grey_rgb_rgba(tmp_path)
+    assert np.array_equal(load_image_float(rgb)[0], load_texture(rgb)[0])
+    exr = tmp_path / "target.exr"
+    exr.write_bytes(b"\x76\x2f\x31\x01" + bytes(60))
+    try:
+        import cv2  # noqa: F401
+    except ImportError:
+        with pytest.raises(ImportError, match=_named(exr) + ".*pip install opencv"):
+            load_image_float(exr)
+    else:  # an EXR plugin is installed: the fake file is refused cleanly
+        with pytest.raises(ValueError, match=_named(exr)):
+            load_image_float(exr)
+
+
+# ============================================================================ AOVs and JSON
+
+
+def test_aovs_round_trip(tmp_path):
+    aovs = {"depth": np.arange(6, dtype=np.float64).reshape(2, 3),
+            "mask": np.array([[True, False, True], [False, True, False]]),
+            "triangle_id": np.array([[0, 1, 2], [3, 4, -1]], np.int32),
+            "normal": np.ones((2, 3, 3), np.float32)}
+    path = tmp_path / "out" / "frame.npz"
+    save_aovs(path, aovs)
+    got = load_aovs(path)
+    assert sorted(got) == sorted(aovs)
+    for name, value in aovs.items():
+        assert got[name].dtype == np.float32 and got[name].ndim == 3
+        np.testing.assert_array_equal(got[name], np.asarray(value, np.float32).reshape(
+            got[name].shape))
+    with pytest.raises(ValueError, match="frame.aov.*npz"):
+        save_aovs(tmp_path / "frame.aov", aovs)
+    with pytest.raises(ValueError, match="bad.npz.*'bad'.*shape"):
+        save_aovs(tmp_path / "bad.npz", {"bad": np.zeros(3)})
+    np.save(tmp_path / "single.npy", np.zeros(3))
+    with pytest.raises(ValueError, match="single.npy.*npz"):
+        load_aovs(tmp_path / "single.npy")
+    with pytest.raises(ValueError, match="garbage.npz"):
+        load_aovs(_write(tmp_path / "garbage.npz", "garbage"))
+
+
+def test_load_json(tmp_path):
+    assert load_json(_write(tmp_path / "ok.json", '{"a": [1, 2]}')) == {"a": [1, 2]}
+    bad = _write(tmp_path / "bad.json", '{\n  "a": 1,\n  "b": }\n')
+    with pytest.raises(ValueError, match=re.escape(f"{bad}: invalid JSON at line 3, column 8")):
+        load_json(bad)
+    with pytest.raises(ValueError, match="list.json.*JSON object"):
+        load_json(_write(tmp_path / "list.json", "[1, 2]"))
+    with pytest.raises(FileNotFoundError, match="none.json"):
+        load_json(tmp_path / "none.json")

@@ -1,0 +1,673 @@
+"""Tests for jaxnm.textures: GL sampling conventions, mipmaps, LOD, normal-map codecs, sRGB.
+
+References are independent float64 NumPy/pure-Python implementations written
+differently from the library (loops over texels, image-row coordinates,
+iterative mirroring, interval-overlap box filters).
+"""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from jax.test_util import check_grads
+
+from jaxnm.interpolate import Attribute
+from jaxnm.numerics import safe_normalize
+from jaxnm.textures import (
+    SamplePlan,
+    apply_plan,
+    build_mipmaps,
+    decode_normal_map,
+    encode_normal_map,
+    linear_to_srgb,
+    lod,
+    mip_sizes,
+    plan_sample,
+    sample,
+    srgb_to_linear,
+)
+
+WRAPS = ("repeat", "clamp", "mirror")
+ORIGINS = ("bottom_left", "top_left")
+
+
+# --------------------------------------------------------------------------- references
+
+
+def ref_wrap(i: int, n: int, mode: str) -> int:
+    if mode == "repeat":
+        return i % n
+    if mode == "clamp":
+        return min(max(i, 0), n - 1)
+    while not 0 <= i < n:  # reflect at the nearer border until inside
+        i = -1 - i if i < 0 else 2 * n - 1 - i
+    return i
+
+
+def ref_coords(tex_hw, u, v, origin):
+    """Continuous (column, image row) coordinates; texel centres at integers."""
+    h, w = tex_hw
+    x = u * w - 0.5
+    y = (1.0 - v) * h - 0.5 if origin == "bottom_left" else v * h - 0.5
+    return x, y
+
+
+def ref_bilinear(tex, u, v, wrap, origin):
+    """Loop over every texel, summing the tent weights of the lattice points that wrap onto it."""
+    tex = np.asarray(tex, np.float64)
+    h, w, _ = tex.shape
+    x, y = ref_coords((h, w), float(u), float(v), origin)
+    near_x = range(math.floor(x) - 1, math.floor(x) + 3)
+    near_y = range(math.floor(y) - 1, math.floor(y) + 3)
+    out = np.zeros(tex.shape[-1])
+    for r in range(h):
+        for c in range(w):
+            weight = 0.0
+            for j in near_y:
+                for i in near_x:
+                    if ref_wrap(i, w, wrap) == c and ref_wrap(j, h, wrap) == r:
+                        weight += max(0.0, 1 - abs(x - i)) * max(0.0, 1 - abs(y - j))
+            out += weight * tex[r, c]
+    return out
+
+
+def ref_nearest(tex, u, v, wrap, origin):
+    tex = np.asarray(tex, np.float64)
+    h, w, _ = tex.shape
+    x, y = ref_coords((h, w), float(u), float(v), origin)
+    return tex[ref_wrap(round(y), h, wrap), ref_wrap(round(x), w, wrap)]
+
+
+def ref_box_matrix(n_in: int) -> np.ndarray:
+    """Area-overlap weights (n_out, n_in) of the exact box filter to max(1, n_in // 2)."""
+    n_out = max(1, n_in // 2)
+    width = n_in / n_out
+    m = np.zeros((n_out, n_in))
+    for i in range(n_out):
+        lo, hi = i * width, (i + 1) * width
+        for k in range(n_in):
+            m[i, k] = max(0.0, min(hi, k + 1) - max(lo, k)) / width
+    return m
+
+
+def ref_mipmaps(tex):
+    levels = [np.asarray(tex, np.float64)]
+    while levels[-1].shape[:2] != (1, 1):
+        x = levels[-1]
+        a, b = ref_box_matrix(x.shape[0]), ref_box_matrix(x.shape[1])
+        levels.append(np.einsum("ih,hwc,jw->ijc", a, x, b))
+    return levels
+
+
+def ref_lod(duvdx, duvdy, h, w):
+    rx = math.hypot(duvdx[0] * w, duvdx[1] * h)
+    ry = math.hypot(duvdy[0] * w, duvdy[1] * h)
+    return math.log2(max(rx, ry))
+
+
+def away_from(values, lattice_scale, margin=1e-3):
+    """True where values * scale is at least `margin` from an integer."""
+    f = np.asarray(values, np.float64) * lattice_scale
+    return np.abs(f - np.round(f)) > margin
+
+
+# --------------------------------------------------------------------------- fixtures
+
+RNG = np.random.default_rng(1234)
+TEX57 = RNG.random((5, 7, 2)).astype(np.float32)  # odd, non-square, 2 channels
+TEX88 = RNG.random((8, 8, 3)).astype(np.float32)
+
+
+def random_uv(n, lo=-1.7, hi=2.6, seed=0):
+    return np.random.default_rng(seed).uniform(lo, hi, (n, 2)).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- mipmaps
+
+
+def test_mip_sizes_follow_gl():
+    assert mip_sizes((256, 256))[-1] == (1, 1) and len(mip_sizes((256, 256))) == 9
+    assert mip_sizes((5, 3)) == ((5, 3), (2, 1), (1, 1))
+    assert mip_sizes((1, 8)) == ((1, 8), (1, 4), (1, 2), (1, 1))
+    assert mip_sizes((8, 8), 2) == ((8, 8), (4, 4))
+    with pytest.raises(ValueError, match="between 1 and 4"):
+        mip_sizes((8, 8), 5)
+
+
+@pytest.mark.parametrize("shape", [(4, 4, 1), (7, 5, 3), (6, 3, 2), (1, 5, 1), (9, 2, 1)])
+def test_mipmap_of_constant_is_constant(shape):
+    mips = build_mipmaps(jnp.full(shape, 0.37, jnp.float32))
+    assert mips[-1].shape[:2] == (1, 1)
+    for m in mips:
+        np.testing.assert_allclose(m, 0.37, rtol=1e-6)
+
+
+def test_mipmap_of_checkerboard_is_its_average():
+    checker = (np.indices((4, 4)).sum(0) % 2).astype(np.float32)[..., None]
+    mips = build_mipmaps(jnp.asarray(checker))
+    assert [m.shape for m in mips] == [(4, 4, 1), (2, 2, 1), (1, 1, 1)]
+    np.testing.assert_array_equal(mips[1], 0.5)
+    np.testing.assert_array_equal(mips[2], 0.5)
+
+
+@pytest.mark.parametrize("shape", [(8, 8, 2), (7, 5, 3), (6, 3, 1), (1, 5, 2), (9, 2, 1)])
+def test_mipmaps_match_area_reference_and_keep_the_mean(shape):
+    tex = np.random.default_rng(sum(shape)).random(shape).astype(np.float32)
+    got = build_mipmaps(jnp.asarray(tex))
+    want = ref_mipmaps(tex)
+    assert len(got) == len(want)
+    for g, w in zip(got, want):
+        assert g.shape == w.shape
+        np.testing.assert_allclose(g, w, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(np.mean(g, (0, 1)), tex.mean((0, 1)), rtol=1e-5)
+
+
+def test_mipmap_levels_argument():
+    assert len(build_mipmaps(jnp.zeros((8, 8, 1)), levels=2)) == 2
+    assert len(build_mipmaps(jnp.zeros((8, 8, 1)))) == 4
+
+
+def test_mipmap_renormalize_gives_unit_vectors_and_keeps_extra_channels():
+    n = np.random.default_rng(3).normal(size=(8, 8, 3))
+    n[..., 2] = np.abs(n[..., 2]) + 0.5
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    alpha = np.random.default_rng(4).random((8, 8, 1))
+    tex = jnp.asarray(np.concatenate([n, alpha], -1), jnp.float32)
+    mips = build_mipmaps(tex, renormalize=True)
+    np.testing.assert_array_equal(mips[0], tex)
+    plain = build_mipmaps(tex)
+    for m, p in zip(mips[1:], plain[1:]):
+        np.testing.assert_allclose(np.linalg.norm(m[..., :3], axis=-1), 1.0, rtol=1e-5)
+        np.testing.assert_allclose(m[..., 3], p[..., 3], rtol=1e-5)  # alpha filtered only
+
+
+def test_mipmap_renormalize_of_cancelling_normals_is_zero_without_nan():
+    tex = jnp.asarray([[[1.0, 0, 0], [-1.0, 0, 0]]] * 2, jnp.float32)  # (2, 2, 3)
+    mips = build_mipmaps(tex, renormalize=True)
+    np.testing.assert_array_equal(mips[1], 0.0)
+    g = jax.grad(lambda t: jnp.sum(build_mipmaps(t, renormalize=True)[1]))(tex)
+    assert np.all(np.isfinite(g))
+
+
+def test_build_mipmaps_rejects_bad_input():
+    with pytest.raises(ValueError, match=r"\(H, W, C\)"):
+        build_mipmaps(jnp.zeros((4, 4)))
+    with pytest.raises(ValueError, match="floating point"):
+        build_mipmaps(jnp.zeros((4, 4, 3), jnp.uint8))
+    with pytest.raises(ValueError, match="3 channels"):
+        build_mipmaps(jnp.zeros((4, 4, 2)), renormalize=True)
+
+
+# --------------------------------------------------------------------------- LOD
+
+
+def test_lod_from_known_derivatives():
+    def lam(dx, dy, hw=(256, 256)):
+        return float(lod(jnp.asarray(dx, jnp.float32), jnp.asarray(dy, jnp.float32), hw))
+
+    assert lam([1 / 256, 0], [0, 1 / 256]) == pytest.approx(0.0, abs=1e-6)
+    assert lam([4 / 256, 0], [0, 4 / 256]) == pytest.approx(2.0, abs=1e-6)
+    assert lam([0, -4 / 256], [1 / 256, 0]) == pytest.approx(2.0, abs=1e-6)  # sign-free
+    assert lam([1 / 256, 0], [0, 8 / 256]) == pytest.approx(3.0, abs=1e-6)  # max of the two
+    # non-square: v is scaled by H, u by W
+    assert lam([0, 2 / 8], [0, 0], hw=(8, 32)) == pytest.approx(1.0, abs=1e-6)
+    assert lam([2 / 32, 0], [0, 0], hw=(8, 32)) == pytest.approx(1.0, abs=1e-6)
+    rng = np.random.default_rng(5)
+    for _ in range(5):
+        dx, dy = rng.normal(size=2) * 0.1, rng.normal(size=2) * 0.1
+        assert lam(dx, dy, (16, 32)) == pytest.approx(ref_lod(dx, dy, 16, 32), abs=1e-5)
+
+
+def test_lod_is_safe_at_zero_derivatives():
+    z = jnp.zeros((3, 2), jnp.float32)
+    value = lod(z, z, (64, 64))
+    assert np.all(np.isfinite(value)) and np.all(value < -40)
+    g = jax.grad(lambda d: jnp.sum(lod(d, d, (64, 64))))(z)
+    np.testing.assert_array_equal(g, 0.0)
+
+
+# --------------------------------------------------------------------------- sampling
+
+
+@pytest.mark.parametrize("wrap", WRAPS)
+@pytest.mark.parametrize("origin", ORIGINS)
+def test_bilinear_matches_reference(wrap, origin):
+    uv = random_uv(40, seed=hash((wrap, origin)) % 1000)
+    got = sample(TEX57, uv, filter="bilinear", wrap=wrap, uv_origin=origin)
+    want = np.stack([ref_bilinear(TEX57, u, v, wrap, origin) for u, v in uv])
+    np.testing.assert_allclose(got, want, atol=2e-5)
+
+
+@pytest.mark.parametrize("wrap", WRAPS)
+@pytest.mark.parametrize("origin", ORIGINS)
+def test_nearest_matches_reference(wrap, origin):
+    uv = random_uv(60, seed=7)
+    keep = away_from(uv[:, 0], 7) & away_from(uv[:, 1], 5)  # no ties on texel edges
+    uv = uv[keep]
+    got = sample(TEX57, uv, filter="nearest", wrap=wrap, uv_origin=origin)
+    want = np.stack([ref_nearest(TEX57, u, v, wrap, origin) for u, v in uv])
+    np.testing.assert_array_equal(got, want.astype(np.float32))
+
+
+@pytest.mark.parametrize("wrap", WRAPS)
+@pytest.mark.parametrize("origin", ORIGINS)
+@pytest.mark.parametrize("filter", ["nearest", "bilinear"])
+def test_sampling_at_texel_centres_returns_the_texel(wrap, origin, filter):
+    h, w = TEX88.shape[:2]
+    r, c = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    u = (c + 0.5) / w
+    v = 1 - (r + 0.5) / h if origin == "bottom_left" else (r + 0.5) / h
+    uv = np.stack([u, v], -1).astype(np.float32)
+    got = sample(TEX88, uv, filter=filter, wrap=wrap, uv_origin=origin)
+    np.testing.assert_array_equal(got, TEX88)
+
+
+def test_uv_origin_on_a_2x2_image_with_distinct_rows():
+    tex = jnp.asarray([[[10.0], [10.0]], [[20.0], [20.0]]])  # row 0 (top) = 10, row 1 = 20
+    uv = jnp.asarray([[0.25, 0.25], [0.75, 0.75]])  # lower half, upper half (bottom_left)
+    for filter in ("nearest", "bilinear"):
+        bl = sample(tex, uv, filter=filter, wrap="clamp", uv_origin="bottom_left")
+        tl = sample(tex, uv, filter=filter, wrap="clamp", uv_origin="top_left")
+        np.testing.assert_array_equal(bl[:, 0], [20.0, 10.0])  # v = 0 is the bottom edge
+        np.testing.assert_array_equal(tl[:, 0], [10.0, 20.0])  # v = 0 is the top edge
+
+
+def test_wrap_modes_at_the_borders_bilinear():
+    tex = jnp.asarray(np.arange(4, dtype=np.float32).reshape(1, 4, 1) * np.ones((2, 1, 1)))
+    w = 4
+    cases = {  # u -> expected value per wrap mode; columns hold 0, 1, 2, 3
+        0.0: dict(repeat=1.5, clamp=0.0, mirror=0.0),  # x = -0.5: between col -1 and col 0
+        -0.5 / w: dict(repeat=3.0, clamp=0.0, mirror=0.0),  # x = -1
+        1.0: dict(repeat=1.5, clamp=3.0, mirror=3.0),  # x = W - 0.5
+        1 + 0.5 / w: dict(repeat=0.0, clamp=3.0, mirror=3.0),  # x = W
+        1 + 1.5 / w: dict(repeat=1.0, clamp=3.0, mirror=2.0),  # x = W + 1
+        -1.5 / w: dict(repeat=2.0, clamp=0.0, mirror=1.0),  # x = -2
+    }
+    for wrap in WRAPS:
+        uv = jnp.asarray([[u, 0.25] for u in cases], jnp.float32)
+        got = sample(tex, uv, filter="bilinear", wrap=wrap)[:, 0]
+        np.testing.assert_allclose(got, [c[wrap] for c in cases.values()], atol=1e-6,
+                                   err_msg=wrap)
+
+
+def test_wrap_modes_at_the_borders_nearest_and_rows():
+    tex = jnp.asarray(np.arange(12, dtype=np.float32).reshape(3, 4, 1))  # value = 4 r + c
+    u_cases = {-0.1: dict(repeat=3, clamp=0, mirror=0), 1.1: dict(repeat=0, clamp=3, mirror=3),
+               1.3: dict(repeat=1, clamp=3, mirror=2)}
+    # bottom_left: v just below 0 is GL row -1: wraps to the top row (repeat) or stays at
+    # the bottom row (clamp, mirror); just above 1 it is GL row H
+    v_cases = {-0.1: dict(repeat=0, clamp=2, mirror=2), 1.1: dict(repeat=2, clamp=0, mirror=0)}
+    v_mid, u_mid = 0.5, 0.6  # image row 1, column 2
+    for wrap in WRAPS:
+        uv = jnp.asarray([[u, v_mid] for u in u_cases] + [[u_mid, v] for v in v_cases])
+        got = np.asarray(sample(tex, uv, filter="nearest", wrap=wrap)[:, 0])
+        want = [4 + c[wrap] for c in u_cases.values()] + [4 * c[wrap] + 2 for c in v_cases.values()]
+        np.testing.assert_array_equal(got, want, err_msg=wrap)
+
+
+def test_clamp_at_u_zero_returns_column_zero():
+    h, w = TEX88.shape[:2]
+    rows = np.arange(h)
+    uv = np.stack([np.zeros(h), 1 - (rows + 0.5) / h], -1).astype(np.float32)
+    got = sample(TEX88, uv, filter="bilinear", wrap="clamp")
+    np.testing.assert_array_equal(got, TEX88[:, 0])
+
+
+_sample_bilinear = jax.jit(sample, static_argnames=("filter", "wrap", "uv_origin"))
+coord = st.floats(-3.0, 3.0, allow_nan=False, width=32)
+
+
+@settings(max_examples=30, deadline=None)
+@given(u=coord, v=coord)
+def test_wrap_symmetries(u, v):
+    tex = jnp.asarray(TEX57)
+
+    def f(uu, vv, wrap, origin="bottom_left"):
+        return _sample_bilinear(tex, jnp.asarray([[uu, vv]], jnp.float32), wrap=wrap,
+                                uv_origin=origin)
+
+    tol = dict(atol=3e-5)
+    np.testing.assert_allclose(f(u + 1, v - 2, "repeat"), f(u, v, "repeat"), **tol)
+    np.testing.assert_allclose(f(-u, v, "mirror"), f(u, v, "mirror"), **tol)
+    np.testing.assert_allclose(f(u, 2 - v, "mirror"), f(u, v, "mirror"), **tol)
+    h, w = TEX57.shape[:2]
+    uc = float(np.clip(u, 0.5 / w, 1 - 0.5 / w))
+    vc = float(np.clip(v, 0.5 / h, 1 - 0.5 / h))
+    np.testing.assert_allclose(f(u, v, "clamp"), f(uc, vc, "clamp"), **tol)
+    # top_left is bottom_left with v -> 1 - v
+    np.testing.assert_allclose(f(u, v, "repeat", "top_left"), f(u, 1 - v, "repeat"), **tol)
+
+
+# --------------------------------------------------------------------------- trilinear
+
+
+def _trilinear(mips, uv, rho_texels, size, **kw):
+    """Trilinear with isotropic derivatives of `rho_texels` texels per pixel."""
+    h, w = size
+    n = uv.shape[0]
+    dx = np.tile([rho_texels / w, 0.0], (n, 1)).astype(np.float32)
+    dy = np.tile([0.0, rho_texels / h], (n, 1)).astype(np.float32)
+    return sample(mips, uv, dx, dy, filter="trilinear", **kw)
+
+
+def test_trilinear_at_integer_and_half_lod():
+    mips = build_mipmaps(jnp.asarray(TEX88))  # 8, 4, 2, 1
+    uv = random_uv(12, seed=11)
+    bil = [sample(m, uv, filter="bilinear") for m in mips]
+    for level in range(len(mips)):
+        np.testing.assert_allclose(_trilinear(mips, uv, 2.0**level, (8, 8)), bil[level],
+                                   atol=1e-5, err_msg=f"level {level}")
+    np.testing.assert_allclose(_trilinear(mips, uv, 2.0**1.5, (8, 8)),
+                               0.5 * (bil[1] + bil[2]), atol=1e-5)
+    # magnification uses level 0; beyond the last level the last level
+    np.testing.assert_allclose(_trilinear(mips, uv, 0.25, (8, 8)), bil[0], atol=1e-6)
+    np.testing.assert_allclose(_trilinear(mips, uv, 64.0, (8, 8)), bil[3], atol=1e-6)
+    # an incomplete chain clamps lambda to its last level
+    np.testing.assert_allclose(_trilinear(mips[:2], uv, 8.0, (8, 8)), bil[1], atol=1e-6)
+    # lod_bias shifts lambda
+    np.testing.assert_allclose(_trilinear(mips, uv, 1.0, (8, 8), lod_bias=2.0), bil[2],
+                               atol=1e-5)
+
+
+@pytest.mark.parametrize("wrap", WRAPS)
+def test_trilinear_matches_reference(wrap):
+    tex = np.random.default_rng(21).random((6, 10, 2)).astype(np.float32)
+    mips = build_mipmaps(jnp.asarray(tex))
+    ref_levels = ref_mipmaps(tex)[: len(mips)]
+    rng = np.random.default_rng(22)
+    uv = random_uv(16, seed=23)
+    dx = (rng.normal(size=(16, 2)) * 0.2).astype(np.float32)
+    dy = (rng.normal(size=(16, 2)) * 0.2).astype(np.float32)
+    got = sample(mips, uv, dx, dy, filter="trilinear", wrap=wrap)
+    for k in range(16):
+        lam = min(max(ref_lod(dx[k], dy[k], 6, 10), 0.0), len(mips) - 1)
+        d = math.floor(lam)
+        a = ref_bilinear(ref_levels[d], *uv[k], wrap, "bottom_left")
+        b = ref_bilinear(ref_levels[min(d + 1, len(mips) - 1)], *uv[k], wrap, "bottom_left")
+        np.testing.assert_allclose(got[k], (1 - (lam - d)) * a + (lam - d) * b, atol=3e-5)
+
+
+def test_trilinear_without_mips_builds_them():
+    uv = random_uv(5, seed=3)
+    d = np.tile([[4 / 8, 0.0]], (5, 1)).astype(np.float32)
+    a = sample(TEX88, uv, d, d[:, ::-1], filter="trilinear")
+    b = sample(build_mipmaps(jnp.asarray(TEX88)), uv, d, d[:, ::-1], filter="trilinear")
+    np.testing.assert_array_equal(a, b)
+
+
+def test_background_pixels_are_finite():
+    uv = jnp.zeros((4, 4, 2), jnp.float32)
+    for filter in ("nearest", "bilinear", "trilinear"):
+        out = sample(TEX88, uv, uv, uv, filter=filter)
+        assert out.shape == (4, 4, 3) and np.all(np.isfinite(out))
+
+    def loss(uv, d):
+        return jnp.sum(sample(TEX88, uv, d, d, filter="trilinear") ** 2)
+
+    gu, gd = jax.grad(loss, (0, 1))(uv, uv)
+    assert np.all(np.isfinite(gu)) and np.all(np.isfinite(gd))
+
+
+# --------------------------------------------------------------------------- plans
+
+
+def test_plan_structure_and_pytree():
+    uv = random_uv(6, seed=1).reshape(2, 3, 2)
+    d = np.full((2, 3, 2), 0.3, np.float32)
+    plans = {f: plan_sample(uv, d, d, size_hw=(8, 8), levels=4, filter=f)
+             for f in ("nearest", "bilinear", "trilinear")}
+    for f, taps in (("nearest", 1), ("bilinear", 4), ("trilinear", 8)):
+        p = plans[f]
+        assert p.index.shape == (2, 3, taps) and p.index.dtype == jnp.int32
+        assert p.num_taps == taps
+        np.testing.assert_allclose(np.sum(p.weight, -1), 1.0, rtol=1e-6)
+        assert np.all((p.index >= 0) & (p.index < 8 * 8 + 4 * 4 + 2 * 2 + 1))
+    leaves, treedef = jax.tree_util.tree_flatten(plans["trilinear"])
+    assert len(leaves) == 2
+    rebuilt = jax.tree_util.tree_unflatten(treedef, leaves)
+    assert rebuilt.level_shapes == ((8, 8), (4, 4), (2, 2), (1, 1))
+    assert plans["bilinear"].level_shapes == ((8, 8),)
+
+
+def test_plan_under_jit_matches_eager_and_accepts_attribute():
+    uv = random_uv(10, seed=2)
+    d = np.full((10, 2), 0.2, np.float32)
+    mips = build_mipmaps(jnp.asarray(TEX88))
+    eager = apply_plan(plan_sample(uv, d, -d, size_hw=(8, 8), levels=4, filter="trilinear",
+                                   wrap="mirror"), mips)
+    planner = jax.jit(plan_sample, static_argnames=("size_hw", "levels", "filter", "wrap"))
+    plan = planner(uv, d, -d, size_hw=(8, 8), levels=4, filter="trilinear", wrap="mirror")
+    jitted = jax.jit(apply_plan)(plan, mips)
+    np.testing.assert_allclose(jitted, eager, rtol=1e-6)
+    attr = Attribute(jnp.asarray(uv), jnp.asarray(d), jnp.asarray(-d))
+    via_attr = sample(mips, attr, filter="trilinear", wrap="mirror")
+    np.testing.assert_allclose(via_attr, eager, rtol=1e-6)
+
+
+def test_option_validation():
+    uv = jnp.zeros((2, 2))
+    for kw, name in ((dict(filter="linear"), "filter"), (dict(wrap="wrap"), "wrap"),
+                     (dict(uv_origin="top"), "uv_origin")):
+        with pytest.raises(ValueError, match=f"unknown {name}=.*expected one of"):
+            plan_sample(uv, size_hw=(4, 4), **kw)
+    with pytest.raises(ValueError, match="needs duvdx and duvdy"):
+        plan_sample(uv, size_hw=(4, 4), levels=3, filter="trilinear")
+    plan = plan_sample(uv, uv, uv, size_hw=(4, 4), levels=3, filter="trilinear")
+    with pytest.raises(ValueError, match="reads 3 mip levels"):
+        apply_plan(plan, (jnp.zeros((4, 4, 1)),))
+    with pytest.raises(ValueError, match="the plan expects"):
+        apply_plan(plan_sample(uv, size_hw=(4, 4)), jnp.zeros((4, 5, 1)))
+    with pytest.raises(ValueError, match="unknown encoding"):
+        decode_normal_map(jnp.zeros(3), encoding="snorm")
+    with pytest.raises(ValueError, match="unknown green"):
+        decode_normal_map(jnp.zeros(3), green="left")
+    with pytest.raises(ValueError, match="unknown channels"):
+        encode_normal_map(jnp.zeros(3), channels=4)
+    with pytest.raises(ValueError, match="at least 3 channels"):
+        decode_normal_map(jnp.zeros(2))
+
+
+# --------------------------------------------------------------------------- gradients
+
+
+@pytest.mark.parametrize("filter", ["nearest", "bilinear", "trilinear"])
+def test_apply_plan_gradients_wrt_texels(filter):
+    with jax.enable_x64(True):
+        rng = np.random.default_rng(31)
+        tex = jnp.asarray(rng.random((6, 8, 3)))
+        uv = jnp.asarray(rng.uniform(-1, 2, (5, 2)))
+        d = jnp.asarray(rng.normal(size=(5, 2)) * 0.3)
+        mips = build_mipmaps(tex)
+        plan = plan_sample(uv, d, d[:, ::-1], size_hw=(6, 8), levels=len(mips), filter=filter)
+        check_grads(lambda *m: apply_plan(plan, m), tuple(mips), order=2, modes=("fwd", "rev"))
+        # and w.r.t. level 0 through the mip chain (plain and renormalised)
+        check_grads(lambda t: apply_plan(plan, build_mipmaps(t)), (tex,), order=1,
+                    modes=("fwd", "rev"))
+        check_grads(lambda t: apply_plan(plan, build_mipmaps(t, renormalize=True)),
+                    (tex - 0.5,), order=1, modes=("fwd", "rev"))
+
+
+def test_sample_gradients_wrt_uv_and_derivatives():
+    with jax.enable_x64(True):
+        rng = np.random.default_rng(41)
+        tex = jnp.asarray(rng.random((8, 8, 2)))
+        uv = rng.uniform(-1, 2, (16, 2))
+        for size in (8, 4, 2):  # stay off the kinks (texel centres) of the levels used
+            uv = uv[away_from(uv[:, 0] * size - 0.5, 1, 0.05)
+                    & away_from(uv[:, 1] * size - 0.5, 1, 0.05)]
+        assert uv.shape[0] >= 3
+        uv = jnp.asarray(uv)
+        for wrap in WRAPS:
+            check_grads(lambda x: sample(tex, x, wrap=wrap), (uv,), order=1,
+                        modes=("fwd", "rev"))
+        # trilinear: lambda = log2(2.5) (not an integer), x derivative dominates
+        dx = jnp.tile(jnp.asarray([[2.5 / 8, 0.1 / 8]]), (uv.shape[0], 1))
+        dy = jnp.tile(jnp.asarray([[0.2 / 8, 1.0 / 8]]), (uv.shape[0], 1))
+        mips = build_mipmaps(tex)
+        check_grads(lambda x, a, b: sample(mips, x, a, b, filter="trilinear"), (uv, dx, dy),
+                    order=1, modes=("fwd", "rev"))
+
+
+def test_decode_gradients_are_finite_at_degenerate_texels():
+    raw = jnp.asarray([[0.5, 0.5, 0.5],  # decodes to the zero vector
+                       [1.0, 1.0, 0.5],  # 2-channel: |xy| > 1 -> z = 0
+                       [1.0, 0.5, 0.5]])  # 2-channel: |xy| = 1 exactly
+    normal = jnp.asarray([[0.0, 0.0, 1.0]])
+    for channels in (2, 3):
+        def f(r):
+            n = decode_normal_map(r, channels=channels)
+            return jnp.sum(safe_normalize(n, fallback=normal) + n)
+
+        g = jax.grad(f)(raw)
+        assert np.all(np.isfinite(g)), channels
+    n = decode_normal_map(raw[:1])
+    np.testing.assert_array_equal(n, 0.0)
+    np.testing.assert_array_equal(safe_normalize(n, fallback=normal), [[0.0, 0.0, 1.0]])
+
+
+# --------------------------------------------------------------------------- normal maps
+
+
+def test_exact_sign_expansion_8_bit():
+    codes = np.arange(256)
+    for raw in (np.float32(codes) / np.float32(255), np.float32(codes) * np.float32(1 / 255)):
+        x = np.asarray(decode_normal_map(np.stack([raw] * 3, -1),
+                                         encoding="unsigned_exact"))[:, 0]
+        assert x[128] == 0.0 and x[255] == 1.0 and x[1] == -1.0
+        assert x[0] == -1.0  # -128/127 clamps to -1, like snorm
+        np.testing.assert_allclose(x[1:], (codes[1:] - 128) / 127, atol=1e-6)
+        assert np.all(np.diff(x[1:]) > 0)
+
+
+def test_exact_sign_expansion_16_bit():
+    codes = np.asarray([0, 1, 2, 32767, 32768, 32769, 65534, 65535])
+    raw = np.float32(codes) / np.float32(65535)
+    x = np.asarray(decode_normal_map(np.stack([raw] * 3, -1), encoding="unsigned_exact",
+                                     bits=16))[:, 0]
+    assert x[4] == 0.0 and x[-1] == 1.0 and x[1] == -1.0 and x[0] == -1.0
+    np.testing.assert_allclose(x[1:], (codes[1:] - 32768) / 32767, atol=1e-6)
+
+
+def test_unsigned_and_signed_expansion():
+    raw = jnp.asarray([[0.0, 0.5, 1.0]])
+    np.testing.assert_array_equal(decode_normal_map(raw), [[-1.0, 0.0, 1.0]])
+    signed = jnp.asarray([[-0.3, 0.2, 0.9]])
+    np.testing.assert_array_equal(decode_normal_map(signed, encoding="signed"), signed)
+
+
+def test_two_channel_z_reconstruction():
+    xy = np.asarray([[0.0, 0.0], [0.6, 0.0], [0.6, -0.8], [0.9, 0.9], [-1.0, 0.0]], np.float32)
+    raw = np.concatenate([xy, np.full((5, 1), 0.123, np.float32)], -1)  # 3rd channel ignored
+    n = np.asarray(decode_normal_map(raw, encoding="signed", channels=2))
+    np.testing.assert_allclose(n[:, :2], xy)
+    np.testing.assert_allclose(n[:, 2], [1.0, 0.8, 0.0, 0.0, 0.0], atol=1e-6)
+    assert np.all(np.isfinite(n))
+
+
+def test_green_convention_in_terms_of_v():
+    raw = jnp.asarray([0.5, 0.75, 0.5])  # stored green > 0.5: +green
+    y = {(g, o): float(decode_normal_map(raw, green=g, uv_origin=o)[1])
+         for g in ("up", "down") for o in ORIGINS}
+    # bottom_left: +v is the image top, so green-up maps point along +v
+    assert y[("up", "bottom_left")] == 0.5 and y[("down", "bottom_left")] == -0.5
+    # top_left: +v is the image bottom (Schueler's GLSL negates y for GREEN_UP)
+    assert y[("up", "top_left")] == -0.5 and y[("down", "top_left")] == 0.5
+
+
+def test_strength_scales_xy_only():
+    raw = jnp.asarray([[0.8, 0.3, 0.9]])
+    base = decode_normal_map(raw)
+    strong = decode_normal_map(raw, strength=2.5)
+    np.testing.assert_allclose(strong[:, :2], 2.5 * base[:, :2], rtol=1e-6)
+    np.testing.assert_array_equal(strong[:, 2], base[:, 2])
+    flat = decode_normal_map(raw, strength=0.0, channels=2)
+    np.testing.assert_allclose(flat[:, :2], 0.0)
+    np.testing.assert_allclose(flat[:, 2], np.sqrt(1 - 0.6**2 - 0.4**2), rtol=1e-6)
+
+
+def _unit_normals(n, seed, z_min=0.05):
+    v = np.random.default_rng(seed).normal(size=(n, 3))
+    v[:, 2] = np.abs(v[:, 2]) + z_min
+    return (v / np.linalg.norm(v, axis=-1, keepdims=True)).astype(np.float32)
+
+
+@pytest.mark.parametrize("encoding", ["unsigned", "unsigned_exact", "signed"])
+@pytest.mark.parametrize("channels", [2, 3])
+@pytest.mark.parametrize("green,origin", [("up", "bottom_left"), ("down", "top_left"),
+                                          ("down", "bottom_left")])
+def test_encode_decode_round_trip(encoding, channels, green, origin):
+    n = _unit_normals(50, seed=channels)
+    kw = dict(encoding=encoding, channels=channels, green=green, uv_origin=origin)
+    stored = encode_normal_map(n, **kw)
+    assert stored.shape == (50, channels)
+    lo = -1.0 if encoding == "signed" else 0.0
+    assert np.all((stored >= lo) & (stored <= 1.0))
+    np.testing.assert_allclose(decode_normal_map(stored, **kw), n, atol=1e-5)
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_quantised_round_trip(bits):
+    n = _unit_normals(200, seed=bits)
+    top = 2**bits - 1
+    for encoding in ("unsigned", "unsigned_exact"):
+        stored = np.asarray(encode_normal_map(n, encoding=encoding, bits=bits))
+        codes = np.round(stored.astype(np.float64) * top)
+        raw = (codes / top).astype(np.float32)
+        back = np.asarray(decode_normal_map(raw, encoding=encoding, bits=bits))
+        assert np.max(np.abs(back - n)) <= 1.01 / (2 ** (bits - 1) - 1)
+    # the exact lattice k / (2^(b-1) - 1) survives quantisation exactly
+    half = 2 ** (bits - 1)
+    k = (half - 1) // 2
+    lattice = np.asarray([-1.0, -k / (half - 1), 0.0, 1.0], np.float32)
+    lattice = np.stack([lattice, lattice[::-1], np.abs(lattice)], -1)
+    stored = np.asarray(encode_normal_map(lattice, encoding="unsigned_exact", bits=bits))
+    raw = (np.round(stored.astype(np.float64) * top) / top).astype(np.float32)
+    back = np.asarray(decode_normal_map(raw, encoding="unsigned_exact", bits=bits))
+    np.testing.assert_allclose(back, lattice, atol=1e-6)
+    assert back[2, 0] == 0.0 and back[0, 0] == -1.0 and back[3, 0] == 1.0
+
+
+def test_decode_after_filtering_commutes_for_linear_encodings():
+    # filter stored values, then decode (GPU order) == filter decoded values (linear decode)
+    raw = np.random.default_rng(8).random((4, 4, 3)).astype(np.float32)
+    uv = random_uv(8, seed=9)
+    a = decode_normal_map(sample(raw, uv))
+    b = sample(decode_normal_map(raw), uv)
+    np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- sRGB
+
+
+def test_srgb_known_values_and_round_trip():
+    x = jnp.asarray([0.0, 0.04045, 0.5, 1.0, 128 / 255])
+    lin = np.asarray(srgb_to_linear(x))
+    np.testing.assert_allclose(lin[:4], [0.0, 0.04045 / 12.92, 0.21404114, 1.0], rtol=1e-6)
+    np.testing.assert_allclose(lin[4], 0.21586050, rtol=1e-6)
+    np.testing.assert_allclose(linear_to_srgb(jnp.asarray([0.0, 0.5, 1.0])),
+                               [0.0, 0.7353569, 1.0], rtol=1e-6)
+    t = jnp.linspace(0.0, 1.0, 257)
+    np.testing.assert_allclose(linear_to_srgb(srgb_to_linear(t)), t, atol=2e-6)
+    np.testing.assert_allclose(srgb_to_linear(linear_to_srgb(t)), t, atol=2e-6)
+    # the two pieces meet at the knees
+    for f, knee in ((srgb_to_linear, 0.04045), (linear_to_srgb, 0.0031308)):
+        with jax.enable_x64(True):
+            below, above = f(jnp.asarray([knee, knee * (1 + 1e-12)]))
+            assert abs(float(above) - float(below)) < 1e-8
+
+
+def test_srgb_gradients_are_finite_at_zero():
+    g1 = jax.grad(lambda x: jnp.sum(srgb_to_linear(x)))(jnp.zeros(3))
+    g2 = jax.grad(lambda x: jnp.sum(linear_to_srgb(x)))(jnp.zeros(3))
+    np.testing.assert_allclose(g1, 1 / 12.92, rtol=1e-6)
+    np.testing.assert_allclose(g2, 12.92, rtol=1e-6)
+    g3 = jax.grad(lambda x: jnp.sum(linear_to_srgb(x)))(jnp.asarray([0.2, 1.0]))
+    assert np.all(np.isfinite(g3))
+
+
+def test_plan_is_exported_type():
+    assert isinstance(plan_sample(jnp.zeros((1, 2)), size_hw=(2, 2)), SamplePlan)
