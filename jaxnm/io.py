@@ -119,13 +119,14 @@ def load_mesh(path: PathLike, *, require_uv: bool = False,
     """Load a triangle mesh (OBJ, PLY, glTF/GLB, STL, OFF) as a `Mesh`.
 
     Vertices are not merged: a vertex at a uv seam stays two vertices. PLY, OFF,
-    STL and glTF keep the file's vertex order. OBJ indexes positions, uvs and
-    normals separately, so each distinct ``v/vt/vn`` corner becomes a vertex,
-    sorted by its ``v`` index (vertices no face uses are dropped). A scene with
-    several meshes (glTF nodes, OBJ materials) is concatenated with the
-    scene-graph transforms applied (normals by the inverse transpose; a mirroring
-    transform reverses the winding so that counter-clockwise stays front).
-    Polygons are triangulated; degenerate triangles are kept.
+    STL and glTF keep the file's vertex order (an STL triangle has its own three
+    vertices). OBJ indexes positions, uvs and normals separately, so each distinct
+    ``v/vt/vn`` corner becomes a vertex, sorted by its ``v`` index (vertices no
+    face uses are dropped). A scene with several meshes (glTF nodes, OBJ
+    ``usemtl`` groups) is concatenated in trimesh's scene-graph order, which is not
+    always the file's, with the node transforms applied (normals by the inverse
+    transpose; a mirroring transform reverses the winding so that counter-clockwise
+    stays front). Polygons are triangulated; degenerate triangles are kept.
 
     **uv orientation.** uvs are returned with the origin at the bottom-left of
     the image for every format. OBJ and PLY already use that convention. glTF
@@ -325,7 +326,7 @@ def _clean_obj(data: bytes, src: str) -> bytes:
     text = b"\n" + data.replace(b"\r", b"")
     indices = _obj_corner_indices(b" ".join(_OBJ_FACE_LINE.findall(text)))
     for (kind, name), idx in zip(_OBJ_KINDS, indices):
-        n = text.count(b"\n" + kind.encode() + b" ") + text.count(b"\n" + kind.encode() + b"\t")
+        n = text.count(b"\n" + kind.encode() + b" ")  # the lines that trimesh reads
         bad = (idx == 0) | (idx > n) | (idx < -n)
         if bad.any():
             i = int(idx[np.argmax(bad)])
@@ -491,7 +492,7 @@ def _read_pillow(data: bytes, ext: str, src: str) -> np.ndarray:
         if str(e).startswith(src):
             raise
         raise ValueError(f"{src}: cannot read the image ({e})") from None
-    except Exception as e:  # noqa: BLE001 - imageio/Pillow raise OSError, SyntaxError, ...
+    except Exception as e:  # Pillow raises OSError, SyntaxError, ...
         raise ValueError(f"{src}: not an image or unreadable ({type(e).__name__}: {e})") from None
 
 
@@ -524,7 +525,7 @@ def _read_exr(p: Path) -> np.ndarray:
             f"or 16-bit PNG.")
     try:  # flags=-1 is cv2.IMREAD_UNCHANGED: keep float32 and the alpha channel
         return iio.imread(p, plugin="opencv", flags=-1)
-    except Exception as e:  # noqa: BLE001
+    except Exception as e:  # anything cv2 or the plugin raises
         raise ValueError(f"{src}: OpenCV cannot read this EXR file ({type(e).__name__}: {e}); "
                          f"is OPENCV_IO_ENABLE_OPENEXR=1 set?") from None
 

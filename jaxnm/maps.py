@@ -1,4 +1,4 @@
-r"""Normal perturbation by the other map types: object-space normal maps, bump maps, derivative maps.
+r"""The other normal-map types: object-space normal maps, bump maps, derivative maps.
 
 Tangent-space normal maps live in `jaxnm.frames` (cotangent frame +
 ``perturb_normal``); this module has the alternatives the source articles
@@ -87,7 +87,7 @@ def _per_pixel_scalar(x: ArrayLike, batch: tuple[int, ...], name: str) -> Array:
 
 
 def _cofactor(m: Array) -> Array:
-    """Cofactor matrix of (3, 3) ``m``: ``det(m) * inverse(m).T``, defined for singular ``m`` too."""
+    """Cofactor matrix of (3, 3) ``m``: ``det(m) * inverse(m).T``, also for singular ``m``."""
     r0, r1, r2 = m[0], m[1], m[2]
     return jnp.stack([jnp.cross(r1, r2), jnp.cross(r2, r0), jnp.cross(r0, r1)])
 
@@ -98,7 +98,7 @@ def _check_wrap(wrap: str) -> None:
 
 
 def _texel_gradient(height: ArrayLike, wrap: str) -> tuple[Array, Array]:
-    """Central differences ``(dh/du, dh/dv)`` per texel, each (H, W); v up (row above minus below)."""
+    """Central differences ``(dh/du, dh/dv)`` per texel, (H, W) each; v up (row above - below)."""
     _check_wrap(wrap)
     h = _float(height)
     if h.ndim != 2:

@@ -252,12 +252,28 @@ def _triangle_setup(h: Array, faces: Array, width: int, height: int, block: int,
 # --------------------------------------------------------------------------------------
 
 
-def _slot_fragments(slot0, tri_h, sigma, bx0, by0, nbx, counts, starts, total, *, width,
-                    height, block, slots):
+def _depth_plane(th: Array, x0: Array, y0: Array):
+    """Window depth ``dz_c + dz_a dx + dz_b dy`` around ``(x0, y0)`` for triangles ``th`` (S, 3, 4)."""
+    hx = th[..., 0] - x0[:, None] * th[..., 3]
+    hy = th[..., 1] - y0[:, None] * th[..., 3]
+    hw, hz = th[..., 3], th[..., 2]
+    j, k = (1, 2, 0), (2, 0, 1)
+    c = hx[:, j] * hy[:, k] - hy[:, j] * hx[:, k]
+    a = hy[:, j] * hw[:, k] - hw[:, j] * hy[:, k]
+    b = hw[:, j] * hx[:, k] - hx[:, j] * hw[:, k]
+    det = jnp.sum(c * hw, -1)  # sum_i E_i(p) w_i = det M at any p
+    det = jnp.where(det == 0, 1.0, det)
+    return jnp.sum(c * hz, -1) / det, jnp.sum(a * hz, -1) / det, jnp.sum(b * hz, -1) / det
+
+
+def _slot_fragments(slot0, tri_h, tri_depth, sigma, bx0, by0, nbx, counts, starts, total, *,
+                    width, height, block, slots):
     """Evaluate ``slots`` consecutive (triangle, block) slots starting at ``slot0``.
 
-    Returns, per candidate pixel, its flat image-layout index (out of range when
-    not covered), its depth and its triangle index, each ``(slots * block**2,)``.
+    ``tri_h``: (F, 3, 4) coverage (snapped) vertices, ``tri_depth``: (F, 3, 4)
+    unsnapped homogeneous window vertices. Returns, per candidate pixel, its flat
+    image-layout index (out of range when not covered), its depth and its
+    triangle index, each ``(slots * block**2,)``.
     """
     s = slot0 + jnp.arange(slots, dtype=jnp.int32)
     live = s < total
@@ -282,12 +298,8 @@ def _slot_fragments(slot0, tri_h, sigma, bx0, by0, nbx, counts, starts, total, *
         c.append(ci)
     a, b, c = jnp.stack(a, -1), jnp.stack(b, -1), jnp.stack(c, -1)  # (S, 3)
     tie = _tie_inside(sg * a, sg * b)  # (S, 3)
-    det = jnp.sum(c * hxyw[..., 2], -1)  # sum_i E_i(p) w_i = det M at any p
-    det = jnp.where(det == 0, 1.0, det)
-    hz = th[..., 2]
-    dz_c = jnp.sum(c * hz, -1) / det
-    dz_a = jnp.sum(a * hz, -1) / det
-    dz_b = jnp.sum(b * hz, -1) / det
+    # depth from the unsnapped vertices, as GPUs do (only coverage uses snapped positions)
+    dz_c, dz_a, dz_b = _depth_plane(tri_depth[t], x0, y0)
 
     d = jnp.arange(block, dtype=tri_h.dtype)
     dx = jnp.tile(d, block)  # pixel (dx, dy) in the block, dx fastest
@@ -316,7 +328,7 @@ def _fragment_source(clip, faces, *, width, height, cull_back, block, slots, sub
     starts = ends - counts
     total = ends[-1]
     fragments = functools.partial(
-        _slot_fragments, tri_h=tri_h, sigma=sigma, bx0=bx0, by0=by0, nbx=nbx, counts=counts,
+        _slot_fragments, tri_h=tri_h, tri_depth=h_unsnapped[faces], sigma=sigma, bx0=bx0, by0=by0, nbx=nbx, counts=counts,
         starts=starts, total=total, width=width, height=height, block=block, slots=slots,
     )
     return fragments, total, sigma, h_unsnapped

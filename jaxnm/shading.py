@@ -28,7 +28,8 @@ axes and finite (value and gradient) for every finite input.
     \text{blinn\_phong} &= \text{lambert} + \sum_\ell [N\cdot L_\ell > 0]\;
         \kappa_s E_\ell \max(0, N\cdot H_\ell)^n, \quad H = \mathrm{normalize}(L + V) \\
     \text{phong} &= \text{lambert} + \sum_\ell [N\cdot L_\ell > 0]\;
-        \kappa_s E_\ell \max(0, R_\ell\cdot V)^n, \quad R = \mathrm{reflect}(-L, N) = 2 (N\cdot L) N - L
+        \kappa_s E_\ell \max(0, R_\ell\cdot V)^n, \quad
+        R = \mathrm{reflect}(-L, N) = 2 (N\cdot L) N - L
 
 This is the GLSL Hacker demo's fragment shader (ambient ``* tex``, diffuse
 ``* tex``, specular inside ``if (lambertTerm > 0.0)``), with a single light

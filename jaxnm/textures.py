@@ -32,6 +32,7 @@ with `decode_normal_map`; see there for the green-channel convention.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Sequence
 
@@ -183,9 +184,13 @@ def build_mipmaps(tex: ArrayLike, *, levels: int | None = None,
     if renormalize and tex.shape[-1] < 3:
         raise ValueError("build_mipmaps: renormalize=True needs at least 3 channels (xyz), "
                          f"got shape {tex.shape}")
-    sizes = mip_sizes(tex.shape[:2], levels)
+    return _build_mipmaps(tex, len(mip_sizes(tex.shape[:2], levels)), bool(renormalize))
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _build_mipmaps(tex: Array, levels: int, renormalize: bool) -> tuple[Array, ...]:
     out = [tex]
-    for _ in sizes[1:]:
+    for _ in range(levels - 1):
         nxt = _downsample_axis(_downsample_axis(out[-1], 0), 1)
         out.append(_renormalize(nxt) if renormalize else nxt)
     return tuple(out)
@@ -217,7 +222,12 @@ def lod(duvdx: ArrayLike, duvdy: ArrayLike, size_hw: Sequence[int]) -> Array:
     if duvdx.shape[-1:] != (2,) or duvdy.shape != duvdx.shape:
         raise ValueError("lod: duvdx and duvdy must both have shape (..., 2), got "
                          f"{duvdx.shape} and {duvdy.shape}")
-    h, w = (int(s) for s in size_hw)
+    return _lod(duvdx, duvdy, tuple(int(s) for s in size_hw))
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _lod(duvdx: Array, duvdy: Array, size_hw: tuple[int, int]) -> Array:
+    h, w = size_hw
     rho2_x = (duvdx[..., 0] * w) ** 2 + (duvdx[..., 1] * h) ** 2
     rho2_y = (duvdy[..., 0] * w) ** 2 + (duvdy[..., 1] * h) ** 2
     rho2 = jnp.maximum(rho2_x, rho2_y)
@@ -346,24 +356,31 @@ def plan_sample(uv: ArrayLike | Attribute, duvdx: ArrayLike | None = None,
     if uv.shape[-1:] != (2,):
         raise ValueError(f"plan_sample: uv must have shape (..., 2), got {uv.shape}")
     sizes = mip_sizes(size_hw, levels)
+    if filter != "trilinear":
+        return _plan_sample(uv, None, None, None, sizes[:1], filter, wrap, uv_origin)
+    if duvdx is None or duvdy is None:
+        raise ValueError("plan_sample: filter='trilinear' needs duvdx and duvdy")
+    duvdx = jnp.asarray(duvdx, uv.dtype)
+    duvdy = jnp.asarray(duvdy, uv.dtype)
+    if duvdx.shape != uv.shape or duvdy.shape != uv.shape:
+        raise ValueError(f"plan_sample: duvdx {duvdx.shape} and duvdy {duvdy.shape} must "
+                         f"have the shape of uv {uv.shape}")
+    lod_bias = jnp.asarray(lod_bias, uv.dtype)
+    return _plan_sample(uv, duvdx, duvdy, lod_bias, sizes, filter, wrap, uv_origin)
+
+
+@functools.partial(jax.jit, static_argnums=(4, 5, 6, 7))
+def _plan_sample(uv, duvdx, duvdy, lod_bias, sizes, filter, wrap, uv_origin) -> SamplePlan:
     flip = uv_origin == "bottom_left"
     s, t = uv[..., 0], uv[..., 1]
     h, w = sizes[0]
+    levels = len(sizes)
     if filter == "nearest":
         index, weight = _nearest_taps(s, t, h, w, wrap, flip)
-        sizes = sizes[:1]
     elif filter == "bilinear":
         index, weight = _linear_taps(s, t, h, w, 0, wrap, flip)
-        sizes = sizes[:1]
     else:
-        if duvdx is None or duvdy is None:
-            raise ValueError("plan_sample: filter='trilinear' needs duvdx and duvdy")
-        duvdx = jnp.asarray(duvdx, uv.dtype)
-        duvdy = jnp.asarray(duvdy, uv.dtype)
-        if duvdx.shape != uv.shape or duvdy.shape != uv.shape:
-            raise ValueError(f"plan_sample: duvdx {duvdx.shape} and duvdy {duvdy.shape} must "
-                             f"have the shape of uv {uv.shape}")
-        lam = lod(duvdx, duvdy, sizes[0]) + lod_bias
+        lam = _lod(duvdx, duvdy, sizes[0]) + lod_bias
         lam = jnp.clip(lam, 0.0, float(levels - 1))
         lam0 = jnp.floor(lam)
         frac = lam - lam0
@@ -377,7 +394,7 @@ def plan_sample(uv: ArrayLike | Attribute, duvdx: ArrayLike | None = None,
         index = jnp.concatenate([i0, i1], -1)
         weight = jnp.concatenate([w0 * (1 - frac)[..., None], w1 * frac[..., None]], -1)
     return SamplePlan(index.astype(jnp.int32), weight, filter=filter, wrap=wrap,
-                      uv_origin=uv_origin, level_shapes=tuple(sizes))
+                      uv_origin=uv_origin, level_shapes=sizes)
 
 
 def apply_plan(plan: SamplePlan, mips: ArrayLike | Sequence[ArrayLike]) -> Array:
@@ -405,6 +422,11 @@ def apply_plan(plan: SamplePlan, mips: ArrayLike | Sequence[ArrayLike]) -> Array
         if m.shape[:2] != hw or m.shape[-1] != used[0].shape[-1]:
             raise ValueError(f"apply_plan: mips[{k}] has shape {m.shape}; the plan expects "
                              f"{hw + (used[0].shape[-1],)}")
+    return _apply_plan(plan, tuple(used))
+
+
+@jax.jit
+def _apply_plan(plan: SamplePlan, used: tuple[Array, ...]) -> Array:
     channels = used[0].shape[-1]
     dtype = jnp.result_type(*used)
     flat = jnp.concatenate([m.reshape(-1, channels).astype(dtype) for m in used], 0)
@@ -542,18 +564,45 @@ def decode_normal_map(raw: ArrayLike, *, encoding: str = "unsigned", channels: i
     if raw.ndim < 1 or raw.shape[-1] < channels:
         raise ValueError(f"decode_normal_map: raw must have at least {channels} channels, "
                          f"got shape {raw.shape}")
+    return _decode(raw, jnp.asarray(strength, raw.dtype), encoding, int(channels),
+                   _flip_green(green, uv_origin), int(bits))
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3, 4, 5))
+def _decode(raw: Array, strength: Array, encoding: str, channels: int, flip: bool,
+            bits: int) -> Array:
     v = raw[..., :channels]
     if encoding == "unsigned":
         v = 2 * v - 1
     elif encoding == "unsigned_exact":
         half = 2 ** (bits - 1)
-        v = (v * (2**bits - 1) - half) / (half - 1)
+        codes = _snap_to_codes(v * (2**bits - 1), 2**bits - 1)
+        v = (codes - half) / (half - 1)
         v = jnp.where(v < -1, -1.0, v)
     x, y = v[..., 0], v[..., 1]
     z = v[..., 2] if channels == 3 else safe_sqrt(1 - x * x - y * y)
-    if _flip_green(green, uv_origin):
+    if flip:
         y = -y
     return jnp.stack([x * strength, y * strength, z], -1)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
+def _snap_to_codes(t: Array, top: int) -> Array:
+    """``t`` rounded to the nearest integer when within a few ulps of it; identity gradient.
+
+    ``k / (2^b - 1) * (2^b - 1)`` is not always exactly ``k`` in floating point
+    (it depends on how the data were scaled and on FMA contraction in the
+    compiled kernel), so exact codes are restored before the sign expansion.
+    The result is a ``select``, which the compiler cannot fuse into an FMA.
+    """
+    r = jnp.round(t)
+    tol = 4 * jnp.finfo(t.dtype).eps * top
+    return jnp.where(jnp.abs(t - r) <= tol, r, t)
+
+
+@_snap_to_codes.defjvp
+def _snap_to_codes_jvp(top, primals, tangents):
+    return _snap_to_codes(primals[0], top), tangents[0]
 
 
 def encode_normal_map(n: ArrayLike, *, encoding: str = "unsigned", channels: int = 3,
@@ -580,7 +629,12 @@ def encode_normal_map(n: ArrayLike, *, encoding: str = "unsigned", channels: int
     _check_float("encode_normal_map", "n", n)
     if n.shape[-1:] != (3,):
         raise ValueError(f"encode_normal_map: n must have shape (..., 3), got {n.shape}")
-    y = -n[..., 1] if _flip_green(green, uv_origin) else n[..., 1]
+    return _encode(n, encoding, int(channels), _flip_green(green, uv_origin), int(bits))
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4))
+def _encode(n: Array, encoding: str, channels: int, flip: bool, bits: int) -> Array:
+    y = -n[..., 1] if flip else n[..., 1]
     v = jnp.stack([n[..., 0], y, n[..., 2]][:channels], -1)
     if encoding == "unsigned":
         return jnp.clip((v + 1) / 2, 0.0, 1.0)
@@ -604,6 +658,11 @@ def srgb_to_linear(x: ArrayLike) -> Array:
     """
     x = jnp.asarray(x)
     _check_float("srgb_to_linear", "x", x)
+    return _srgb_to_linear(x)
+
+
+@jax.jit
+def _srgb_to_linear(x: Array) -> Array:
     low = x <= _SRGB_DECODE_KNEE
     high = ((jnp.maximum(x, _SRGB_DECODE_KNEE) + 0.055) / 1.055) ** 2.4
     return jnp.where(low, x / 12.92, high)
@@ -618,6 +677,11 @@ def linear_to_srgb(x: ArrayLike) -> Array:
     """
     x = jnp.asarray(x)
     _check_float("linear_to_srgb", "x", x)
+    return _linear_to_srgb(x)
+
+
+@jax.jit
+def _linear_to_srgb(x: Array) -> Array:
     low = x <= _SRGB_ENCODE_KNEE
     high = 1.055 * jnp.maximum(x, _SRGB_ENCODE_KNEE) ** (1 / 2.4) - 0.055
     return jnp.where(low, 12.92 * x, high)

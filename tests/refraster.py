@@ -175,6 +175,7 @@ def _prepare(clip, faces, width, height, subpixel_bits=None):
         win[:, 0] = (P[:, 0] / w + 1.0) * 0.5 * width
         win[:, 1] = (P[:, 1] / w + 1.0) * 0.5 * height
         win[:, 2] = (P[:, 2] / w + 1.0) * 0.5
+        unsnapped = win.copy()
         if subpixel_bits is not None:  # GPU vertex snapping (coverage only)
             q = float(2**subpixel_bits)
             win[:, :2] = np.round(win[:, :2] * q) / q
@@ -184,7 +185,7 @@ def _prepare(clip, faces, width, height, subpixel_bits=None):
         ys = [Fraction(float(v)) for v in win[:, 1]]
         n = len(xs)
         area2 = float(sum(xs[k] * ys[(k + 1) % n] - xs[(k + 1) % n] * ys[k] for k in range(n)))
-        out.append({"win": win, "area2": area2})
+        out.append({"win": win, "area2": area2, "unsnapped": unsnapped})
     return out
 
 
@@ -290,9 +291,14 @@ def _fragments(prep_t, width, height, *, tie_rule="left_top_yup"):
             dist = np.minimum(dist, np.abs(Ee) / np.hypot(nx, ny))
         if not inside.any():
             continue
-        E = [Ee[inside] for Ee in E]
+        # depth from the UNSNAPPED positions (GPUs snap for coverage only)
+        u = prep_t.get("unsnapped", win)[idx]
+        px_in, py_in = px[inside], py[inside]
+        E = [(u[(e + 2) % 3, 0] - u[(e + 1) % 3, 0]) * (py_in - u[(e + 1) % 3, 1])
+             - (u[(e + 2) % 3, 1] - u[(e + 1) % 3, 1]) * (px_in - u[(e + 1) % 3, 0])
+             for e in range(3)]
         Esum = E[0] + E[1] + E[2]
-        depth = (E[0] * v[0, 2] + E[1] * v[1, 2] + E[2] * v[2, 2]) / Esum
+        depth = (E[0] * u[0, 2] + E[1] * u[1, 2] + E[2] * u[2, 2]) / Esum
         yield k, ii[inside], jj[inside], depth, dist[inside]
 
 

@@ -261,10 +261,12 @@ def test_ply_with_uv_and_normals_exact(tmp_path):
     np.testing.assert_allclose(m.normals, [[0, 0, 1], [0, 0.6, 0.8], [0, 0, 1]], atol=1e-7)
 
 
-def test_zero_length_file_normal_is_replaced(tmp_path):
-    verts = [[0, 0, 0, 0, 0, 0, 0, 0], [1, 0, 0, 1, 0, 0, 1, 0], [0, 1, 0, 1, 0, 0, 0, 1]]
+@pytest.mark.parametrize("normal", [[0, 0, 0], ["nan", 0, 0]])
+def test_unusable_file_normal_is_replaced(tmp_path, normal):
+    verts = [[0, 0, 0, *normal, 0, 0], [1, 0, 0, 1, 0, 0, 1, 0], [0, 1, 0, 1, 0, 0, 0, 1]]
     path = _ply(tmp_path / "zeronormal.ply", verts, [[0, 1, 2]], UV_NORMAL_PROPS)
-    with pytest.warns(JaxnmWarning, match=_named(path) + ".*1 vertex normals.*zero-length"):
+    with pytest.warns(JaxnmWarning, match=_named(path) + ".*1 vertex normals.*zero-length or "
+                      "not finite"):
         m = load_mesh(path)
     np.testing.assert_allclose(m.normals, [[0, 0, 1], [1, 0, 0], [1, 0, 0]], atol=1e-7)
 
@@ -418,7 +420,8 @@ def _reference_png16(pixels: np.ndarray, filters) -> bytes:
             out.append((x - pred) % 256)
 
     def chunk(kind, data):
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        crc = struct.pack(">I", zlib.crc32(kind + data))
+        return struct.pack(">I", len(data)) + kind + data + crc
 
     ihdr = struct.pack(">IIBBBBB", w, h, 16, {1: 0, 2: 4, 3: 2, 4: 6}[c], 0, 0, 0)
     return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(bytes(out)))
@@ -520,8 +523,8 @@ def test_palette_grey_alpha_and_jpeg(tmp_path):
     iio.imwrite(tmp_path / "flat.jpg", np.full((8, 8, 3), [200, 100, 50], np.uint8))
     image, bits = load_texture(tmp_path / "flat.jpg")
     assert bits == 8 and image.shape == (8, 8, 3)
-    np.testing.assert_allclose(image, np.broadcast_to([200 / 255, 100 / 255, 50 / 255], image.shape),
-                               atol=3 / 255)
+    want = np.broadcast_to(np.array([200, 100, 50]) / 255, image.shape)
+    np.testing.assert_allclose(image, want, atol=3 / 255)
 
 
 def _grey_rgb_rgba(tmp_path):

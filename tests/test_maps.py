@@ -1,5 +1,7 @@
 """Tests for jaxnm.maps: bump (surface gradient), derivative and object-space normal maps."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -71,6 +73,7 @@ def _camera_matrices(kind):
     return view, proj
 
 
+@functools.lru_cache(maxsize=None)
 def _screen_samples(kind, size=32):
     """Window positions -> plane points, with exact screen derivatives (jacfwd, float64)."""
     view, proj = _camera_matrices(kind)

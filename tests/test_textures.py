@@ -495,7 +495,7 @@ def test_sample_gradients_wrt_uv_and_derivatives():
     with jax.enable_x64(True):
         rng = np.random.default_rng(41)
         tex = jnp.asarray(rng.random((8, 8, 2)))
-        uv = rng.uniform(-1, 2, (16, 2))
+        uv = rng.uniform(-1, 2, (40, 2))
         for size in (8, 4, 2):  # stay off the kinks (texel centres) of the levels used
             uv = uv[away_from(uv[:, 0] * size - 0.5, 1, 0.05)
                     & away_from(uv[:, 1] * size - 0.5, 1, 0.05)]
@@ -657,7 +657,7 @@ def test_srgb_known_values_and_round_trip():
     for f, knee in ((srgb_to_linear, 0.04045), (linear_to_srgb, 0.0031308)):
         with jax.enable_x64(True):
             below, above = f(jnp.asarray([knee, knee * (1 + 1e-12)]))
-            assert abs(float(above) - float(below)) < 1e-8
+            assert abs(float(above) - float(below)) < 1e-7  # IEC knees: gaps of 2e-9, 3e-8
 
 
 def test_srgb_gradients_are_finite_at_zero():
