@@ -344,24 +344,21 @@ def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_
         subpixel_bits=subpixel_bits)
     n_pix = height * width
 
-    def depth_pass(carry):
-        q, zbuf = carry
-        flat, depth, _ = fragments(q * slots)
-        return q + 1, zbuf.at[flat].min(depth, mode="drop")
-
-    def id_pass(carry):
-        q, ids = carry
+    def round_(carry):
+        # one round of slots: its own depth test, then merged into the running buffers
+        q, zbuf, ids = carry
         flat, depth, t = fragments(q * slots)
-        win = depth == zbuf[jnp.minimum(flat, n_pix - 1)]
-        return q + 1, ids.at[jnp.where(win, flat, n_pix)].min(t, mode="drop")
-
-    def more(carry):
-        return carry[0] * slots < total
+        zr = jnp.full((n_pix,), jnp.inf, depth.dtype).at[flat].min(depth, mode="drop")
+        win = depth == zr[jnp.minimum(flat, n_pix - 1)]
+        idr = jnp.full((n_pix,), _NO_TRIANGLE, jnp.int32).at[jnp.where(win, flat, n_pix)].min(
+            t, mode="drop")
+        ids = jnp.where(zr < zbuf, idr, jnp.where(zr == zbuf, jnp.minimum(ids, idr), ids))
+        return q + 1, jnp.minimum(zbuf, zr), ids
 
     zbuf0 = jnp.full((n_pix,), jnp.inf, clip.dtype)
-    _, zbuf = jax.lax.while_loop(more, depth_pass, (jnp.int32(0), zbuf0))
     ids0 = jnp.full((n_pix,), _NO_TRIANGLE, jnp.int32)
-    _, ids = jax.lax.while_loop(more, id_pass, (jnp.int32(0), ids0))
+    _, _, ids = jax.lax.while_loop(lambda c: c[0] * slots < total, round_,
+                                   (jnp.int32(0), zbuf0, ids0))
 
     shape = (height, width)
     covered = (ids != _NO_TRIANGLE).reshape(shape)
@@ -430,10 +427,10 @@ def _max_triangles_per_chunk(width: int, height: int, block: int) -> int:
 
 
 def default_slots(num_faces: int, width: int, height: int, block: int) -> int:
-    """Slot buffer size: enough for a typical mesh in one round, at most 2**17."""
+    """Slots per round: about one round for small scenes, at most 2**15 (rounds repeat as needed)."""
     n_blocks = (-(-width // block)) * (-(-height // block))
     want = max(4 * num_faces, n_blocks, 256)
-    return int(min(1 << 17, 1 << (want - 1).bit_length()))
+    return int(min(1 << 15, 1 << (want - 1).bit_length()))
 
 
 def rasterize(clip: Array, faces: Array, *, width: int, height: int, cull_back: bool = False,

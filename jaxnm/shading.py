@@ -151,7 +151,7 @@ class Material:
     **Fields** (arrays; each colour is (3,) or per pixel (..., 3)):
     - `diffuse`: diffuse colour ``kappa_d`` (multiplied by the albedo).
     - `specular`: specular colour ``kappa_s`` (not multiplied by the albedo).
-    - `shininess`: () exponent ``n >= 0`` of the specular lobe.
+    - `shininess`: () exponent ``n >= 0`` of the specular lobe (or per pixel (...,)).
     - `ambient`: ambient radiance ``kappa_a`` (multiplied by the albedo), added
       once, independent of the lights.
     """
@@ -293,7 +293,8 @@ def _shade(model: str, N, p, eye, lights, material: Material, albedo) -> Array:
     ks = _expand_to(jnp.asarray(material.specular, dtype), shape)
     ka = _expand_to(jnp.asarray(material.ambient, dtype), shape)
     n = jnp.asarray(material.shininess, dtype)
-    n = n[..., None] if n.ndim else n
+    if n.ndim:  # per-pixel shininess (...,) -> (..., 1)
+        n = _expand_to(n[..., None], shape[:-1] + (1,))
 
     def one_light(light):
         L, E = _incident(light, p)
@@ -308,7 +309,7 @@ def _shade(model: str, N, p, eye, lights, material: Material, albedo) -> Array:
         else:  # phong: reflect(-L, N) . V
             R = 2.0 * ndl * N - L
             x = _dot(R, V)
-        spec = ks * E * _pos_pow(x, _expand_to(n, x.shape) if n.ndim else n)
+        spec = ks * E * _pos_pow(x, n)
         return out + jnp.where(lit, spec, 0.0)
 
     total = ka * a

@@ -1,0 +1,123 @@
+"""Procedural assets generated in code (no downloads): meshes with uvs and normal maps.
+
+The built-in default scene is a torus with angle uvs (u around the ring, v around
+the tube, both in [0, 1] with duplicated seam vertices) and a normal map of
+rounded rivets and grooves derived analytically from a height field.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .geometry import Mesh
+
+__all__ = ["torus", "plane", "uv_sphere", "rivet_height", "height_to_normals", "default_normal_map"]
+
+
+def torus(major_radius: float = 1.0, minor_radius: float = 0.4, major_segments: int = 96,
+          minor_segments: int = 48) -> Mesh:
+    """A torus around the z axis with angle uvs and analytic unit normals.
+
+    ``u = phi / 2 pi`` (angle around the z axis, counter-clockwise seen from +z),
+    ``v = theta / 2 pi`` (angle around the tube, 0 on the outer equator, moving
+    towards +z first). Seam vertices are duplicated so uvs are continuous on
+    every triangle. ``2 * major_segments * minor_segments`` triangles, CCW seen
+    from outside.
+    """
+    i = np.arange(major_segments + 1)
+    j = np.arange(minor_segments + 1)
+    phi = 2 * np.pi * i / major_segments
+    theta = 2 * np.pi * j / minor_segments
+    P, T = np.meshgrid(phi, theta, indexing="ij")  # (I+1, J+1)
+    ring = major_radius + minor_radius * np.cos(T)
+    pos = np.stack([ring * np.cos(P), ring * np.sin(P), minor_radius * np.sin(T)], -1)
+    nrm = np.stack([np.cos(T) * np.cos(P), np.cos(T) * np.sin(P), np.sin(T)], -1)
+    uv = np.stack([P / (2 * np.pi), T / (2 * np.pi)], -1)
+    n_j = minor_segments + 1
+    a = (i[:-1, None] * n_j + j[None, :-1]).ravel()
+    b = a + n_j  # next phi
+    c = b + 1  # next phi, next theta
+    d = a + 1  # next theta
+    # orientation: d(pos)/d(phi) x d(pos)/d(theta) points outwards -> (a, b, c) is CCW
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    return _mesh(pos.reshape(-1, 3), faces, uv.reshape(-1, 2), nrm.reshape(-1, 3))
+
+
+def plane(size: float = 2.0, segments: int = 1, *, uv_scale: float = 1.0) -> Mesh:
+    """A square in the z = 0 plane facing +z, uv = (x, y) / size + 1/2 (times ``uv_scale``)."""
+    t = np.linspace(-size / 2, size / 2, segments + 1)
+    x, y = np.meshgrid(t, t, indexing="xy")
+    pos = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1)
+    uv = (pos[:, :2] / size + 0.5) * uv_scale
+    n = segments + 1
+    ii, jj = np.meshgrid(np.arange(segments), np.arange(segments), indexing="xy")
+    a = (jj * n + ii).ravel()
+    faces = np.concatenate([np.stack([a, a + 1, a + n + 1], 1), np.stack([a, a + n + 1, a + n], 1)])
+    nrm = np.tile([0.0, 0.0, 1.0], (len(pos), 1))
+    return _mesh(pos, faces, uv, nrm)
+
+
+def uv_sphere(radius: float = 1.0, segments: int = 64, rings: int = 32) -> Mesh:
+    """A latitude-longitude sphere: ``u = longitude / 2 pi``, ``v = latitude / pi + 1/2``."""
+    lon = 2 * np.pi * np.arange(segments + 1) / segments
+    lat = np.pi * (np.arange(rings + 1) / rings - 0.5)
+    L, B = np.meshgrid(lon, lat, indexing="ij")
+    nrm = np.stack([np.cos(B) * np.cos(L), np.cos(B) * np.sin(L), np.sin(B)], -1)
+    uv = np.stack([L / (2 * np.pi), B / np.pi + 0.5], -1)
+    n_j = rings + 1
+    i = np.arange(segments)
+    j = np.arange(rings)
+    a = (i[:, None] * n_j + j[None, :]).ravel()
+    b, c, d = a + n_j, a + n_j + 1, a + 1
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    # drop the zero-area triangles at the poles
+    pos = (radius * nrm).reshape(-1, 3)
+    p = pos[faces]
+    area = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    return _mesh(pos, faces[area > 1e-12 * radius**2], uv.reshape(-1, 2), nrm.reshape(-1, 3))
+
+
+def _mesh(pos, faces, uv, nrm) -> Mesh:
+    import jax.numpy as jnp
+
+    return Mesh(jnp.asarray(pos, jnp.float32), jnp.asarray(faces, jnp.int32),
+                jnp.asarray(uv, jnp.float32), jnp.asarray(nrm, jnp.float32))
+
+
+def rivet_height(size: int = 256, *, cells: int = 8, groove: float = 0.08) -> np.ndarray:
+    """A tileable height field (H, W) in [0, 1]: rounded rivets in a grid with grooves.
+
+    Image layout (row 0 = top = v near 1). Periodic in both directions, so it
+    tiles seamlessly with ``wrap="repeat"``.
+    """
+    t = (np.arange(size) + 0.5) / size
+    u, v = np.meshgrid(t, 1.0 - t, indexing="xy")  # v measured upwards
+    fu, fv = (u * cells) % 1.0 - 0.5, (v * cells) % 1.0 - 0.5
+    r = np.sqrt(fu**2 + fv**2)
+    rivet = np.clip(1 - (r / 0.3) ** 2, 0, None) ** 1.5
+    # grooves along the cell borders, smooth V profile
+    edge = 0.5 - np.maximum(np.abs(fu), np.abs(fv))
+    grooves = np.clip(edge / groove, 0, 1)
+    grooves = grooves * grooves * (3 - 2 * grooves)
+    return (0.35 * grooves + 0.65 * rivet * grooves).astype(np.float32)
+
+
+def height_to_normals(height: np.ndarray, *, strength: float = 4.0) -> np.ndarray:
+    """Tangent-space unit normals (H, W, 3) of a periodic height field (image layout).
+
+    Central differences in texel units with wrap-around; +x = +u (right), +y =
+    +v (up the image, i.e. towards row 0), z out of the surface:
+    ``n = normalize(-strength dh/du, -strength dh/dv, 1)`` with ``dh/du`` and
+    ``dh/dv`` per unit of uv.
+    """
+    h = np.asarray(height, np.float64)
+    rows, cols = h.shape
+    dhdu = (np.roll(h, -1, 1) - np.roll(h, 1, 1)) * (cols / 2)
+    dhdv = (np.roll(h, 1, 0) - np.roll(h, -1, 0)) * (rows / 2)  # row above minus row below
+    n = np.stack([-strength * dhdu / cols, -strength * dhdv / rows, np.ones_like(h)], -1)
+    return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def default_normal_map(size: int = 256) -> np.ndarray:
+    """The built-in scene's tangent-space normal map: decoded unit vectors (size, size, 3)."""
+    return height_to_normals(rivet_height(size), strength=24.0)
