@@ -300,20 +300,29 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, bx0, by0, nbx, counts, start
     tie = _tie_inside(sg * a, sg * b)  # (S, 3)
     # depth from the unsnapped vertices, as GPUs do (only coverage uses snapped positions)
     dz_c, dz_a, dz_b = _depth_plane(tri_depth[t], x0, y0)
+    # Fold the orientation into the coefficients: inside <=> e > 0, or e >= 0 on tie edges.
+    a, b, c = sg * a, sg * b, sg * c
+    live = live & (sg[:, 0] != 0)
+    n_pix = height * width
 
-    d = jnp.arange(block, dtype=tri_h.dtype)
-    dx = jnp.tile(d, block)  # pixel (dx, dy) in the block, dx fastest
-    dy = jnp.repeat(d, block)
-    e = c[:, None, :] + a[:, None, :] * dx[None, :, None] + b[:, None, :] * dy[None, :, None]
-    se = sg[:, None, :] * e  # (S, P, 3)
-    inside = jnp.all((se > 0) | ((e == 0) & tie[:, None, :]), -1)
-    depth = dz_c[:, None] + dz_a[:, None] * dx[None] + dz_b[:, None] * dy[None]
-    inside = inside & (depth >= 0.0) & (depth <= 1.0)
-    pi = bx[:, None] * block + dx.astype(jnp.int32)[None]
-    pj = by[:, None] * block + dy.astype(jnp.int32)[None]
-    inside = inside & live[:, None] & (pi < width) & (pj < height)
-    flat = jnp.where(inside, (height - 1 - pj) * width + pi, height * width)
-    tri_index = jnp.broadcast_to(t[:, None], flat.shape)
+    # The per-pixel work runs in a loop over the block's pixels: a loop body is a separate
+    # computation, so the per-slot coefficients above are computed once and materialised
+    # (fused into one big kernel, XLA would recompute them for every pixel of the block).
+    def pixel(k, out):
+        dx, dy = k % block, k // block
+        fx, fy = dx.astype(a.dtype), dy.astype(a.dtype)
+        e = c + a * fx + b * fy  # (S, 3)
+        inside = jnp.all(jnp.where(tie, e >= 0, e > 0), -1)
+        depth = dz_c + dz_a * fx + dz_b * fy
+        pi, pj = bx * block + dx, by * block + dy
+        inside = inside & live & (depth >= 0.0) & (depth <= 1.0) & (pi < width) & (pj < height)
+        flat = jnp.where(inside, (height - 1 - pj) * width + pi, n_pix)
+        return (out[0].at[k].set(flat), out[1].at[k].set(depth))
+
+    npx = block * block
+    flat, depth = jax.lax.fori_loop(
+        0, npx, pixel, (jnp.zeros((npx, slots), jnp.int32), jnp.zeros((npx, slots), a.dtype)))
+    tri_index = jnp.broadcast_to(t[None, :], flat.shape)
     return flat.reshape(-1), depth.reshape(-1), tri_index.reshape(-1)
 
 

@@ -385,14 +385,14 @@ def _plan_sample(uv, duvdx, duvdy, lod_bias, sizes, filter, wrap, uv_origin) -> 
         lam0 = jnp.floor(lam)
         frac = lam - lam0
         d0 = lam0.astype(jnp.int32)
-        d1 = jnp.minimum(d0 + 1, levels - 1)
-        hs = jnp.asarray([hk for hk, _ in sizes], jnp.int32)
-        ws = jnp.asarray([wk for _, wk in sizes], jnp.int32)
-        offsets = jnp.asarray(np.cumsum([0] + [hk * wk for hk, wk in sizes[:-1]]), jnp.int32)
-        i0, w0 = _linear_taps(s, t, hs[d0], ws[d0], offsets[d0], wrap, flip)
-        i1, w1 = _linear_taps(s, t, hs[d1], ws[d1], offsets[d1], wrap, flip)
-        index = jnp.concatenate([i0, i1], -1)
-        weight = jnp.concatenate([w0 * (1 - frac)[..., None], w1 * frac[..., None]], -1)
+        d = jnp.stack([d0, jnp.minimum(d0 + 1, levels - 1)], -1)  # (..., 2) levels
+        hs = jnp.asarray([hk for hk, _ in sizes], jnp.int32)[d]
+        ws = jnp.asarray([wk for _, wk in sizes], jnp.int32)[d]
+        offsets = jnp.asarray(np.cumsum([0] + [hk * wk for hk, wk in sizes[:-1]]), jnp.int32)[d]
+        index, weight = _linear_taps(s[..., None], t[..., None], hs, ws, offsets, wrap, flip)
+        weight = weight * jnp.stack([1 - frac, frac], -1)[..., None]  # (..., 2, 4)
+        index = index.reshape(index.shape[:-2] + (8,))
+        weight = weight.reshape(weight.shape[:-2] + (8,))
     return SamplePlan(index.astype(jnp.int32), weight, filter=filter, wrap=wrap,
                       uv_origin=uv_origin, level_shapes=sizes)
 
