@@ -11,17 +11,18 @@ import numpy as np
 
 from .geometry import Mesh
 
-__all__ = ["torus", "plane", "uv_sphere", "rivet_height", "height_to_normals", "default_normal_map"]
+__all__ = ["torus", "plane", "uv_sphere", "rivet_height", "height_to_normals", "encode_unsigned",
+           "default_normal_map"]
 
 
 def torus(major_radius: float = 1.0, minor_radius: float = 0.4, major_segments: int = 96,
-          minor_segments: int = 48) -> Mesh:
+          minor_segments: int = 48, *, uv_scale: tuple[float, float] = (1.0, 1.0)) -> Mesh:
     """A torus around the z axis with angle uvs and analytic unit normals.
 
     ``u = phi / 2 pi`` (angle around the z axis, counter-clockwise seen from +z),
     ``v = theta / 2 pi`` (angle around the tube, 0 on the outer equator, moving
-    towards +z first). Seam vertices are duplicated so uvs are continuous on
-    every triangle. ``2 * major_segments * minor_segments`` triangles, CCW seen
+    towards +z first), each multiplied by ``uv_scale``. Seam vertices are
+    duplicated so uvs are continuous on every triangle. ``2 * major_segments * minor_segments`` triangles, CCW seen
     from outside.
     """
     i = np.arange(major_segments + 1)
@@ -32,7 +33,7 @@ def torus(major_radius: float = 1.0, minor_radius: float = 0.4, major_segments: 
     ring = major_radius + minor_radius * np.cos(T)
     pos = np.stack([ring * np.cos(P), ring * np.sin(P), minor_radius * np.sin(T)], -1)
     nrm = np.stack([np.cos(T) * np.cos(P), np.cos(T) * np.sin(P), np.sin(T)], -1)
-    uv = np.stack([P / (2 * np.pi), T / (2 * np.pi)], -1)
+    uv = np.stack([P / (2 * np.pi) * uv_scale[0], T / (2 * np.pi) * uv_scale[1]], -1)
     n_j = minor_segments + 1
     a = (i[:-1, None] * n_j + j[None, :-1]).ravel()
     b = a + n_j  # next phi
@@ -116,6 +117,13 @@ def height_to_normals(height: np.ndarray, *, strength: float = 4.0) -> np.ndarra
     dhdv = (np.roll(h, 1, 0) - np.roll(h, -1, 0)) * (rows / 2)  # row above minus row below
     n = np.stack([-strength * dhdu / cols, -strength * dhdv / rows, np.ones_like(h)], -1)
     return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def encode_unsigned(n: np.ndarray, bits: int = 8) -> np.ndarray:
+    """Store unit vectors as an unsigned ``bits``-bit map: ``round((n + 1) / 2 * (2^b - 1))``,
+    returned as floats in [0, 1] (exactly the values a PNG of that depth holds)."""
+    top = 2**bits - 1
+    return (np.round((np.asarray(n, np.float64) + 1.0) * 0.5 * top) / top).astype(np.float32)
 
 
 def default_normal_map(size: int = 256) -> np.ndarray:

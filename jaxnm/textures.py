@@ -78,10 +78,10 @@ def _check_option(func: str, name: str, value, valid: Sequence) -> None:
                          f"{', '.join(repr(v) for v in valid)}")
 
 
-def _check_float(func: str, name: str, x: Array) -> None:
+def _check_float(func: str, name: str, x: Array, image: bool = True) -> None:
     if not jnp.issubdtype(x.dtype, jnp.floating):
-        raise ValueError(f"{func}: `{name}` must be floating point (values in [0, 1]; convert "
-                         f"integer image data with x / (2**bits - 1) first), got {x.dtype}")
+        hint = " (convert integer image data with x / (2**bits - 1) first)" if image else ""
+        raise ValueError(f"{func}: `{name}` must be floating point{hint}, got {x.dtype}")
 
 
 def _check_texture(func: str, name: str, tex: Array) -> None:
@@ -206,7 +206,8 @@ def lod(duvdx: ArrayLike, duvdy: ArrayLike, size_hw: Sequence[int]) -> Array:
         \rho = \max\Big(\sqrt{(W\,\partial_x u)^2 + (H\,\partial_x v)^2},\;
                         \sqrt{(W\,\partial_y u)^2 + (H\,\partial_y v)^2}\Big)
 
-    (the exact scale factor of GL 4.5 eq. 8.7). The sign of the derivatives
+    (GL 4.5, section 8.14.1, with the exact square roots and no approximation of
+    the max). The sign of the derivatives
     does not matter, so ``dFdy`` with window y up or down gives the same value.
 
     **Arguments:**
@@ -352,7 +353,7 @@ def plan_sample(uv: ArrayLike | Attribute, duvdx: ArrayLike | None = None,
     _check_option("plan_sample", "wrap", wrap, WRAPS)
     _check_option("plan_sample", "uv_origin", uv_origin, UV_ORIGINS)
     uv = jnp.asarray(uv)
-    _check_float("plan_sample", "uv", uv)
+    _check_float("plan_sample", "uv", uv, image=False)
     if uv.shape[-1:] != (2,):
         raise ValueError(f"plan_sample: uv must have shape (..., 2), got {uv.shape}")
     sizes = mip_sizes(size_hw, levels)
@@ -510,8 +511,8 @@ def _check_normal_options(func: str, encoding: str, channels: int, green: str, b
         raise ValueError(f"{func}: unknown channels={channels!r}; expected one of 2, 3")
     _check_option(func, "green", green, GREENS)
     _check_option(func, "uv_origin", uv_origin, UV_ORIGINS)
-    if not isinstance(bits, (int, np.integer)) or not 2 <= bits <= 32:
-        raise ValueError(f"{func}: bits must be an integer between 2 and 32, got {bits!r}")
+    if not isinstance(bits, (int, np.integer)) or not 2 <= bits <= 16:
+        raise ValueError(f"{func}: bits must be an integer between 2 and 16, got {bits!r}")
 
 
 def decode_normal_map(raw: ArrayLike, *, encoding: str = "unsigned", channels: int = 3,
@@ -537,10 +538,10 @@ def decode_normal_map(raw: ArrayLike, *, encoding: str = "unsigned", channels: i
     - `channels`: 3 (xyz stored) or 2 (xy stored, ``z = sqrt(max(0, 1 - x^2 - y^2))``,
       with a zero, not NaN, gradient where the argument is <= 0, e.g. |xy| > 1).
     - `green` (the map's convention, relative to the image *as displayed*):
-        - ``"up"``: +green points to the top of the image (OpenGL convention:
-          Blender, 3ds Max, Maya, glTF).
-        - ``"down"``: +green points to the bottom (DirectX convention: Unreal,
-          CryEngine, Substance "DirectX").
+        - ``"up"``: +green points to the top of the image (the "OpenGL"
+          convention: Blender, Unity, glTF; 3ds Max according to Schüler).
+        - ``"down"``: +green points to the bottom (the "DirectX" convention:
+          Unreal, Substance's DirectX preset).
     - `uv_origin`: the uv convention the map is sampled with (as in
       `plan_sample`). With ``"bottom_left"`` (default) +v points to the top of
       the image, so ``green="up"`` is used as stored (y along +v) and
@@ -550,7 +551,7 @@ def decode_normal_map(raw: ArrayLike, *, encoding: str = "unsigned", channels: i
       ``GREEN_UP`` branch negates y.)
     - `strength`: scales ``x`` and ``y`` (after z reconstruction; z is
       unchanged), broadcasting against ``(...)``.
-    - `bits`: bit depth for ``"unsigned_exact"`` (8 or 16 in practice).
+    - `bits`: bit depth for ``"unsigned_exact"``, 2 to 16 (8 or 16 in practice).
 
     **Returns:** ``(..., 3)``, *not* normalised: the frame stage normalises
     after the TBN product. A texel that decodes to the zero vector (e.g. raw

@@ -660,3 +660,108 @@ def test_srgb_gradients_are_finite_at_zero():
     np.testing.assert_allclose(g2, 12.92, rtol=1e-6)
     g3 = jax.grad(lambda x: jnp.sum(linear_to_srgb(x)))(jnp.asarray([0.2, 1.0]))
     assert np.all(np.isfinite(g3))
+
+
+# --------------------------------------------------------------------------- real GL
+
+
+_GL_VS = """#version 450
+void main() {
+    gl_Position = vec4(float((gl_VertexID & 1) * 4 - 1), float((gl_VertexID >> 1) * 4 - 1), 0, 1);
+}"""
+_GL_FS = """#version 450
+layout(binding = 0) uniform sampler2D tex;
+layout(binding = 1) uniform sampler2D uvs;  // (u, v, lod, use_lod) per output pixel
+out vec4 color;
+void main() {
+    vec4 q = texelFetch(uvs, ivec2(gl_FragCoord.xy), 0);
+    color = q.w > 0.5 ? textureLod(tex, q.xy, q.z) : texture(tex, q.xy);
+}"""
+
+
+def _gl_sample(levels, uv, *, wrap, filter, origin="bottom_left", lods=None):
+    """Sample RGBA32F `levels` with the GL texture unit (llvmpipe) at `uv`, (n, 2)."""
+    import ctypes
+
+    import moderngl
+    from glref import _get_state  # the shared context of the GL reference renderer
+
+    ctx = _get_state()["ctx"]
+    egl = ctypes.CDLL("libEGL.so.1")
+    egl.eglGetProcAddress.restype = ctypes.c_void_p
+    egl.eglGetProcAddress.argtypes = [ctypes.c_char_p]
+    u, i = ctypes.c_uint, ctypes.c_int
+    bind = ctypes.CFUNCTYPE(None, u, u)(egl.eglGetProcAddress(b"glBindTexture"))
+    param = ctypes.CFUNCTYPE(None, u, u, i)(egl.eglGetProcAddress(b"glTexParameteri"))
+    gl_wrap = {"repeat": 0x2901, "clamp": 0x812F, "mirror": 0x8370}[wrap]
+    gl_min = {"nearest": 0x2600, "bilinear": 0x2601, "trilinear": 0x2703}[filter]
+    h, w, c = levels[0].shape
+    n = uv.shape[0]
+    objects = []
+    try:
+        tex = ctx.texture((w, h), 4, dtype="f4")
+        objects.append(tex)
+        if len(levels) > 1:
+            tex.build_mipmaps(0, len(levels) - 1)
+        for k, level in enumerate(levels):
+            rgba = np.zeros(level.shape[:2] + (4,), np.float32)
+            rgba[..., :c] = level
+            if origin == "bottom_left":  # the usual flip on upload: image bottom row at t = 0
+                rgba = rgba[::-1]
+            tex.write(np.ascontiguousarray(rgba).tobytes(), level=k)
+        bind(0x0DE1, tex.glo)  # GL_TEXTURE_2D
+        for pname, value in ((0x2802, gl_wrap), (0x2803, gl_wrap), (0x2801, gl_min),
+                             (0x2800, 0x2600 if filter == "nearest" else 0x2601),
+                             (0x813D, len(levels) - 1)):  # WRAP_S/T, MIN/MAG, MAX_LEVEL
+            param(0x0DE1, pname, value)
+        q = np.zeros((1, n, 4), np.float32)
+        q[0, :, :2] = uv
+        if lods is not None:
+            q[0, :, 2], q[0, :, 3] = lods, 1.0
+        uvs = ctx.texture((n, 1), 4, q.tobytes(), dtype="f4")
+        uvs.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        target = ctx.renderbuffer((n, 1), 4, dtype="f4")
+        fbo = ctx.framebuffer([target])
+        prog = ctx.program(vertex_shader=_GL_VS, fragment_shader=_GL_FS)
+        vao = ctx.vertex_array(prog, [])
+        objects += [uvs, target, fbo, prog, vao]
+        fbo.use()
+        ctx.viewport = (0, 0, n, 1)
+        tex.use(0)
+        uvs.use(1)
+        vao.render(moderngl.TRIANGLES, vertices=3)
+        out = np.frombuffer(fbo.read(components=4, dtype="f4"), np.float32)
+        return out.reshape(n, 4)[:, :c]
+    finally:
+        for obj in reversed(objects):
+            obj.release()
+
+
+def _gl_ok():
+    try:
+        from glref import gl_available
+
+        return gl_available()
+    except Exception as exc:  # noqa: BLE001 - moderngl missing etc.
+        return False, str(exc)
+
+
+_GL = _gl_ok()
+
+
+@pytest.mark.gl
+@pytest.mark.skipif(not _GL[0], reason=f"no OpenGL: {_GL[1]}")
+def test_matches_the_gl_texture_unit():
+    for origin in ORIGINS:
+        for wrap in WRAPS:
+            for filter in ("nearest", "bilinear"):
+                gl = _gl_sample([TEX], UV, wrap=wrap, filter=filter, origin=origin)
+                ours = sample(TEX, UV, filter=filter, wrap=wrap, uv_origin=origin)
+                np.testing.assert_allclose(ours, gl, atol=2e-6, err_msg=(origin, wrap, filter))
+    # level selection and blending: textureLod(lambda) vs derivatives with rho = 2^lambda
+    lods = np.linspace(-0.5, 3.5, N).astype(np.float32)
+    gl = _gl_sample([np.asarray(m) for m in MIPS], UV, wrap="repeat", filter="trilinear",
+                    lods=lods)
+    dx = np.stack([2.0**lods / TEX_HW[1], np.zeros(N)], -1).astype(np.float32)
+    ours = sample(MIPS, UV, dx, np.zeros_like(dx), filter="trilinear")
+    np.testing.assert_allclose(ours, gl, atol=2e-6)

@@ -1,0 +1,298 @@
+"""The whole pipeline: scene -> rasterize -> interpolate -> derivatives -> frame -> texture -> shade.
+
+It is split where the data stop depending on the geometry:
+
+- `build_gbuffer` runs everything that depends only on the mesh and the camera:
+  visibility, perspective-correct ``p``, ``uv``, ``N`` and their screen
+  derivatives, the tangent frame, the texture sample *plan* of the normal map
+  (texel indices and filter weights, including the mip level of detail) and
+  the albedo. A normal-map fit computes this once.
+- `shade_gbuffer` runs what depends on the normal-map texels, the lights and
+  the material: a gather and a weighted sum per pixel, the decode, the
+  perturbation and the shading. This is what a fit differentiates, per step.
+
+`render` composes both and computes only the stages that the requested
+outputs need ("model only what a scene needs").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from . import frames as _frames
+from . import maps as _maps
+from . import textures as _tex
+from .camera import Camera, to_clip
+from .geometry import Mesh
+from .interpolate import Attribute, interpolate
+from .numerics import safe_normalize
+from .raster import rasterize
+from .scene import DERIVATIVES, FRAMES, NormalMapOptions, Scene
+from .shading import Lights, Material, shade
+
+__all__ = ["OUTPUTS", "GBuffer", "RenderOptions", "build_gbuffer", "shade_gbuffer", "render"]
+
+#: Every output `render` can produce (image layout, row 0 = top, float32 (H, W, C)).
+OUTPUTS = ("mask", "triangle_id", "depth", "front_facing", "position", "view", "uv", "normal",
+           "dpdx", "dpdy", "duvdx", "duvdy", "tangent", "bitangent", "perturbed_normal",
+           "color")
+
+_GEOMETRY_OUTPUTS = {"mask", "triangle_id", "depth", "front_facing"}
+_NEEDS_P = {"position", "view", "dpdx", "dpdy", "color", "tangent", "bitangent",
+            "perturbed_normal"}
+_NEEDS_FRAME = {"tangent", "bitangent", "perturbed_normal", "color"}
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderOptions:
+    """Static render configuration (hashable; a `jax.jit` static argument)."""
+
+    width: int
+    height: int
+    derivatives: str = "fine"
+    frame: str = "cotangent"
+    shading: str = "blinn_phong"
+    double_sided: bool = True
+    cull_back: bool = False
+    normal_map: NormalMapOptions | None = NormalMapOptions()
+    normal_map_shape: tuple[int, int] | None = None
+    albedo_shape: tuple[int, int] | None = None  # None: a constant albedo
+    outputs: tuple[str, ...] = ("color",)
+
+    @staticmethod
+    def of(scene: Scene, *, outputs=("color",), derivatives=None, frame=None) -> RenderOptions:
+        derivatives = scene.derivatives if derivatives is None else derivatives
+        frame = scene.frame if frame is None else frame
+        if derivatives not in DERIVATIVES:
+            raise ValueError(f"unknown derivatives {derivatives!r}; expected one of {DERIVATIVES}")
+        if frame not in FRAMES:
+            raise ValueError(f"unknown frame {frame!r}; expected one of {FRAMES}")
+        outputs = tuple(dict.fromkeys(outputs))
+        bad = [o for o in outputs if o not in OUTPUTS]
+        if bad:
+            raise ValueError(f"unknown outputs {bad}; expected any of {OUTPUTS}")
+        nm = scene.normal_map
+        alb = np.asarray(scene.albedo)
+        return RenderOptions(
+            width=int(scene.width), height=int(scene.height), derivatives=derivatives,
+            frame=frame, shading=scene.shading, double_sided=scene.double_sided,
+            cull_back=scene.cull_back,
+            normal_map=None if nm is None else scene.normal_map_options,
+            normal_map_shape=None if nm is None else tuple(nm.shape[:2]),
+            albedo_shape=tuple(alb.shape[:2]) if alb.ndim == 3 else None, outputs=outputs)
+
+    @property
+    def levels(self) -> int:
+        if self.normal_map_shape is None:
+            return 1
+        if self.normal_map.filter != "trilinear":
+            return 1
+        return len(_tex.mip_sizes(self.normal_map_shape))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class GBuffer:
+    """Per-pixel geometry (image layout); fields not needed by the options are None.
+
+    ``frame`` is the (face-forwarded) tangent frame, ``plan`` the normal map's
+    sample plan, ``albedo`` the sampled linear albedo (H, W, 3).
+    """
+
+    mask: Array
+    triangle_id: Array
+    depth: Array
+    front_facing: Array
+    position: Array | None = None
+    view: Attribute | None = None
+    uv: Attribute | None = None
+    normal: Array | None = None
+    frame: _frames.Frame | None = None
+    plan: _tex.SamplePlan | None = None
+    albedo: Array | None = None
+    eye: Array | None = None
+
+
+def _needs(opts: RenderOptions):
+    out = set(opts.outputs)
+    has_map = opts.normal_map is not None and opts.frame != "none"
+    need_frame = bool(out & _NEEDS_FRAME)
+    need_uv = bool(out & {"uv", "duvdx", "duvdy"}) or (
+        need_frame and (has_map or opts.frame != "none")) or (
+        "color" in out and opts.albedo_shape is not None)
+    need_p = bool(out & _NEEDS_P)
+    need_n = bool(out & ({"normal"} | _NEEDS_FRAME))
+    return has_map, need_frame, need_uv, need_p, need_n
+
+
+@functools.partial(jax.jit, static_argnames=("opts",))
+def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOptions) -> GBuffer:
+    """Rasterize and interpolate; build the frame and the normal map's sample plan.
+
+    **Arguments:**
+    - `mesh`, `camera`: the geometry (world space).
+    - `albedo`: (3,) constant or (H, W, 3) linear texture.
+    - `opts`: a `RenderOptions` (static).
+    """
+    has_map, need_frame, need_uv, need_p, need_n = _needs(opts)
+    if need_uv and mesh.uv is None:
+        raise ValueError("render: this render needs texture coordinates but the mesh has no uv")
+    clip = to_clip(mesh.positions, camera)
+    frags = rasterize(clip, mesh.faces, width=opts.width, height=opts.height,
+                      cull_back=opts.cull_back)
+    mask = frags.mask
+    gb = dict(mask=mask, triangle_id=frags.triangle_id, depth=frags.depth,
+              front_facing=frags.front_facing, eye=camera.eye)
+    mode = opts.derivatives
+
+    attrs = {}
+    if need_p:
+        attrs["view"] = mesh.positions - camera.eye[None, :]  # camera-relative: precise far out
+    if need_uv:
+        attrs["uv"] = mesh.uv
+    if attrs:
+        out = interpolate(attrs, frags, derivatives=mode)
+        if need_p:
+            gb["view"] = out["view"]
+            gb["position"] = jnp.where(mask[..., None], out["view"].value + camera.eye, 0.0)
+        if need_uv:
+            gb["uv"] = out["uv"]
+    if need_n:
+        normals = mesh.normals
+        if normals is None:
+            raise ValueError("render: the mesh has no vertex normals")
+        n = interpolate(normals, frags, derivatives="none").value
+        gb["normal"] = safe_normalize(n)
+    if need_frame:
+        gb["frame"] = _frame(opts, mesh, frags, gb)
+    if has_map and need_frame:
+        nm = opts.normal_map
+        gb["plan"] = _tex.plan_sample(gb["uv"], size_hw=opts.normal_map_shape, levels=opts.levels,
+                                      filter=nm.filter, wrap=nm.wrap, uv_origin=nm.uv_origin)
+    if "color" in opts.outputs:
+        if opts.albedo_shape is None:
+            gb["albedo"] = jnp.broadcast_to(jnp.asarray(albedo, jnp.float32),
+                                            (opts.height, opts.width, 3))
+        else:
+            mips = _tex.build_mipmaps(albedo)
+            gb["albedo"] = _tex.sample(mips, gb["uv"], filter="trilinear", wrap="repeat")
+    return GBuffer(**gb)
+
+
+def _frame(opts: RenderOptions, mesh: Mesh, frags, gb) -> _frames.Frame:
+    """The tangent frame named by ``opts.frame`` (face-forwarded when double-sided)."""
+    kind = opts.frame
+    n = gb["normal"]
+    common = dict(front_facing=frags.front_facing, double_sided=opts.double_sided)
+    if kind == "none":
+        frame = _frames.Frame(jnp.zeros_like(n), jnp.zeros_like(n), n)
+        return _frames.face_forward(frame, frags.front_facing) if opts.double_sided else frame
+    if kind in ("cotangent", "cotangent_unnormalized", "nonperspective"):
+        method = "nonperspective" if kind == "nonperspective" else "cotangent"
+        normalize = "none" if kind == "cotangent_unnormalized" else "max"
+        return _frames.compute_frame(method, N=n, p_attr=gb["view"], uv_attr=gb["uv"],
+                                     normalize=normalize, **common)
+    if kind in ("exact", "exact_face"):
+        return _frames.compute_frame(
+            "exact", N=n, tri_p=_frames.triangle_corners(mesh.positions, frags),
+            tri_uv=_frames.triangle_corners(mesh.uv, frags),
+            use_face_normal=kind == "exact_face", **common)
+    if kind == "vertex":
+        tangents = _frames.vertex_tangents(mesh.positions, mesh.normals, mesh.uv, mesh.faces)
+        t = interpolate(tangents, frags, derivatives="none").value
+        return _frames.compute_frame("vertex", N=n, tangent=t, **common)
+    return _frames.compute_frame("axis", N=n, **common)
+
+
+def perturbed_normal(gb: GBuffer, normal_map: Array, opts: RenderOptions,
+                     strength: Array | None = None) -> Array:
+    """The normal after applying the map's texels (stored values, image layout)."""
+    if gb.plan is None:
+        return gb.frame.N
+    nm = opts.normal_map
+    mips = (_tex.build_mipmaps(normal_map, levels=opts.levels) if opts.levels > 1
+            else (normal_map,))
+    raw = _tex.apply_plan(gb.plan, mips)
+    m = _tex.decode_normal_map(raw, encoding=nm.encoding, channels=nm.channels, green=nm.green,
+                               strength=nm.strength if strength is None else strength,
+                               bits=nm.bits, uv_origin=nm.uv_origin)
+    if nm.space == "object":
+        n = _maps.object_space_normal(m, fallback=gb.frame.N)
+        return jnp.where(gb.front_facing[..., None] | (not opts.double_sided), n, -n)
+    return _frames.perturb_normal(gb.frame, m)
+
+
+@functools.partial(jax.jit, static_argnames=("opts",))
+def shade_gbuffer(gb: GBuffer, normal_map: Array | None, lights: Lights, material: Material, *,
+                  opts: RenderOptions) -> dict[str, Array]:
+    """The texture-dependent stages: sample and decode the map, perturb, shade.
+
+    Returns the requested outputs among ``tangent``, ``bitangent``,
+    ``perturbed_normal`` and ``color`` (linear RGB, 0 on background).
+    """
+    out = {}
+    want = set(opts.outputs)
+    if gb.frame is None:
+        return out
+    n = perturbed_normal(gb, normal_map, opts) if normal_map is not None else gb.frame.N
+    mask = gb.mask[..., None]
+    if "tangent" in want:
+        out["tangent"] = jnp.where(mask, gb.frame.T, 0.0)
+    if "bitangent" in want:
+        out["bitangent"] = jnp.where(mask, gb.frame.B, 0.0)
+    if "perturbed_normal" in want:
+        out["perturbed_normal"] = jnp.where(mask, n, 0.0)
+    if "color" in want:
+        c = shade(opts.shading, n, gb.position, gb.eye, lights, material, albedo=gb.albedo)
+        out["color"] = jnp.where(mask, c, 0.0)
+    return out
+
+
+def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
+           frame: str | None = None) -> dict[str, np.ndarray]:
+    """Render ``scene`` and return the requested outputs as float32 (H, W, C) NumPy arrays.
+
+    **Arguments:**
+    - `scene`: a `Scene` (`load_scene`, `default_scene`).
+    - `outputs`: any of `OUTPUTS`; only the stages they need are run.
+    - `derivatives`, `frame`: override the scene's choices.
+
+    Row 0 is the top of the image. ``color`` is linear RGB (see
+    `jaxnm.shading.to_display` for an sRGB PNG); ``triangle_id`` is -1 on the
+    background; ``dpdx``/``dpdy`` are derivatives of the world position per
+    pixel step in window x (right) and y (**up**).
+    """
+    opts = RenderOptions.of(scene, outputs=outputs, derivatives=derivatives, frame=frame)
+    gb = build_gbuffer(scene.mesh, scene.camera, jnp.asarray(scene.albedo), opts=opts)
+    res = {}
+    if set(opts.outputs) & _NEEDS_FRAME:
+        nm = None if scene.normal_map is None else jnp.asarray(scene.normal_map)
+        res.update(shade_gbuffer(gb, nm, scene.lights, scene.material, opts=opts))
+    geo = {
+        "mask": lambda: gb.mask,
+        "triangle_id": lambda: gb.triangle_id,
+        "depth": lambda: gb.depth,
+        "front_facing": lambda: gb.front_facing,
+        "position": lambda: gb.position,
+        "view": lambda: gb.view.value,
+        "uv": lambda: gb.uv.value,
+        "normal": lambda: jnp.where(gb.mask[..., None], gb.normal, 0.0),
+        "dpdx": lambda: gb.view.ddx,
+        "dpdy": lambda: gb.view.ddy,
+        "duvdx": lambda: gb.uv.ddx,
+        "duvdy": lambda: gb.uv.ddy,
+    }
+    result = {}
+    for name in opts.outputs:
+        v = res[name] if name in res else geo[name]()
+        v = np.asarray(v)
+        if v.ndim == 2:
+            v = v[..., None]
+        result[name] = v.astype(np.float32)
+    return result
