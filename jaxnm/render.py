@@ -120,15 +120,30 @@ class GBuffer:
 
 
 def _needs(opts: RenderOptions):
+    """Which stages the requested outputs need: (map, frame, tangent frame, uv, p, N)."""
     out = set(opts.outputs)
-    has_map = opts.normal_map is not None and opts.frame != "none"
     need_frame = bool(out & _NEEDS_FRAME)
-    need_uv = bool(out & {"uv", "duvdx", "duvdy"}) or (
-        need_frame and (has_map or opts.frame != "none")) or (
+    has_map = opts.normal_map is not None and opts.frame != "none" and bool(
+        out & {"perturbed_normal", "color"})
+    # T and B only when they are shown or a tangent-space map uses them
+    need_tb = opts.frame not in ("none", "axis") and (bool(out & {"tangent", "bitangent"}) or (
+        has_map and opts.normal_map.space == "tangent"))
+    need_uv = bool(out & {"uv", "duvdx", "duvdy"}) or need_tb or has_map or (
         "color" in out and opts.albedo_shape is not None)
     need_p = bool(out & _NEEDS_P)
     need_n = bool(out & ({"normal"} | _NEEDS_FRAME))
-    return has_map, need_frame, need_uv, need_p, need_n
+    return has_map, need_frame, need_tb, need_uv, need_p, need_n
+
+
+def check_mesh(mesh: Mesh, opts: RenderOptions, source: str = "render") -> None:
+    """Raise a clear `ValueError` if ``mesh`` lacks an attribute the requested outputs need."""
+    has_map, _, _, need_uv, _, need_n = _needs(opts)
+    if need_uv and mesh.uv is None:
+        why = "a normal map" if has_map else f"the outputs {list(opts.outputs)}"
+        raise ValueError(f"{source}: the mesh has no texture coordinates (uv), needed for {why}")
+    if need_n and mesh.normals is None:
+        raise ValueError(f"{source}: the mesh has no vertex normals, needed for "
+                         f"{list(opts.outputs)} (compute them with Mesh.with_normals())")
 
 
 @functools.partial(jax.jit, static_argnames=("opts",))
@@ -140,9 +155,8 @@ def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOpti
     - `albedo`: (3,) constant or (H, W, 3) linear texture.
     - `opts`: a `RenderOptions` (static).
     """
-    has_map, need_frame, need_uv, need_p, need_n = _needs(opts)
-    if need_uv and mesh.uv is None:
-        raise ValueError("render: this render needs texture coordinates but the mesh has no uv")
+    check_mesh(mesh, opts)
+    has_map, need_frame, need_tb, need_uv, need_p, need_n = _needs(opts)
     clip = to_clip(mesh.positions, camera)
     frags = rasterize(clip, mesh.faces, width=opts.width, height=opts.height,
                       cull_back=opts.cull_back)
@@ -160,18 +174,17 @@ def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOpti
         out = interpolate(attrs, frags, derivatives=mode)
         if need_p:
             gb["view"] = out["view"]
-            gb["position"] = jnp.where(mask[..., None], out["view"].value + camera.eye, 0.0)
+            gb["position"] = jnp.where(mask[..., None], out["view"].value + camera.eye[None, None],
+                                       0.0)
         if need_uv:
             gb["uv"] = out["uv"]
     if need_n:
-        normals = mesh.normals
-        if normals is None:
-            raise ValueError("render: the mesh has no vertex normals")
-        n = interpolate(normals, frags, derivatives="none").value
+        n = interpolate(mesh.normals, frags, derivatives="none").value
         gb["normal"] = safe_normalize(n)
     if need_frame:
-        gb["frame"] = _frame(opts, mesh, frags, gb)
-    if has_map and need_frame:
+        gb["frame"] = _frame(opts if need_tb else dataclasses.replace(opts, frame="none"), mesh,
+                             frags, gb)
+    if has_map:
         nm = opts.normal_map
         gb["plan"] = _tex.plan_sample(gb["uv"], size_hw=opts.normal_map_shape, levels=opts.levels,
                                       filter=nm.filter, wrap=nm.wrap, uv_origin=nm.uv_origin)
@@ -219,9 +232,12 @@ def perturbed_normal(gb: GBuffer, normal_map: Array, opts: RenderOptions,
     mips = (_tex.build_mipmaps(normal_map, levels=opts.levels) if opts.levels > 1
             else (normal_map,))
     raw = _tex.apply_plan(gb.plan, mips)
-    m = _tex.decode_normal_map(raw, encoding=nm.encoding, channels=nm.channels, green=nm.green,
+    # an object-space map stores object xyz: no green/uv-origin flip applies to it
+    tangent = nm.space == "tangent"
+    m = _tex.decode_normal_map(raw, encoding=nm.encoding, channels=nm.channels,
+                               green=nm.green if tangent else "up",
                                strength=nm.strength if strength is None else strength,
-                               bits=nm.bits, uv_origin=nm.uv_origin)
+                               bits=nm.bits, uv_origin=nm.uv_origin if tangent else "bottom_left")
     if nm.space == "object":
         n = _maps.object_space_normal(m, fallback=gb.frame.N)
         return jnp.where(gb.front_facing[..., None] | (not opts.double_sided), n, -n)
@@ -269,6 +285,7 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     pixel step in window x (right) and y (**up**).
     """
     opts = RenderOptions.of(scene, outputs=outputs, derivatives=derivatives, frame=frame)
+    check_mesh(scene.mesh, opts, scene.source)
     gb = build_gbuffer(scene.mesh, scene.camera, jnp.asarray(scene.albedo), opts=opts)
     res = {}
     if set(opts.outputs) & _NEEDS_FRAME:

@@ -64,7 +64,9 @@ class NormalMapOptions:
     - `encoding`: ``"unsigned"`` (``2x - 1``), ``"unsigned_exact"`` (Schüler's
       exact expansion ``x*255/127 - 128/127`` for 8 bits), or ``"signed"``.
     - `channels`: 3, or 2 (``z = sqrt(max(0, 1 - x^2 - y^2))``).
-    - `green`: ``"up"`` (OpenGL: +y of the map points along +v) or ``"down"`` (DirectX).
+    - `green`: ``"up"`` (OpenGL: +green points to the top of the image as
+      displayed) or ``"down"`` (DirectX). With ``uv_origin="bottom_left"``,
+      "up" means the map's +y is along +v.
     - `strength`: scales the map's x and y.
     - `uv_origin`: ``"bottom_left"`` (OpenGL/OBJ) or ``"top_left"`` (glTF/D3D images).
     - `wrap`, `filter`: texture sampling (``"repeat"|"clamp"|"mirror"``,
@@ -244,6 +246,8 @@ def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scen
 
     width = _get(data, "width", int, 512, source)
     height = _get(data, "height", int, 512, source)
+    if width <= 0 or height <= 0:
+        raise ValueError(f"{source}: 'width' and 'height' must be positive, got {width}x{height}")
     camera = _camera(data.get("camera"), width / height if height else 1.0, source)
 
     nm, nm_opts = None, NormalMapOptions()

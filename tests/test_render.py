@@ -1,0 +1,177 @@
+"""The composed pipeline: conventions of the outputs, scenes from JSON, the CLI, bad input."""
+
+import json
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxnm
+from jaxnm import procedural
+from jaxnm.cli import main
+from jaxnm.render import render
+from jaxnm.scene import Scene, default_scene, load_scene, scene_from_dict
+from jaxnm.shading import DirectionalLight, Lights, Material, stack_lights
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "scripts" / "scenes" / "torus" / "scene.json"
+
+
+@pytest.fixture(scope="module")
+def plane_scene():
+    """A plane facing the camera (camera up = +y): uv = (x, y)/2 + 1/2 on screen."""
+    cam = jaxnm.Camera.look_at((0.2, 0.1, 2.5), (0.0, 0.0, 0.0), (0, 1, 0), fov_y_deg=30)
+    return Scene(mesh=procedural.plane(2.0, 2), camera=cam, width=32, height=24,
+                 source="<plane>").replace()
+
+
+def test_image_layout_uv_origin_and_dfdy_direction(plane_scene):
+    out = render(plane_scene, outputs=("uv", "duvdx", "duvdy", "mask", "position", "dpdy"))
+    m = out["mask"][..., 0] > 0
+    assert m.all()
+    uv = out["uv"]
+    # row 0 is the top of the image: larger v (uv origin bottom-left, +y up on screen)
+    assert (uv[0, :, 1] > uv[-1, :, 1]).all()
+    assert (uv[:, -1, 0] > uv[:, 0, 0]).all()  # u grows to the right
+    # dFdy is per step of window y UP: positive for v, matching row-to-row differences upwards
+    assert (out["duvdy"][..., 1] > 0).all()
+    np.testing.assert_allclose(out["duvdy"][1:-1, :, 1], (uv[:-2, :, 1] - uv[2:, :, 1]) / 2,
+                               rtol=1e-3)
+    assert (out["duvdx"][..., 0] > 0).all()
+    assert (out["dpdy"][..., 1] > 0).all()
+
+
+def test_only_requested_stages_run():
+    """A mesh without uv or normals can still be rasterized for geometric outputs."""
+    m = procedural.plane(2.0, 1)
+    mesh = jaxnm.geometry.Mesh(m.positions, m.faces)
+    cam = jaxnm.Camera.look_at((0, 0, 3), (0, 0, 0))
+    sc = Scene(mesh=mesh, camera=cam, width=16, height=16).replace()
+    out = render(sc, outputs=("mask", "depth", "triangle_id", "position"))
+    assert out["mask"].sum() > 0 and set(out) == {"mask", "depth", "triangle_id", "position"}
+    with pytest.raises(ValueError, match="normal"):
+        render(sc, outputs=("color",))
+
+
+def test_default_scene_is_lit_and_mapped():
+    sc = default_scene(width=96, height=96)
+    out = render(sc, outputs=("color", "normal", "perturbed_normal", "tangent", "bitangent",
+                              "mask"))
+    m = out["mask"][..., 0] > 0
+    assert 0.3 < m.mean() < 0.9
+    for k, v in out.items():
+        assert np.isfinite(v).all(), k
+    ang = np.degrees(np.arccos(np.clip((out["normal"] * out["perturbed_normal"]).sum(-1), -1, 1)))
+    assert np.percentile(ang[m], 90) > 10  # the map visibly perturbs the normal
+    assert out["color"][m].mean() > 0.1
+    assert np.all(out["color"][~m] == 0)
+    np.testing.assert_allclose(np.linalg.norm(out["perturbed_normal"][m], axis=-1), 1, atol=1e-5)
+
+
+def test_example_scene_file_matches_builtin_conventions(tmp_path):
+    sc = load_scene(EXAMPLE)
+    assert sc.normal_map is not None and sc.mesh.uv is not None
+    out = render(sc.replace(width=48, height=36, camera=sc.camera), outputs=("color", "mask"))
+    assert np.isfinite(out["color"]).all() and out["mask"].sum() > 100
+
+
+def _scene_dict(**over):
+    d = {"mesh": "builtin:plane", "camera": {"eye": [0, 0, 3], "target": [0, 0, 0]},
+         "width": 16, "height": 16}
+    d.update(over)
+    return d
+
+
+@pytest.mark.parametrize("over,match", [
+    (dict(mesh=None), "mesh"),
+    (dict(mesh="builtin:teapot"), "teapot"),
+    (dict(colour=[1, 1, 1]), "unknown keys"),
+    (dict(width=0), "width"),
+    (dict(width="big"), "width"),
+    (dict(camera={"eye": [0, 0, 3]}), "target"),
+    (dict(camera={"eye": [0, 0, 0], "target": [0, 0, 0]}), "coincide"),
+    (dict(camera={"eye": [0, 0, 3], "target": [0, 0, 0], "near": 0}), "near"),
+    (dict(camera={"eye": [0, 0, -3], "target": [0, 0, -6]}), "behind the camera's near plane"),
+    (dict(camera={"view": [[1, 0, 0, 0]], "projection": np.eye(4).tolist()}), "4x4"),
+    (dict(frame="diagonal"), "frame"),
+    (dict(derivatives="medium"), "derivatives"),
+    (dict(lights=[]), "lights"),
+    (dict(lights=[{"type": "spot"}]), "lights\\[0\\]"),
+    (dict(lights=[{"type": "directional", "direction": [0, 0, 0]}]), "direction"),
+    (dict(material={"shininess": -1}), "shininess"),
+    (dict(normal_map={"path": "builtin:rivets", "green": "sideways"}), "green"),
+    (dict(model=[[1, 0, 0], [0, 1, 0]]), "model"),
+])
+def test_bad_scene_json_is_refused_with_the_key(over, match):
+    d = _scene_dict(**over)
+    if over.get("mesh", 1) is None:
+        d.pop("mesh")
+    with pytest.raises(ValueError, match=match):
+        scene_from_dict(d, source="bad.json")
+
+
+def test_scene_file_errors_name_the_file(tmp_path):
+    p = tmp_path / "scene.json"
+    p.write_text(json.dumps(_scene_dict(mesh="missing.obj")))
+    with pytest.raises(FileNotFoundError, match="missing.obj"):
+        load_scene(p)
+    p.write_text("{ not json")
+    with pytest.raises(ValueError, match="scene.json"):
+        load_scene(p)
+
+
+def test_tangent_map_without_uv_is_refused(tmp_path):
+    obj = tmp_path / "tri.obj"
+    obj.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nvn 0 0 1\nvn 0 0 1\nf 1//1 2//2 3//3\n")
+    p = tmp_path / "scene.json"
+    p.write_text(json.dumps(_scene_dict(mesh="tri.obj", normal_map="builtin:rivets")))
+    with pytest.raises(ValueError, match="no texture coordinates"):
+        load_scene(p)
+
+
+def test_cli_render_writes_png_and_aovs(tmp_path, capsys):
+    png, npz = tmp_path / "out.png", tmp_path / "aovs.npz"
+    rc = main(["render", "-o", str(png), "--aovs", str(npz), "--width", "40", "--height", "32",
+               "--derivatives", "coarse", "--frame", "cotangent"])
+    assert rc == 0 and png.exists()
+    aovs = np.load(npz)
+    for name in ("mask", "triangle_id", "depth", "position", "uv", "normal", "front_facing",
+                 "dpdx", "dpdy", "duvdx", "duvdy", "tangent", "bitangent", "perturbed_normal",
+                 "color"):
+        assert aovs[name].shape[:2] == (32, 40) and aovs[name].dtype == np.float32, name
+    assert (aovs["triangle_id"][aovs["mask"] == 0] == -1).all()
+    from jaxnm.io import load_texture
+
+    img, bits = load_texture(png)
+    assert img.shape == (32, 40, 3) and bits == 8
+
+
+def test_cli_errors_are_one_line_and_exit_2(tmp_path, capsys):
+    assert main(["render", str(tmp_path / "nope.json")]) == 2
+    err = capsys.readouterr().err
+    assert "nope.json" in err and "Traceback" not in err
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(_scene_dict(frame="wrong")))
+    assert main(["render", str(bad), "-o", str(tmp_path / "x.png")]) == 2
+    assert "frame" in capsys.readouterr().err
+
+
+def test_cli_normal_map_override_must_be_rgb(tmp_path, capsys):
+    from jaxnm.io import save_png
+
+    gray = tmp_path / "gray.png"
+    save_png(gray, np.full((8, 8), 0.5, np.float32))
+    assert main(["render", "--normal-map", str(gray), "--width", "16", "--height", "16",
+                 "-o", str(tmp_path / "x.png")]) == 2
+    assert "gray.png" in capsys.readouterr().err
+
+
+def test_lights_and_material_change_the_image(plane_scene):
+    nm = procedural.encode_unsigned(procedural.default_normal_map(64))
+    base = plane_scene.replace(normal_map=nm)
+    a = render(base)["color"]
+    left = Lights(directional=stack_lights([DirectionalLight(jnp.array([-1.0, 0, 0.5]),
+                                                             jnp.ones(3), jnp.asarray(1.0))]))
+    b = render(base.replace(lights=left, material=Material(
+        jnp.ones(3), jnp.zeros(3), jnp.asarray(1.0), jnp.zeros(3))))["color"]
+    assert np.abs(a - b).mean() > 0.05
