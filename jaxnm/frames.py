@@ -90,8 +90,8 @@ class Frame:
 
     @property
     def handedness(self) -> Array:
-        """``(...)`` the triple product ``det[T, B, N] = (T x B) . N``; its sign is the handedness."""
-        return _dot(jnp.cross(self.T, self.B), self.N)
+        """``(...)`` triple product ``det[T, B, N] = (T x B) . N``; its sign is the handedness."""
+        return _dot(_cross(self.T, self.B), self.N)
 
 
 # --------------------------------------------------------------------------------------
@@ -101,6 +101,13 @@ class Frame:
 
 def _dot(a: Array, b: Array, keepdims: bool = False) -> Array:
     return jnp.sum(a * b, axis=-1, keepdims=keepdims)
+
+
+def _cross(a: Array, b: Array) -> Array:
+    """``a x b`` over the last axis, in fewer primitives than ``jnp.cross`` (compile time)."""
+    a0, a1, a2 = a[..., 0:1], a[..., 1:2], a[..., 2:3]
+    b0, b1, b2 = b[..., 0:1], b[..., 1:2], b[..., 2:3]
+    return jnp.concatenate([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], -1)
 
 
 def _check_normalize(normalize: str) -> None:
@@ -143,8 +150,8 @@ def _relative_div(T: Array, B: Array, det: Array, scale: Array) -> tuple[Array, 
 def _cotangent_TB(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Array,
                   normalize: str) -> tuple[Array, Array]:
     """The published solution of the linear system, then the chosen normalisation."""
-    dp2perp = jnp.cross(dp2, N)
-    dp1perp = jnp.cross(N, dp1)
+    dp2perp = _cross(dp2, N)
+    dp1perp = _cross(N, dp1)
     T = dp2perp * duv1[..., 0:1] + dp1perp * duv2[..., 0:1]
     B = dp2perp * duv1[..., 1:2] + dp1perp * duv2[..., 1:2]
     if normalize == "max":
@@ -158,10 +165,11 @@ def _cotangent_TB(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Array,
 
 def _axis_tangent(n: Array) -> Array:
     """GLSL Hacker's tangent: the longer of ``n x (0,0,1)`` and ``n x (0,1,0)``, normalised."""
-    c1 = jnp.stack([n[..., 1], -n[..., 0], jnp.zeros_like(n[..., 0])], -1)  # n x z
-    c2 = jnp.stack([-n[..., 2], jnp.zeros_like(n[..., 0]), n[..., 0]], -1)  # n x y
-    t = jnp.where(_dot(c1, c1, True) > _dot(c2, c2, True), c1, c2)
-    return safe_normalize(t)
+    nx, ny, nz = n[..., 0:1], n[..., 1:2], n[..., 2:3]
+    zero = jnp.zeros_like(nx)
+    c1 = jnp.concatenate([ny, -nx, zero], -1)  # n x z, |c1|^2 = nx^2 + ny^2
+    c2 = jnp.concatenate([-nz, zero, nx], -1)  # n x y, |c2|^2 = nx^2 + nz^2
+    return safe_normalize(jnp.where(ny * ny > nz * nz, c1, c2))
 
 
 # --------------------------------------------------------------------------------------
@@ -206,6 +214,12 @@ def cotangent_frame(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Array, 
       degrees about N: bumps read as dents). With ``"none"`` ``D`` changes sign
       too and the frame is unchanged.
 
+    Within one triangle, ``"fine"``, ``"coarse"`` and ``"analytic"`` derivatives give
+    the same frame up to rounding: the pixel triangle lies in the facet's plane and
+    uv is affine on it, so every footprint yields the facet's gradients (with
+    ``N`` the face normal: exactly `exact_frame`). ``"gbuffer"`` derivatives differ
+    where a quad straddles triangle edges.
+
     **Returns:** a `Frame` ``(T, B, N)``; ``T = B = 0`` where the uv derivatives vanish.
     """
     _check_normalize(normalize)
@@ -230,7 +244,11 @@ def nonperspective_frame(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Ar
     the identity, ``dp1 _|_ dp2`` and ``|dp1| = |dp2|``: the surface is seen
     without *any* foreshortening (parallel to the image plane). Under
     perspective, and also for a tilted surface under an orthographic camera,
-    it is wrong. ``T`` and ``B`` are not made orthogonal to ``N``.
+    it is wrong. ``T`` and ``B`` are not made orthogonal to ``N``. (The frame
+    from devsh's comment on the article, ``normalize(dFdx(v) dFdy(p) - dFdx(p)
+    dFdy(v))`` orthogonalised against ``N`` and ``B = N x T``, is a different
+    shortcut: its ``T`` is the exact direction of ``dp/du``, but it assumes an
+    orthogonal, unstretched mapping; both agree with `cotangent_frame` in that case.)
 
     **Arguments:** as `cotangent_frame`. ``normalize="none"`` divides by
     ``|dp1 x dp2|`` (``= |dp1|^2`` in the exact case). ``ddy_sign=-1`` has no
@@ -247,7 +265,7 @@ def nonperspective_frame(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Ar
     if normalize == "max":
         T, B = _max_normalize(T, B)
     else:
-        area = safe_norm(jnp.cross(dp1, dp2), keepdims=True)
+        area = safe_norm(_cross(dp1, dp2), keepdims=True)
         scale = safe_norm(dp1, keepdims=True) * safe_norm(dp2, keepdims=True)
         T, B = _relative_div(T, B, area, scale)
     return Frame(T, B, N)
@@ -289,8 +307,8 @@ def exact_frame(tri_p: Array, tri_uv: Array, N: Array | None = None, *,
     dp2 = tri_p[..., 2, :] - tri_p[..., 0, :]
     duv1 = tri_uv[..., 1, :] - tri_uv[..., 0, :]
     duv2 = tri_uv[..., 2, :] - tri_uv[..., 0, :]
-    face_n = safe_normalize(jnp.cross(dp1, dp2))
-    n = face_n if (N is None or use_face_normal) else N
+    face_n = safe_normalize(_cross(dp1, dp2)) if (N is None or use_face_normal) else None
+    n = N if face_n is None else face_n
     T, B = _cotangent_TB(n, dp1, dp2, duv1, duv2, normalize)
     return Frame(T, B, face_n if N is None else N)
 
@@ -335,7 +353,7 @@ def vertex_tangents(positions: Array, normals: Array, uv: Array, faces: Array) -
     sgn = jnp.where(valid, jnp.sign(r), 0.0)[:, None]
     t_dir = safe_normalize((e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) * sgn)
     b_dir = safe_normalize((e2 * d1[:, 0:1] - e1 * d2[:, 0:1]) * sgn)
-    area = 0.5 * safe_norm(jnp.cross(e1, e2))
+    area = 0.5 * safe_norm(_cross(e1, e2))
     wgt = jnp.where(valid, area, 0.0)[:, None]
     idx = faces.reshape(-1)
     num_v = positions.shape[0]
@@ -351,7 +369,7 @@ def vertex_tangents(positions: Array, normals: Array, uv: Array, faces: Array) -
     ok = (safe_norm(t_perp, keepdims=True) > VERTEX_TANGENT_CANCELLATION * w_sum) & (w_sum > 0)
     fallback = _axis_tangent(n)
     T = jnp.where(ok, safe_normalize(t_perp, fallback=fallback), fallback)
-    hand = jnp.where(_dot(jnp.cross(n, T), b_sum, True) < 0, -1.0, 1.0).astype(T.dtype)
+    hand = jnp.where(_dot(_cross(n, T), b_sum, True) < 0, -1.0, 1.0).astype(T.dtype)
     return jnp.concatenate([T, hand], -1)
 
 
@@ -368,7 +386,7 @@ def vertex_frame(T_interp: Array, w_interp: Array, N: Array) -> Frame:
     - `w_interp`: ``(...)`` or ``(..., 1)`` interpolated handedness.
     - `N`: ``(..., 3)`` interpolated normal.
 
-    **Returns:** an orthonormal `Frame` (zero where ``N`` is zero).
+    **Returns:** an orthonormal `Frame`, all zero where ``N`` is zero.
     """
     T_interp = jnp.asarray(T_interp)
     w_interp = jnp.asarray(w_interp)
@@ -377,8 +395,9 @@ def vertex_frame(T_interp: Array, w_interp: Array, N: Array) -> Frame:
     n = safe_normalize(N)
     t = T_interp - n * _dot(n, T_interp, True)
     T = safe_normalize(t, fallback=_axis_tangent(n))
+    T = jnp.where(_dot(n, n, True) > 0, T, 0.0)
     s = jnp.where(w_interp < 0, -1.0, 1.0).astype(T.dtype)[..., None]
-    return Frame(T, s * jnp.cross(n, T), n)
+    return Frame(T, s * _cross(n, T), n)
 
 
 def axis_frame(N: Array) -> Frame:
@@ -392,7 +411,7 @@ def axis_frame(N: Array) -> Frame:
     """
     n = safe_normalize(N)
     T = _axis_tangent(n)
-    return Frame(T, safe_normalize(jnp.cross(n, T)), n)
+    return Frame(T, safe_normalize(_cross(n, T)), n)
 
 
 # --------------------------------------------------------------------------------------
@@ -499,7 +518,9 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
     - `normalize`, `ddy_sign`: see `cotangent_frame` (``normalize`` also for
       ``"nonperspective"`` and ``"exact"``; ``ddy_sign`` for the screen-space ones).
 
-    **Returns:** a `Frame` for `perturb_normal`.
+    **Returns:** a `Frame` for `perturb_normal`. Where `N` is (numerically)
+    zero, e.g. background pixels, every method returns ``T = B = N = 0``, so
+    `perturb_normal` gives the zero vector there (not NaN).
     """
     if frame not in FRAME_METHODS:
         raise ValueError(f"unknown frame {frame!r}; expected one of {', '.join(FRAME_METHODS)}")
@@ -524,6 +545,8 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
         out = vertex_frame(t[..., :3], t[..., 3], n)
     else:
         out = axis_frame(n)
+    has_n = _dot(n, n, True) > 0
+    out = Frame(jnp.where(has_n, out.T, 0.0), jnp.where(has_n, out.B, 0.0), out.N)
     if double_sided:
         if front_facing is None:
             raise ValueError("compute_frame(double_sided=True) needs `front_facing`")
