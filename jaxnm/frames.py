@@ -29,7 +29,8 @@ camera-relative position ``p - eye`` (Schüler's ``-V``): only differences enter
 **Degenerate input** (zero uv derivatives, zero ``N``, background/helper
 pixels, grazing views, back faces) never gives NaN or Inf, in value or
 gradient: a frame whose ``T`` and ``B`` cannot be formed returns ``T = B = 0``,
-so `perturb_normal` falls back to the unperturbed normal.
+so `perturb_normal` returns ``normalize(N m.z)``, the unperturbed normal (for
+``m.z > 0``); where even that vanishes it returns its ``fallback``.
 """
 
 from __future__ import annotations
@@ -504,8 +505,8 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
                   use_face_normal: bool = False) -> Frame:
     r"""Build the frame named by `frame` (one of `FRAME_METHODS`) per pixel.
 
-    **Arguments** (keyword-only; `frame`, `normalize`, `ddy_sign`,
-    `double_sided`, `use_face_normal` are static):
+    **Arguments** (all but `frame` keyword-only; `frame`, `normalize`,
+    `ddy_sign`, `double_sided`, `use_face_normal` are static):
     - `N`: ``(..., 3)`` interpolated normal (or its `Attribute`); normalised here.
     - `p_attr`, `uv_attr`: position (world or camera-relative) and uv
       `Attribute`s with derivatives: ``"cotangent"``, ``"nonperspective"``.

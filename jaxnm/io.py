@@ -35,6 +35,7 @@ import imageio.v3 as iio
 import jax
 import jax.numpy as jnp
 import numpy as np
+import png
 import trimesh
 
 from .geometry import Mesh, validate_arrays, vertex_normals
@@ -648,99 +649,25 @@ def load_aovs(path: PathLike) -> dict[str, np.ndarray]:
 
 # ----------------------------------------------------------------------------- PNG codec
 # imageio reads PNGs through Pillow, which turns 16-bit colour PNGs into 8-bit
-# images and cannot write them at all; 16-bit PNGs are therefore coded here.
+# images and cannot write them at all; 16-bit PNGs therefore go through pypng.
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_PNG_COLOR_TYPES = {0: 1, 4: 2, 2: 3, 6: 4}  # PNG colour type -> channels
-
-
-def _png_chunk(kind: bytes, data: bytes) -> bytes:
-    return (struct.pack(">I", len(data)) + kind + data
-            + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
-
-
-def _encode_png(q: np.ndarray) -> bytes:
-    """PNG bytes of a uint8 or uint16 (H, W, C) image (filter type 0 on every row)."""
-    h, w, c = q.shape
-    bits = 16 if q.dtype == np.uint16 else 8
-    color_type = {v: k for k, v in _PNG_COLOR_TYPES.items()}[c]
-    rows = np.ascontiguousarray(q.astype(">u2" if bits == 16 else np.uint8)).view(np.uint8)
-    rows = rows.reshape(h, -1)
-    raw = np.concatenate([np.zeros((h, 1), np.uint8), rows], axis=1).tobytes()
-    ihdr = struct.pack(">IIBBBBB", w, h, bits, color_type, 0, 0, 0)
-    return (_PNG_SIGNATURE + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", zlib.compress(raw))
-            + _png_chunk(b"IEND", b""))
 
 
 def _decode_png16(data: bytes, src: str) -> np.ndarray:
-    """uint16 (H, W, C) pixels of a non-interlaced 16-bit PNG."""
-    pos, ihdr, idat = 8, None, []
-    while pos + 12 <= len(data):
-        (length,) = struct.unpack_from(">I", data, pos)
-        kind = data[pos + 4:pos + 8]
-        body = data[pos + 8:pos + 8 + length]
-        (crc,) = struct.unpack_from(">I", data, pos + 8 + length) if (
-            pos + 12 + length <= len(data)) else (None,)
-        if crc is None or zlib.crc32(kind + body) & 0xFFFFFFFF != crc:
-            raise ValueError(f"{src}: corrupt PNG (bad or truncated {kind!r} chunk)")
-        if kind == b"IHDR":
-            ihdr = struct.unpack(">IIBBBBB", body)
-        elif kind == b"IDAT":
-            idat.append(body)
-        elif kind == b"IEND":
-            break
-        pos += 12 + length
-    if ihdr is None or not idat:
-        raise ValueError(f"{src}: corrupt PNG (no IHDR or IDAT chunk)")
-    w, h, bits, color_type, _, _, interlace = ihdr
-    if color_type not in _PNG_COLOR_TYPES or bits != 16:
-        raise ValueError(f"{src}: unsupported PNG colour type {color_type} at {bits} bits")
-    if interlace:
-        raise ValueError(f"{src}: interlaced 16-bit PNGs are not supported; save it without "
-                         f"interlacing")
-    if w == 0 or h == 0:
-        raise ValueError(f"{src}: the image is empty ({w}x{h})")
-    c = _PNG_COLOR_TYPES[color_type]
+    """A 16-bit PNG as uint16 (H, W, C), via pypng (Pillow reduces 16-bit colour to 8 bits)."""
     try:
-        raw = zlib.decompress(b"".join(idat))
-    except zlib.error as e:
-        raise ValueError(f"{src}: corrupt PNG image data ({e})") from None
-    if len(raw) != h * (1 + w * 2 * c):
-        raise ValueError(f"{src}: corrupt PNG: {len(raw)} bytes of image data for a "
-                         f"{w}x{h}x{c} 16-bit image")
-    rows = np.frombuffer(raw, np.uint8).reshape(h, 1 + w * 2 * c)
-    if rows[:, 0].max() > 4:
-        raise ValueError(f"{src}: corrupt PNG: unknown row filter type {rows[:, 0].max()}")
-    pixels = _png_unfilter(rows[:, 1:].reshape(h, w, 2 * c), rows[:, 0])
-    return pixels.reshape(h, w * 2 * c).view(">u2").reshape(h, w, c).astype(np.uint16)
+        width, height, rows, info = png.Reader(bytes=data).asDirect()
+        arr = np.vstack([np.asarray(row, np.uint16) for row in rows])
+    except (png.Error, ValueError, zlib.error) as e:
+        raise ValueError(f"{src}: corrupt or not a valid PNG ({e})") from None
+    return arr.reshape(height, width, info["planes"])
 
 
-def _png_unfilter(filtered: np.ndarray, ftype: np.ndarray) -> np.ndarray:
-    """Undo PNG row filters: (H, W, bytes per pixel) uint8 -> same, raw bytes.
-
-    Pixel (y, x) depends on its left, upper and upper-left neighbours, so all
-    pixels on one anti-diagonal y + x = k are independent: sweep the diagonals.
-    """
-    h, w, _ = filtered.shape
-    if ftype.max() <= 2:  # None / Sub / Up only: one vectorised step per row (uint8 wraps)
-        out8, prev = np.empty_like(filtered), np.zeros_like(filtered[0])
-        for y in range(h):
-            row = filtered[y]
-            if ftype[y] == 1:
-                row = np.cumsum(row, axis=0, dtype=np.uint8)
-            elif ftype[y] == 2:
-                row = row + prev
-            out8[y] = prev = row
-        return out8
-    f = filtered.astype(np.int32)
-    out = np.zeros((h + 1, w + 1, f.shape[2]), np.int32)  # row/column 0: zero padding
-    for k in range(h + w - 1):
-        y = np.arange(max(0, k - w + 1), min(h - 1, k) + 1)
-        x = k - y
-        a, b, c = out[y + 1, x], out[y, x + 1], out[y, x]  # left, up, up-left
-        t = ftype[y][:, None]
-        pa, pb, pc = np.abs(b - c), np.abs(a - c), np.abs(a + b - 2 * c)
-        paeth = np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))
-        pred = np.select([t == 1, t == 2, t == 3, t == 4], [a, b, (a + b) >> 1, paeth], 0)
-        out[y + 1, x + 1] = (f[y, x] + pred) & 0xFF
-    return out[1:, 1:].astype(np.uint8)
+def _encode_png(q: np.ndarray) -> bytes:
+    """PNG bytes of a uint8/uint16 (H, W, C) array, via pypng (Pillow cannot write 16-bit RGB)."""
+    h, w, c = q.shape
+    writer = png.Writer(w, h, greyscale=c <= 2, alpha=c in (2, 4), bitdepth=q.itemsize * 8)
+    buf = io.BytesIO()
+    writer.write(buf, q.reshape(h, w * c))
+    return buf.getvalue()

@@ -247,10 +247,9 @@ def test_glsl_fidelity_torus():
     cam_err = angle_deg(out["cotangent"][3], out["cotangent_cam"][3])[mask]
     report("glsl fidelity", mean_deg=err.mean(), max_deg=err.max(), p99_deg=np.quantile(err, .99),
            world_vs_camrel_max_deg=cam_err.max())
-    assert err.mean() < 0.01
-    assert np.quantile(err, 0.99) < 0.05
-    assert cam_err.mean() < 0.01
-    np.testing.assert_allclose(out["cotangent"][0][mask], out["cotangent_cam"][0][mask], atol=2e-3)
+    assert err.mean() < 0.01 and err.max() < 0.01
+    assert cam_err.max() < 0.01
+    np.testing.assert_allclose(out["cotangent"][0][mask], out["cotangent_cam"][0][mask], atol=1e-4)
     # the perturbation is real: the map moves the normals by tens of degrees
     assert angle_deg(out["cotangent"][3], at["n"].value)[mask].mean() > 10.0
 
