@@ -1,0 +1,699 @@
+r"""Fit a tangent-space normal map to target shading.
+
+Given a mesh with uvs, one or more views, lights, a material and target images,
+find the normal map whose rendering matches the targets.
+
+**Model.** The geometry is fixed, so each view's G-buffer — visibility, the
+perspective-correct position, uv, normal, their screen derivatives, the
+cotangent frame and the normal map's sample plan (texel indices, filter
+weights, mip level of detail) — is computed **once** (`prepare`). A step then
+only runs the texel-dependent stages: build the mip chain of the current map,
+one gather and weighted sum per pixel and view, perturb, shade every light
+(``vmap``), subtract the target.
+
+**Parameterisation.** Each texel holds two slopes ``(s_x, s_y)``; its normal is
+``normalize(s_x, s_y, 1)``: always a unit vector with positive z, with no
+constraint to enforce and no singular point.
+
+**Solvers** (optimistix): ``"lm"`` Levenberg–Marquardt and ``"gn"``
+Gauss–Newton, both matrix-free: the Jacobian is a linearised function
+(forward-mode JVP, transposed for the VJP) and each step is solved by
+lineax's iterative LSMR — no dense Jacobian is ever formed; ``"lbfgs"``:
+the first-order baseline, L-BFGS on the sum of squares.
+
+**Identifiability.** A normal has two degrees of freedom. One light gives one
+equation per texel (a cone of possible normals); two lights leave a two-fold
+ambiguity; three lights whose directions (as seen from the surface) are not
+coplanar determine the normal under Lambertian shading (photometric stereo).
+So a fit needs at least three non-coplanar lights per texel, in some view that
+sees it lit; `check_identifiability` warns otherwise. Texels in attached
+shadow for most lights, or seen only at grazing angles (only coarse mip
+levels), are weakly determined; the optional smoothness term regularises them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import math
+import signal
+import time
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+from jax import Array
+
+from . import textures as _tex
+from .camera import Camera
+from .frames import perturb_normal
+from .geometry import Mesh
+from .numerics import angle_between, safe_normalize
+from .render import GBuffer, RenderOptions, build_gbuffer, check_mesh
+from .scene import NormalMapOptions, Scene
+from .shading import DirectionalLight, Lights, Material, PointLight, shade
+
+__all__ = [
+    "FitTarget",
+    "FitProblem",
+    "FitOptions",
+    "FitResult",
+    "Prepared",
+    "SOLVERS",
+    "prepare",
+    "fit_normal_map",
+    "slopes_to_normals",
+    "normals_to_slopes",
+    "angular_error",
+    "seen_texels",
+    "check_identifiability",
+    "render_with_map",
+]
+
+SOLVERS = ("lm", "gn", "lbfgs")
+
+
+class FitWarning(UserWarning):
+    """The fit input is suspicious (e.g. cannot determine the map)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FitTarget:
+    """One target image: a view (camera + size), its lights, the image and an optional mask.
+
+    ``image`` is **linear** RGB (H, W, 3), row 0 = top; ``mask`` (H, W) bool
+    selects the pixels that count (default: all the mesh covers).
+    """
+
+    camera: Camera
+    width: int
+    height: int
+    lights: Lights
+    image: np.ndarray
+    mask: np.ndarray | None = None
+    name: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class FitProblem:
+    """The scene side of a fit: mesh, material, albedo, render options, targets, map size."""
+
+    mesh: Mesh
+    material: Material
+    targets: tuple[FitTarget, ...]
+    map_size: tuple[int, int] = (256, 256)
+    albedo: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.array([0.8, 0.8, 0.8], np.float32))
+    shading: str = "blinn_phong"
+    frame: str = "cotangent"
+    derivatives: str = "fine"
+    double_sided: bool = True
+    sampling: NormalMapOptions = NormalMapOptions(encoding="signed")
+    source: str = "<fit problem>"
+
+
+@dataclasses.dataclass(frozen=True)
+class FitOptions:
+    """How to fit.
+
+    - `solver`: one of `SOLVERS`.
+    - `max_steps`: outer iterations (per coarse-to-fine level).
+    - `smoothness`: weight of the first-difference penalty on the slopes
+      (residuals ``sqrt(w) * (s[i+1] - s[i])``), 0 to disable.
+    - `coarse_to_fine`: number of extra coarser levels solved first (each half
+      the resolution), then upsampled as the next level's start.
+    - `lsmr_steps`: inner LSMR iterations per (Gauss-Newton/LM) step.
+    - `rtol`, `atol`: convergence tolerances of the outer solver.
+    - `seed`: initial-guess jitter seed (0 jitter by default: a flat start).
+    - `init_noise`: standard deviation of the initial slopes.
+    """
+
+    solver: str = "lm"
+    max_steps: int = 30
+    smoothness: float = 0.0
+    coarse_to_fine: int = 0
+    lsmr_steps: int = 40
+    rtol: float = 1e-6
+    atol: float = 1e-8
+    seed: int = 0
+    init_noise: float = 0.0
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Prepared:
+    """Everything a fit step needs, computed once (see `prepare`).
+
+    Per view ``v``: ``gbuffers[v]``; its targets are stacked: ``images[v]``
+    (T_v, H, W, 3), ``weights[v]`` (T_v, H, W, 1) (0 outside the mask or the
+    mesh), ``lights[v]`` (stacked over T_v).
+    """
+
+    gbuffers: tuple[GBuffer, ...]
+    images: tuple[Array, ...]
+    weights: tuple[Array, ...]
+    lights: tuple[Lights, ...]
+    material: Material
+    options: tuple[RenderOptions, ...] = dataclasses.field(metadata=dict(static=True))
+
+
+@dataclasses.dataclass
+class FitResult:
+    """The fitted map and how the fit went.
+
+    ``normals``: (h, w, 3) unit tangent-space normals (image layout, x along
+    +u, y along +v, the decoded convention); ``slopes``: (h, w, 2);
+    ``history``: one dict per step (step, loss, seconds, and the angular
+    error when a ground truth was given); ``stopped``: why it ended.
+    """
+
+    normals: np.ndarray
+    slopes: np.ndarray
+    history: list
+    seconds: float
+    stopped: str
+    best_loss: float
+
+
+# --------------------------------------------------------------------------------------
+# parameterisation
+# --------------------------------------------------------------------------------------
+
+
+def slopes_to_normals(slopes: Array) -> Array:
+    """``normalize(s_x, s_y, 1)`` per texel: (h, w, 2) -> (h, w, 3) unit, z > 0."""
+    one = jnp.ones(slopes.shape[:-1] + (1,), slopes.dtype)
+    return safe_normalize(jnp.concatenate([slopes, one], -1))
+
+
+def normals_to_slopes(normals: Array, max_slope: float = 1e3) -> Array:
+    """Inverse of `slopes_to_normals` for normals with z > 0 (clamped to ``max_slope``)."""
+    n = jnp.asarray(normals)
+    z = jnp.maximum(n[..., 2:3], 1.0 / max_slope)
+    return jnp.clip(n[..., :2] / z, -max_slope, max_slope)
+
+
+# --------------------------------------------------------------------------------------
+# preparation (once per fit)
+# --------------------------------------------------------------------------------------
+
+
+def _stack_lights(lights: Sequence[Lights]) -> Lights:
+    structs = {jax.tree_util.tree_structure(light) for light in lights}
+    shapes = {tuple(x.shape for x in jax.tree_util.tree_leaves(light)) for light in lights}
+    if len(structs) != 1 or len(shapes) != 1:
+        raise ValueError("fit: all targets of one view must have lights of the same kinds and "
+                         "counts (e.g. each one directional light), so they can be batched")
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *lights)
+
+
+def _view_key(t: FitTarget):
+    return (t.width, t.height, np.asarray(t.camera.view).tobytes(),
+            np.asarray(t.camera.projection).tobytes())
+
+
+def validate_problem(problem: FitProblem) -> None:
+    """Raise a clear error for unusable input, before anything is compiled."""
+    src = problem.source
+    if problem.mesh.uv is None:
+        raise ValueError(f"{src}: the mesh has no texture coordinates (uv); a normal map cannot "
+                         "be fitted")
+    if problem.mesh.normals is None:
+        raise ValueError(f"{src}: the mesh has no vertex normals")
+    if not problem.targets:
+        raise ValueError(f"{src}: no target images")
+    h, w = problem.map_size
+    if not (isinstance(h, int) and isinstance(w, int) and h >= 2 and w >= 2):
+        raise ValueError(f"{src}: the map size must be two integers >= 2, got {problem.map_size}")
+    for i, t in enumerate(problem.targets):
+        name = t.name or f"target {i}"
+        img = np.asarray(t.image)
+        if img.ndim != 3 or img.shape[2] != 3:
+            raise ValueError(f"{src}: {name}: the target must be an RGB image (H, W, 3), got "
+                             f"shape {img.shape}")
+        if img.shape[:2] != (t.height, t.width):
+            raise ValueError(f"{src}: {name}: the target is {img.shape[1]}x{img.shape[0]} but "
+                             f"its camera renders {t.width}x{t.height}")
+        if not np.all(np.isfinite(img)):
+            raise ValueError(f"{src}: {name}: the target has NaN or infinite values")
+        if t.lights is None or (t.lights.directional is None and t.lights.point is None):
+            raise ValueError(f"{src}: {name}: no lights")
+        if t.mask is not None:
+            m = np.asarray(t.mask)
+            if m.shape != (t.height, t.width):
+                raise ValueError(f"{src}: {name}: the mask is {m.shape[::-1]}, expected "
+                                 f"{(t.width, t.height)}")
+            if not m.any():
+                raise ValueError(f"{src}: {name}: the mask covers nothing")
+
+
+def prepare(problem: FitProblem) -> Prepared:
+    """Rasterize every view once and stack its targets (see `Prepared`)."""
+    validate_problem(problem)
+    groups: dict = {}
+    for t in problem.targets:
+        groups.setdefault(_view_key(t), []).append(t)
+    gbs, images, weights, lights, opts_all = [], [], [], [], []
+    nm = dataclasses.replace(problem.sampling, encoding="signed", channels=3)
+    for ts in groups.values():
+        t0 = ts[0]
+        opts = RenderOptions(width=t0.width, height=t0.height, derivatives=problem.derivatives,
+                             frame=problem.frame, shading=problem.shading,
+                             double_sided=problem.double_sided, normal_map=nm,
+                             normal_map_shape=tuple(problem.map_size),
+                             albedo_shape=(tuple(np.asarray(problem.albedo).shape[:2])
+                                           if np.asarray(problem.albedo).ndim == 3 else None),
+                             outputs=("color",))
+        check_mesh(problem.mesh, opts, problem.source)
+        gb = build_gbuffer(problem.mesh, t0.camera, jnp.asarray(problem.albedo), opts=opts)
+        cover = np.asarray(gb.mask)
+        ws = []
+        for i, t in enumerate(ts):
+            m = cover if t.mask is None else (cover & np.asarray(t.mask, bool))
+            if not m.any():
+                raise ValueError(f"{problem.source}: {t.name or 'a target'}: the mask and the "
+                                 "mesh's silhouette do not overlap")
+            ws.append(m[..., None].astype(np.float32))
+        gbs.append(gb)
+        images.append(jnp.asarray(np.stack([np.asarray(t.image, np.float32) for t in ts])))
+        weights.append(jnp.asarray(np.stack(ws)))
+        lights.append(_stack_lights([t.lights for t in ts]))
+        opts_all.append(opts)
+    return Prepared(tuple(gbs), tuple(images), tuple(weights), tuple(lights), problem.material,
+                    tuple(opts_all))
+
+
+# --------------------------------------------------------------------------------------
+# the per-step model
+# --------------------------------------------------------------------------------------
+
+
+def _mips(normals: Array, opts: RenderOptions) -> tuple[Array, ...]:
+    return _tex.build_mipmaps(normals, levels=opts.levels) if opts.levels > 1 else (normals,)
+
+
+def _shade_view(gb: GBuffer, mips, lights: Lights, material: Material, opts: RenderOptions,
+                strength) -> Array:
+    """(T, H, W, 3): view ``gb`` under each stacked light, with the map's mip chain ``mips``."""
+    m = _tex.apply_plan(gb.plan, mips)
+    m = m * jnp.asarray([strength, strength, 1.0], m.dtype)
+    n = perturb_normal(gb.frame, m)
+    return jax.vmap(lambda lt: shade(opts.shading, n, gb.position, gb.eye, lt, material,
+                                     albedo=gb.albedo))(lights)
+
+
+def render_with_map(prep: Prepared, normals: Array, *, strength: float = 1.0,
+                    lights: Sequence[Lights] | None = None) -> list[Array]:
+    """Render every view of ``prep`` with the map ``normals`` (h, w, 3); one (T, H, W, 3) per view.
+
+    ``lights`` (one stacked `Lights` per view) replaces the prepared lights,
+    e.g. to render from held-out light directions.
+    """
+    out = []
+    for v, gb in enumerate(prep.gbuffers):
+        opts = prep.options[v]
+        lt = prep.lights[v] if lights is None else lights[v]
+        img = _shade_view(gb, _mips(normals, opts), lt, prep.material, opts, strength)
+        out.append(jnp.where(gb.mask[None, ..., None], img, 0.0))
+    return out
+
+
+def _residuals(slopes: Array, args) -> tuple[Array, ...]:
+    prep, smooth, strength = args
+    n = slopes_to_normals(slopes)
+    res = []
+    for v, gb in enumerate(prep.gbuffers):
+        opts = prep.options[v]
+        img = _shade_view(gb, _mips(n, opts), prep.lights[v], prep.material, opts, strength)
+        res.append(((img - prep.images[v]) * prep.weights[v]).reshape(-1))
+    if smooth is not None:
+        dx = slopes[:, 1:] - slopes[:, :-1]
+        dy = slopes[1:] - slopes[:-1]
+        res.append(jnp.sqrt(smooth) * jnp.concatenate([dx.reshape(-1), dy.reshape(-1)]))
+    return tuple(res)
+
+
+def _loss(slopes, args):
+    return 0.5 * sum(jnp.sum(r * r) for r in _residuals(slopes, args))
+
+
+# --------------------------------------------------------------------------------------
+# diagnostics
+# --------------------------------------------------------------------------------------
+
+
+def seen_texels(prep: Prepared, map_size: tuple[int, int], *, min_weight: float = 0.25) -> np.ndarray:
+    """(h, w) bool: texels that some view samples at the finest mip level with total filter
+    weight >= ``min_weight`` (i.e. that directly influence at least part of a pixel)."""
+    h, w = map_size
+    acc = jnp.zeros(h * w, jnp.float32)
+    for v, gb in enumerate(prep.gbuffers):
+        wmask = (prep.weights[v].max(0)[..., 0] > 0)[..., None]
+        idx, wt = gb.plan.index, gb.plan.weight
+        wt = jnp.where((idx < h * w) & wmask, wt, 0.0)  # level 0 texels come first
+        acc = acc.at[jnp.minimum(idx, h * w - 1).reshape(-1)].add(wt.reshape(-1))
+    return np.asarray(acc.reshape(h, w) >= min_weight)
+
+
+def angular_error(a: Array, b: Array) -> np.ndarray:
+    """Per-texel angle in degrees between two normal maps (..., 3)."""
+    return np.degrees(np.asarray(angle_between(jnp.asarray(a), jnp.asarray(b))))
+
+
+def check_identifiability(prep: Prepared, *, warn: bool = True) -> dict:
+    """How well the targets can determine a normal map; warns when they cannot.
+
+    Counts, per view, the lights and the rank of their directions as seen from
+    the object (a point light's direction is taken towards the centroid of the
+    visible surface). Returns a dict with the counts and the verdict.
+    """
+    report = {"views": []}
+    ok_any = False
+    for v, gb in enumerate(prep.gbuffers):
+        mask = np.asarray(gb.mask)
+        centre = np.asarray(gb.position)[mask].mean(0) if mask.any() else np.zeros(3)
+        dirs = []
+        lt = prep.lights[v]
+        if lt.directional is not None:
+            d = np.asarray(lt.directional.direction).reshape(-1, 3)
+            dirs += list(d / np.linalg.norm(d, axis=-1, keepdims=True))
+        if lt.point is not None:
+            p = np.asarray(lt.point.position).reshape(-1, 3) - centre
+            dirs += list(p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), 1e-12))
+        dirs = np.asarray(dirs)
+        unique = np.unique(np.round(dirs, 6), axis=0) if len(dirs) else dirs
+        rank = int(np.linalg.matrix_rank(unique, tol=1e-3)) if len(unique) else 0
+        report["views"].append({"targets": int(prep.images[v].shape[0]),
+                                "distinct_light_directions": int(len(unique)),
+                                "direction_rank": rank})
+        ok_any |= rank >= 3
+    report["identifiable"] = bool(ok_any)
+    if warn and not ok_any:
+        warnings.warn(
+            "fit: no view has at least three lights with non-coplanar directions; one light "
+            "cannot determine a normal (it only fixes the angle to the light) and two leave a "
+            "two-fold ambiguity: the fitted map is not determined by these targets",
+            FitWarning, stacklevel=2)
+    return report
+
+
+# --------------------------------------------------------------------------------------
+# solving
+# --------------------------------------------------------------------------------------
+
+
+def _solver(opts: FitOptions):
+    lsmr = lx.LSMR(rtol=1e-4, atol=1e-6, max_steps=opts.lsmr_steps)
+    if opts.solver == "lm":
+        return optx.LevenbergMarquardt(rtol=opts.rtol, atol=opts.atol, linear_solver=lsmr)
+    if opts.solver == "gn":
+        return optx.GaussNewton(rtol=opts.rtol, atol=opts.atol, linear_solver=lsmr)
+    if opts.solver == "lbfgs":
+        return optx.LBFGS(rtol=opts.rtol, atol=opts.atol)
+    raise ValueError(f"fit: unknown solver {opts.solver!r}; expected one of {SOLVERS}")
+
+
+class _Stepper:
+    """Drives an optimistix solver one step at a time (progress, Ctrl-C, best-so-far)."""
+
+    def __init__(self, solver, args, y0, least_squares: bool):
+        self.solver = solver
+        self.args = args
+        if least_squares:
+            fn = lambda y, a: (_residuals(y, a), None)  # noqa: E731
+        else:
+            fn = lambda y, a: (_loss(y, a), None)  # noqa: E731
+        self.fn = fn
+        f_struct, aux_struct = jax.eval_shape(fn, y0, args)
+        self.state = solver.init(fn, y0, args, {}, f_struct, aux_struct, frozenset())
+        self._step = eqx.filter_jit(self._step_impl)
+
+    def _step_impl(self, y, state, args):
+        y, state, _ = self.solver.step(self.fn, y, args, {}, state, frozenset())
+        done, result = self.solver.terminate(self.fn, y, args, {}, state, frozenset())
+        return y, state, done, result
+
+    def step(self, y):
+        y, self.state, done, result = self._step(y, self.state, self.args)
+        return y, bool(done), result
+
+
+@functools.partial(jax.jit, static_argnames=())
+def _loss_jit(slopes, args):
+    return _loss(slopes, args)
+
+
+def _upsample(slopes: Array, size: tuple[int, int]) -> Array:
+    return jax.image.resize(slopes, size + (slopes.shape[-1],), "linear")
+
+
+def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
+                   ground_truth: np.ndarray | None = None, progress: bool = True,
+                   prepared: Prepared | None = None, strength: float = 1.0,
+                   time_limit: float | None = None) -> FitResult:
+    """Fit the normal map of ``problem`` (see the module docstring).
+
+    **Arguments:**
+    - `problem`, `options`: what to fit and how.
+    - `ground_truth`: optional (h, w, 3) decoded unit normals: the history then
+      records the mean angular error over `seen_texels` at every step.
+    - `progress`: show a progress bar (loss, step, elapsed, ETA).
+    - `prepared`: reuse a `prepare(problem)` result.
+    - `time_limit`: stop (keeping the best map) after this many seconds.
+
+    Ctrl-C stops cleanly after the current step and returns the best map so far.
+    Deterministic for a given `options.seed`.
+    """
+    if options.solver not in SOLVERS:
+        raise ValueError(f"fit: unknown solver {options.solver!r}; expected one of {SOLVERS}")
+    t_start = time.perf_counter()
+    prep = prepared if prepared is not None else prepare(problem)
+    check_identifiability(prep)
+    h, w = problem.map_size
+    sizes = [(max(2, h >> k), max(2, w >> k)) for k in range(options.coarse_to_fine, -1, -1)]
+    key = jax.random.PRNGKey(options.seed)
+    slopes = options.init_noise * jax.random.normal(key, sizes[0] + (2,), jnp.float32)
+    seen = gt = None
+    if ground_truth is not None:
+        gt = jnp.asarray(ground_truth, jnp.float32)
+        seen = seen_texels(prep, (h, w))
+    history: list = []
+    stopped = "max_steps"
+    best = (math.inf, slopes)
+    interrupted = {"flag": False}
+
+    def on_sigint(signum, frame):  # finish the current step, then stop
+        interrupted["flag"] = True
+
+    old_handler = None
+    try:
+        old_handler = signal.signal(signal.SIGINT, on_sigint)
+    except ValueError:  # not in the main thread
+        pass
+    bar = _progress(options.max_steps * len(sizes), progress)
+    try:
+        for level, size in enumerate(sizes):
+            if level > 0:
+                slopes = _upsample(best[1], size)
+                best = (math.inf, slopes)
+            lp = prep if size == (h, w) else _with_map_size(problem, prep, size)
+            smooth = None if options.smoothness <= 0 else jnp.asarray(options.smoothness,
+                                                                        jnp.float32)
+            args = (lp, smooth, jnp.asarray(strength, jnp.float32))
+            stepper = _Stepper(_solver(options), args, slopes, options.solver != "lbfgs")
+            loss0 = float(_loss_jit(slopes, args))
+            if loss0 < best[0]:
+                best = (loss0, slopes)
+            for k in range(options.max_steps):
+                slopes, done, result = stepper.step(slopes)
+                loss = float(_loss_jit(slopes, args))
+                rec = {"level": level, "size": list(size), "step": k + 1, "loss": loss,
+                       "seconds": time.perf_counter() - t_start}
+                if np.isfinite(loss) and loss < best[0]:
+                    best = (loss, slopes)
+                if gt is not None and size == (h, w):
+                    err = angular_error(slopes_to_normals(best[1]), gt)[seen]
+                    rec["mean_angular_error_deg"] = float(err.mean())
+                history.append(rec)
+                bar.update(rec)
+                if interrupted["flag"]:
+                    stopped = "interrupted"
+                    break
+                if time_limit is not None and rec["seconds"] > time_limit:
+                    stopped = "time_limit"
+                    break
+                if done:
+                    stopped = "converged" if result == optx.RESULTS.successful else str(result)
+                    break
+            if stopped in ("interrupted", "time_limit"):
+                break
+    finally:
+        bar.close()
+        if old_handler is not None:
+            signal.signal(signal.SIGINT, old_handler)
+    final = best[1]
+    if final.shape[:2] != (h, w):  # stopped during a coarse level
+        final = _upsample(final, (h, w))
+    return FitResult(normals=np.asarray(slopes_to_normals(final)), slopes=np.asarray(final),
+                     history=history, seconds=time.perf_counter() - t_start, stopped=stopped,
+                     best_loss=float(best[0]))
+
+
+def _with_map_size(problem: FitProblem, prep: Prepared, size) -> Prepared:
+    """The prepared problem re-planned for a coarser map (same G-buffers, new sample plans)."""
+    gbs, opts_all = [], []
+    for gb, opts in zip(prep.gbuffers, prep.options):
+        o = dataclasses.replace(opts, normal_map_shape=tuple(size))
+        nm = o.normal_map
+        plan = _tex.plan_sample(_uv_attr(gb), size_hw=tuple(size), levels=o.levels,
+                                filter=nm.filter, wrap=nm.wrap, uv_origin=nm.uv_origin)
+        gbs.append(dataclasses.replace(gb, plan=plan))
+        opts_all.append(o)
+    return dataclasses.replace(prep, gbuffers=tuple(gbs), options=tuple(opts_all))
+
+
+def _uv_attr(gb: GBuffer):
+    return gb.uv
+
+
+class _progress:
+    """A tqdm progress bar showing the loss (or nothing when disabled)."""
+
+    def __init__(self, total: int, enabled: bool):
+        self.bar = None
+        if enabled:
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(total=total, desc="fit", unit="step", dynamic_ncols=True)
+
+    def update(self, rec: dict) -> None:
+        if self.bar is None:
+            return
+        post = {"loss": f"{rec['loss']:.4g}"}
+        if "mean_angular_error_deg" in rec:
+            post["err"] = f"{rec['mean_angular_error_deg']:.2f}deg"
+        self.bar.set_postfix(post, refresh=False)
+        self.bar.update(1)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+# --------------------------------------------------------------------------------------
+# the built-in problem
+# --------------------------------------------------------------------------------------
+
+
+def default_light_directions(n: int = 6, elevation_deg: float = 50.0, seed: int = 0) -> np.ndarray:
+    """``n`` unit directions on a cone around +z (azimuths evenly spread, fixed jitter)."""
+    rng = np.random.default_rng(seed)
+    az = 2 * np.pi * (np.arange(n) / n) + rng.uniform(-0.15, 0.15, n)
+    el = np.radians(elevation_deg + rng.uniform(-8, 8, n))
+    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1)
+
+
+def _directional(d) -> Lights:
+    return Lights(directional=DirectionalLight(jnp.asarray(d, jnp.float32)[None],
+                                               jnp.ones((1, 3), jnp.float32),
+                                               jnp.ones((1,), jnp.float32)))
+
+
+def default_problem(*, render_size: int = 512, map_size: int = 256, n_lights: int = 6,
+                    noise: float = 0.0, seed: int = 0, views: int = 2
+                    ) -> tuple[FitProblem, np.ndarray, Scene]:
+    """The built-in fitting problem: the default scene's torus and rivet map.
+
+    Renders the torus from ``views`` cameras under ``n_lights`` directional
+    lights with the ground-truth map (an 8-bit unsigned PNG-like map of
+    ``map_size``), adds Gaussian noise of standard deviation ``noise`` (relative
+    to each target's maximum), and returns ``(problem, ground_truth_normals,
+    scene)``.
+    """
+    from . import procedural
+    from .camera import look_at, perspective
+    from .render import render
+
+    scene = _default_fit_scene(render_size, map_size)
+    gt_raw = scene.normal_map
+    gt = np.asarray(_tex.decode_normal_map(jnp.asarray(gt_raw), encoding="unsigned"))
+    gt = gt / np.linalg.norm(gt, axis=-1, keepdims=True)
+    eyes = [(0.0, -2.35, 1.75), (1.6, 1.5, 1.9), (-2.1, 0.6, -1.2)][:views]
+    rng = np.random.default_rng(seed)
+    targets = []
+    dirs = default_light_directions(n_lights, seed=seed)
+    for vi, eye in enumerate(eyes):
+        cam = Camera.from_matrices(look_at(eye, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+                                   perspective(45.0, 1.0, 0.1, 50.0))
+        for li, d in enumerate(dirs):
+            # light directions are given relative to the view, so each view sees its lit side
+            d_world = _view_relative(cam, d)
+            sc = scene.replace(camera=cam, lights=_directional(d_world))
+            img = render(sc, outputs=("color",))["color"]
+            if noise > 0:
+                img = img + rng.normal(0.0, noise * img.max(), img.shape).astype(np.float32)
+            targets.append(FitTarget(cam, render_size, render_size, _directional(d_world), img,
+                                     name=f"view{vi}_light{li}"))
+    problem = FitProblem(mesh=scene.mesh, material=scene.material, targets=tuple(targets),
+                         map_size=(map_size, map_size), albedo=np.asarray(scene.albedo),
+                         shading=scene.shading, frame=scene.frame,
+                         derivatives=scene.derivatives, double_sided=scene.double_sided,
+                         sampling=dataclasses.replace(scene.normal_map_options,
+                                                      encoding="signed"),
+                         source="<built-in fit problem>")
+    del procedural
+    return problem, gt, scene
+
+
+def _view_relative(cam: Camera, d) -> np.ndarray:
+    inv = np.linalg.inv(np.asarray(cam.view, np.float64))
+    v = inv[:3, :3] @ np.asarray(d, np.float64)
+    return v / np.linalg.norm(v)
+
+
+def _default_fit_scene(render_size: int, map_size: int) -> Scene:
+    from . import procedural
+    from .scene import default_scene
+
+    sc = default_scene(width=render_size, height=render_size)
+    nm = procedural.encode_unsigned(procedural.default_normal_map(map_size))
+    return sc.replace(normal_map=nm, material=Material(
+        diffuse=jnp.ones(3), specular=jnp.asarray([0.15, 0.15, 0.15]),
+        shininess=jnp.asarray(24.0), ambient=jnp.zeros(3)))
+
+
+def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, peak: float | None = None
+         ) -> float:
+    """Peak signal-to-noise ratio in dB (peak = max of ``b`` by default) over ``mask``."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if mask is not None:
+        a, b = a[mask], b[mask]
+    peak = float(b.max()) if peak is None else peak
+    mse = float(np.mean((a - b) ** 2))
+    return math.inf if mse == 0 else 10 * math.log10(peak * peak / mse)
+
+
+def error_report(fitted: np.ndarray, gt: np.ndarray, seen: np.ndarray) -> dict:
+    """Mean / median / 95th percentile angular error (degrees) over the seen texels."""
+    err = angular_error(fitted, gt)
+    e = err[seen]
+    return {"seen_texels": int(seen.sum()), "total_texels": int(seen.size),
+            "mean_deg": float(e.mean()), "median_deg": float(np.median(e)),
+            "p95_deg": float(np.percentile(e, 95)), "max_deg": float(e.max())}
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    raise TypeError(type(o))
+
+
+def save_json(path, obj) -> None:
+    Path(path).write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
