@@ -299,14 +299,48 @@ def _mips(normals: Array, opts: RenderOptions) -> tuple[Array, ...]:
     return _tex.build_mipmaps(normals, levels=opts.levels) if opts.levels > 1 else (normals,)
 
 
+def _pixel_colors(m: Array, gb: GBuffer, lights: Lights, material: Material, shading: str,
+                  strength) -> Array:
+    """(T, H, W, 3): each stacked light's shading of the map vectors ``m`` (H, W, 3)."""
+    m = m * jnp.stack([strength, strength, jnp.ones_like(strength)]).astype(m.dtype)
+    n = perturb_normal(gb.frame, m)
+    return jax.vmap(lambda lt: shade(shading, n, gb.position, gb.eye, lt, material,
+                                     albedo=gb.albedo))(lights)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
+def _pixel_model(m, gb, lights, material, shading, strength):
+    """`_pixel_colors` whose JVP in ``m`` is an explicit per-pixel (T, 3, 3) Jacobian.
+
+    Every pixel's colours depend only on that pixel's sampled map vector, so the
+    Jacobian w.r.t. ``m`` is block diagonal. Computing the blocks once per
+    linearisation (three forward-mode passes) makes every later Jacobian
+    product in the iterative solver a tiny einsum instead of a replay of the
+    whole shading graph.
+    """
+    return _pixel_colors(m, gb, lights, material, shading, strength)
+
+
+@_pixel_model.defjvp
+def _pixel_model_jvp(shading, primals, tangents):
+    m, gb, lights, material, strength = primals
+    dm, dgb, dlights, dmaterial, dstrength = tangents
+    f = lambda m_: _pixel_colors(m_, gb, lights, material, shading, strength)  # noqa: E731
+    y = f(m)
+    basis = jnp.eye(3, dtype=m.dtype)
+    blocks = jax.vmap(lambda e: jax.jvp(f, (m,), (jnp.broadcast_to(e, m.shape),))[1])(basis)
+    # blocks: (3, T, H, W, 3) = d colour / d m_k
+    out = jnp.einsum("kthwc,hwk->thwc", blocks, dm)
+    rest = jax.jvp(lambda g, lt, mt, s: _pixel_colors(m, g, lt, mt, shading, s),
+                   (gb, lights, material, strength), (dgb, dlights, dmaterial, dstrength))[1]
+    return y, out + rest
+
+
 def _shade_view(gb: GBuffer, mips, lights: Lights, material: Material, opts: RenderOptions,
                 strength) -> Array:
     """(T, H, W, 3): view ``gb`` under each stacked light, with the map's mip chain ``mips``."""
     m = _tex.apply_plan(gb.plan, mips)
-    m = m * jnp.asarray([strength, strength, 1.0], m.dtype)
-    n = perturb_normal(gb.frame, m)
-    return jax.vmap(lambda lt: shade(opts.shading, n, gb.position, gb.eye, lt, material,
-                                     albedo=gb.albedo))(lights)
+    return _pixel_model(m, gb, lights, material, opts.shading, jnp.asarray(strength, m.dtype))
 
 
 def render_with_map(prep: Prepared, normals: Array, *, strength: float = 1.0,
@@ -325,8 +359,9 @@ def render_with_map(prep: Prepared, normals: Array, *, strength: float = 1.0,
     return out
 
 
-def _residuals(slopes: Array, args) -> tuple[Array, ...]:
-    prep, smooth, strength = args
+def _residuals(z: Array, args) -> tuple[Array, ...]:
+    prep, smooth, strength, scale = args
+    slopes = z * scale
     n = slopes_to_normals(slopes)
     res = []
     for v, gb in enumerate(prep.gbuffers):
@@ -360,6 +395,27 @@ def seen_texels(prep: Prepared, map_size: tuple[int, int], *, min_weight: float 
         wt = jnp.where((idx < h * w) & wmask, wt, 0.0)  # level 0 texels come first
         acc = acc.at[jnp.minimum(idx, h * w - 1).reshape(-1)].add(wt.reshape(-1))
     return np.asarray(acc.reshape(h, w) >= min_weight)
+
+
+def texel_influence(prep: Prepared) -> Array:
+    """(h, w): each texel's total filter weight over all used pixels, views and targets.
+
+    The column sums of the (fixed) texel-to-pixel sampling operator, mip
+    levels included; used to precondition the solve (see `fit_normal_map`).
+    """
+    h, w = prep.options[0].normal_map_shape
+
+    def sampled(t):
+        out = []
+        for v, gb in enumerate(prep.gbuffers):
+            m = _tex.apply_plan(gb.plan, _mips(t, prep.options[v]))
+            out.append(m[..., 0] * prep.weights[v].sum(0)[..., 0])
+        return out
+
+    zeros = jnp.zeros((h, w, 1), jnp.float32)
+    _, vjp = jax.vjp(sampled, zeros)
+    ones = [jnp.ones(gb.mask.shape, jnp.float32) for gb in prep.gbuffers]
+    return vjp(ones)[0][..., 0]
 
 
 def angular_error(a: Array, b: Array) -> np.ndarray:
@@ -506,14 +562,22 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
             lp = prep if size == (h, w) else _with_map_size(problem, prep, size)
             smooth = None if options.smoothness <= 0 else jnp.asarray(options.smoothness,
                                                                         jnp.float32)
-            args = (lp, smooth, jnp.asarray(strength, jnp.float32))
-            stepper = _Stepper(_solver(options), args, slopes, options.solver != "lbfgs")
-            loss0 = float(_loss_jit(slopes, args))
+            # Jacobi-like preconditioning: solve for z = slopes / scale, where scale evens
+            # out how strongly each texel is observed (texels seen by many pixels vs. few)
+            c = texel_influence(lp)
+            c_ref = jnp.median(jnp.where(c > 0, c, jnp.nan)[~jnp.isnan(jnp.where(c > 0, c,
+                                                                                  jnp.nan))])
+            scale = jnp.sqrt(c_ref / (c + 0.01 * c_ref))[..., None]
+            args = (lp, smooth, jnp.asarray(strength, jnp.float32), scale)
+            z = slopes / scale
+            stepper = _Stepper(_solver(options), args, z, options.solver != "lbfgs")
+            loss0 = float(_loss_jit(z, args))
             if loss0 < best[0]:
                 best = (loss0, slopes)
             for k in range(options.max_steps):
-                slopes, done, result = stepper.step(slopes)
-                loss = float(_loss_jit(slopes, args))
+                z, done, result = stepper.step(z)
+                slopes = z * scale
+                loss = float(_loss_jit(z, args))
                 rec = {"level": level, "size": list(size), "step": k + 1, "loss": loss,
                        "seconds": time.perf_counter() - t_start}
                 if np.isfinite(loss) and loss < best[0]:
