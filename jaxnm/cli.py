@@ -107,16 +107,24 @@ def _add_fit(sub) -> None:
     p = sub.add_parser("fit", help="fit a normal map to target shading",
                        description="Fit a tangent-space normal map to target images.")
     p.add_argument("config", nargs="?", help="fit JSON file (default: the built-in problem)")
-    p.add_argument("-o", "--output", default="fit_out", help="output folder")
-    p.set_defaults(_fit_parser=p)
+    p.add_argument("-o", "--output", default="fit_out", help="output folder (default: %(default)s)")
+    p.add_argument("--solver", choices=("lm", "gn", "lbfgs"), help="optimiser (default: lm)")
+    p.add_argument("--max-steps", type=int, dest="max_steps", help="outer iterations")
+    p.add_argument("--lsmr-steps", type=int, dest="lsmr_steps",
+                   help="inner LSMR iterations per Gauss-Newton/LM step")
+    p.add_argument("--smoothness", type=float, help="slope smoothness weight (default 0)")
+    p.add_argument("--coarse-to-fine", type=int, dest="coarse_to_fine",
+                   help="number of coarser levels solved first")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--time-limit", type=float, dest="time_limit", metavar="SECONDS")
+    p.add_argument("--quick", action="store_true",
+                   help="built-in problem at 128x128 renders and a 64x64 map (a smoke test)")
+    p.add_argument("--no-progress", action="store_true", dest="no_progress")
 
 
 def _fit(args) -> int:
-    try:
-        from .fit import cli_main
-    except ImportError:  # pragma: no cover - until the fitting module lands
-        print("jaxnm fit: not available in this version", file=sys.stderr)
-        return 2
+    from .fit_cli import cli_main
+
     return cli_main(args)
 
 

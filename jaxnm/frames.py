@@ -42,6 +42,8 @@ import jax.numpy as jnp
 from jax import Array
 
 from .interpolate import Attribute
+from .numerics import cross as _cross
+from .numerics import dot as _ndot
 from .numerics import eps, safe_norm, safe_normalize, safe_rsqrt, tiny
 from .raster import Fragments
 
@@ -101,14 +103,7 @@ class Frame:
 
 
 def _dot(a: Array, b: Array, keepdims: bool = False) -> Array:
-    return jnp.sum(a * b, axis=-1, keepdims=keepdims)
-
-
-def _cross(a: Array, b: Array) -> Array:
-    """``a x b`` over the last axis, in fewer primitives than ``jnp.cross`` (compile time)."""
-    a0, a1, a2 = a[..., 0:1], a[..., 1:2], a[..., 2:3]
-    b0, b1, b2 = b[..., 0:1], b[..., 1:2], b[..., 2:3]
-    return jnp.concatenate([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], -1)
+    return _ndot(a, b, keepdims=keepdims)
 
 
 def _check_normalize(normalize: str) -> None:
@@ -130,7 +125,9 @@ def _max_normalize(T: Array, B: Array) -> tuple[Array, Array]:
     constant for AD, which is exact because the result does not depend on it),
     so ``T.T`` cannot underflow in float32 close-ups; ``T = B = 0`` stays zero.
     """
-    s = jnp.maximum(jnp.max(jnp.abs(T), -1, keepdims=True), jnp.max(jnp.abs(B), -1, keepdims=True))
+    aT, aB = jnp.abs(T), jnp.abs(B)
+    s = jnp.maximum(jnp.maximum(jnp.maximum(aT[..., 0:1], aT[..., 1:2]), aT[..., 2:3]),
+                    jnp.maximum(jnp.maximum(aB[..., 0:1], aB[..., 1:2]), aB[..., 2:3]))
     s = jax.lax.stop_gradient(s)
     ok = s > tiny(T.dtype)
     s_safe = jnp.where(ok, s, jnp.ones_like(s))

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from .numerics import cross as _cross
 from .numerics import angle_between, safe_normalize
 
 __all__ = ["Mesh", "face_normals", "vertex_normals", "validate_arrays"]
@@ -80,7 +81,7 @@ def face_normals(positions: Array, faces: Array, *, normalize: bool = True) -> A
     """(F, 3) face normals ``(p1 - p0) x (p2 - p0)``; unit length (zero for degenerate faces)
     if ``normalize``, else with length twice the face area."""
     p = jnp.asarray(positions)[jnp.asarray(faces)]
-    n = jnp.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    n = _cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     return safe_normalize(n) if normalize else n
 
 
@@ -95,7 +96,7 @@ def vertex_normals(positions: Array, faces: Array, *, weighting: str = "angle") 
     positions = jnp.asarray(positions)
     faces = jnp.asarray(faces, jnp.int32)
     p = positions[faces]  # (F, 3, 3)
-    cross = jnp.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    cross = _cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     if weighting == "area":
         w = jnp.broadcast_to(cross[:, None, :], p.shape)  # |cross| = 2 area
     elif weighting == "angle":

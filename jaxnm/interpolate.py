@@ -55,7 +55,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from .numerics import safe_div
+from .numerics import safe_div, sum_last
 from .raster import Fragments, window_homogeneous
 
 __all__ = [
@@ -136,7 +136,8 @@ def _pixel_setup(frags: Fragments):
     hx = hv[..., 0] - x[..., None] * hv[..., 2]
     hy = hv[..., 1] - y[..., None] * hv[..., 2]
     hw = hv[..., 2]
-    scale = jnp.max(jnp.maximum(jnp.maximum(jnp.abs(hx), jnp.abs(hy)), jnp.abs(hw)), -1)
+    m3 = jnp.maximum(jnp.maximum(jnp.abs(hx), jnp.abs(hy)), jnp.abs(hw))
+    scale = jnp.maximum(jnp.maximum(m3[..., 0], m3[..., 1]), m3[..., 2])
     scale = jnp.where(mask & (scale > 0), scale, 1.0)[..., None]
     scale = jax.lax.stop_gradient(scale)
     hx, hy, hw = hx / scale, hy / scale, hw / scale
@@ -162,14 +163,14 @@ def barycentrics(frags: Fragments, *, derivatives: str = "fine") -> Barycentrics
     height, width = frags.shape
     e, a, b, mask = _pixel_setup(frags)
     m = mask[..., None]
-    s = jnp.sum(e, -1, keepdims=True)
+    s = sum_last(e, keepdims=True)
     s = jnp.where(m, s, 1.0)  # covered pixels have S != 0 (all E_i share its sign)
     value = jnp.where(m, e / s, 0.0)
     if derivatives in ("gbuffer", "none"):
         return Barycentrics(value, None, None, derivatives)
 
-    a_s = jnp.sum(a, -1, keepdims=True)
-    b_s = jnp.sum(b, -1, keepdims=True)
+    a_s = sum_last(a, keepdims=True)
+    b_s = sum_last(b, keepdims=True)
     if derivatives == "analytic":
         ddx = (a * s - e * a_s) / (s * s)
         ddy = (b * s - e * b_s) / (s * s)
@@ -187,7 +188,7 @@ def barycentrics(frags: Fragments, *, derivatives: str = "fine") -> Barycentrics
             ox = -(xi % 2).astype(e.dtype)
             oy = -(yi % 2).astype(e.dtype)
             ex = ey = e + a * ox + b * oy  # E at the reference pixel
-            sx = sy = jnp.sum(ex, -1, keepdims=True)
+            sx = sy = sum_last(ex, keepdims=True)
             dxp = dyp = jnp.ones_like(ox)
         gx = a * sx - ex * a_s
         gy = b * sy - ey * b_s
@@ -285,7 +286,8 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
     mask = frags.mask[..., None]
 
     def combine(weights):
-        return jnp.einsum("hwk,hwkc->hwc", weights[..., 1:].astype(rel.dtype), rel)
+        w = weights.astype(rel.dtype)
+        return w[..., 1:2] * rel[..., 0, :] + w[..., 2:3] * rel[..., 1, :]
 
     value = jnp.where(mask, corners[..., 0, :] + combine(bary.value), 0.0)
     if derivatives == "none":

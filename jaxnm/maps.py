@@ -40,6 +40,8 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
+from .numerics import cross as _cross
+from .numerics import dot as _ndot
 from .numerics import safe_div, safe_normalize
 
 __all__ = [
@@ -89,7 +91,7 @@ def _per_pixel_scalar(x: ArrayLike, batch: tuple[int, ...], name: str) -> Array:
 def _cofactor(m: Array) -> Array:
     """Cofactor matrix of (3, 3) ``m``: ``det(m) * inverse(m).T``, also for singular ``m``."""
     r0, r1, r2 = m[0], m[1], m[2]
-    return jnp.stack([jnp.cross(r1, r2), jnp.cross(r2, r0), jnp.cross(r0, r1)])
+    return jnp.stack([_cross(r1, r2), _cross(r2, r0), _cross(r0, r1)])
 
 
 def _check_wrap(wrap: str) -> None:
@@ -216,9 +218,9 @@ def bump_normal(N: ArrayLike, dp_dx: ArrayLike, dp_dy: ArrayLike, dh_dx: ArrayLi
     sy = _to_shape(jnp.asarray(dp_dy, N.dtype), shape)
     hx = _per_pixel_scalar(dh_dx, shape[:-1], "dh_dx").astype(N.dtype)
     hy = _per_pixel_scalar(dh_dy, shape[:-1], "dh_dy").astype(N.dtype)
-    r1 = jnp.cross(sy, N)
-    r2 = jnp.cross(N, sx)
-    det = jnp.sum(sx * r1, axis=-1, keepdims=True)
+    r1 = _cross(sy, N)
+    r2 = _cross(N, sx)
+    det = _ndot(sx, r1, keepdims=True)
     # sign(0) = 0 and |.|' = sign: at det = 0 both terms vanish and the fallback returns N
     surf_grad = jnp.sign(det) * (hx * r1 + hy * r2)
     return safe_normalize(jnp.abs(det) * N - jnp.asarray(scale, N.dtype) * surf_grad,
@@ -249,8 +251,8 @@ def derivative_map_normal(N: ArrayLike, dp_dx: ArrayLike, dp_dy: ArrayLike, duv_
                              f"{jnp.shape(x)}")
     batch = jnp.broadcast_shapes(g.shape, jnp.shape(duv_dx), jnp.shape(duv_dy))
     g = _to_shape(g, batch)
-    dh_dx = jnp.sum(g * _to_shape(jnp.asarray(duv_dx, g.dtype), batch), axis=-1)
-    dh_dy = jnp.sum(g * _to_shape(jnp.asarray(duv_dy, g.dtype), batch), axis=-1)
+    dh_dx = _ndot(g, _to_shape(jnp.asarray(duv_dx, g.dtype), batch))
+    dh_dy = _ndot(g, _to_shape(jnp.asarray(duv_dy, g.dtype), batch))
     return bump_normal(N, dp_dx, dp_dy, dh_dx, dh_dy, scale=scale)
 
 

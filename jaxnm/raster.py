@@ -50,6 +50,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from .numerics import cross as _cross
+from .numerics import dot
+
 __all__ = ["Fragments", "rasterize", "window_homogeneous", "TIE_RULE"]
 
 #: A pixel centre exactly on an edge belongs to the triangle whose inward edge
@@ -182,7 +185,7 @@ def _triangle_setup(h: Array, faces: Array, width: int, height: int, block: int,
     """
     tri = h[faces]  # (F, 3, 4)
     hxyw = tri[..., (0, 1, 3)]
-    det = jnp.einsum("fi,fi->f", hxyw[:, 0], jnp.cross(hxyw[:, 1], hxyw[:, 2]))
+    det = dot(hxyw[:, 0], _cross(hxyw[:, 1], hxyw[:, 2]))
     sigma = jnp.sign(det)
 
     # Clipped bounding box: vertices in front of the near plane, plus the points where
@@ -261,9 +264,9 @@ def _depth_plane(th: Array, x0: Array, y0: Array):
     c = hx[:, j] * hy[:, k] - hy[:, j] * hx[:, k]
     a = hy[:, j] * hw[:, k] - hw[:, j] * hy[:, k]
     b = hw[:, j] * hx[:, k] - hx[:, j] * hw[:, k]
-    det = jnp.sum(c * hw, -1)  # sum_i E_i(p) w_i = det M at any p
+    det = dot(c, hw)  # sum_i E_i(p) w_i = det M at any p
     det = jnp.where(det == 0, 1.0, det)
-    return jnp.sum(c * hz, -1) / det, jnp.sum(a * hz, -1) / det, jnp.sum(b * hz, -1) / det
+    return dot(c, hz) / det, dot(a, hz) / det, dot(b, hz) / det
 
 
 def _slot_fragments(slot0, tri_h, tri_depth, sigma, bx0, by0, nbx, counts, starts, total, *,
@@ -312,7 +315,8 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, bx0, by0, nbx, counts, start
         dx, dy = k % block, k // block
         fx, fy = dx.astype(a.dtype), dy.astype(a.dtype)
         e = c + a * fx + b * fy  # (S, 3)
-        inside = jnp.all(jnp.where(tie, e >= 0, e > 0), -1)
+        ok = jnp.where(tie, e >= 0, e > 0)
+        inside = ok[:, 0] & ok[:, 1] & ok[:, 2]
         depth = dz_c + dz_a * fx + dz_b * fy
         pi, pj = bx * block + dx, by * block + dy
         inside = inside & live & (depth >= 0.0) & (depth <= 1.0) & (pi < width) & (pj < height)
@@ -387,8 +391,8 @@ def _pixel_depth(h: Array, faces: Array, tid: Array) -> Array:
     hy = hv[..., 1] - y * hv[..., 3]
     j, k = (1, 2, 0), (2, 0, 1)
     e = hx[..., j] * hy[..., k] - hy[..., j] * hx[..., k]
-    num = jnp.sum(e * hv[..., 2], -1)
-    den = jnp.sum(e * hv[..., 3], -1)
+    num = dot(e, hv[..., 2])
+    den = dot(e, hv[..., 3])
     return num / jnp.where(den == 0, 1.0, den)
 
 

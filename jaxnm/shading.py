@@ -60,6 +60,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
+from .numerics import dot as _ndot
 from .numerics import safe_div, safe_normalize, tiny
 
 __all__ = [
@@ -198,7 +199,7 @@ def _expand_to(x: ArrayLike, shape: tuple[int, ...]) -> Array:
 
 
 def _dot(a: Array, b: Array) -> Array:
-    return jnp.sum(a * b, axis=-1, keepdims=True)
+    return _ndot(a, b, keepdims=True)
 
 
 def _pos_pow(x: Array, n: Array) -> Array:
