@@ -302,7 +302,7 @@ def _mips(normals: Array, opts: RenderOptions) -> tuple[Array, ...]:
 def _pixel_colors(m: Array, gb: GBuffer, lights: Lights, material: Material, shading: str,
                   strength) -> Array:
     """(T, H, W, 3): each stacked light's shading of the map vectors ``m`` (H, W, 3)."""
-    m = m * jnp.stack([strength, strength, jnp.ones_like(strength)]).astype(m.dtype)
+    m = m * jnp.stack([strength, strength, jnp.ones_like(strength)]).astype(m.dtype)[None, None]
     n = perturb_normal(gb.frame, m)
     return jax.vmap(lambda lt: shade(shading, n, gb.position, gb.eye, lt, material,
                                      albedo=gb.albedo))(lights)

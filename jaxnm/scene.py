@@ -3,7 +3,7 @@
 A scene JSON file (paths are relative to the file) looks like::
 
     {
-      "mesh": "torus.obj",                 // or "builtin:torus", "builtin:plane", "builtin:sphere"
+      "mesh": "torus.obj",   // or "builtin:torus" (the default scene's), "builtin:plane", "builtin:sphere"
       "model": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]],   // optional, row-major, column vectors
       "camera": {"eye": [0,-2.4,1.7], "target": [0,0,0], "up": [0,0,1],
                  "fov_y_deg": 45, "near": 0.1, "far": 100},
@@ -177,7 +177,7 @@ def _default_lights(camera: Camera) -> Lights:
 
 def default_scene(*, width: int = 512, height: int = 512) -> Scene:
     """The built-in scene: a rivet-mapped torus under two lights (no files needed)."""
-    mesh = procedural.torus(1.0, 0.42, 128, 64, uv_scale=(3.0, 1.0))
+    mesh = procedural.default_torus()
     cam = Camera.from_matrices(look_at((0.0, -2.35, 1.75), (0.0, 0.0, -0.1), (0.0, 0.0, 1.0)),
                                perspective(45.0, width / height, 0.1, 50.0))
     nm = procedural.encode_unsigned(procedural.default_normal_map(256))
@@ -233,7 +233,7 @@ def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scen
         if name not in _BUILTIN_MESHES:
             raise ValueError(f"{source}: unknown built-in mesh {name!r}; expected one of "
                              f"{_BUILTIN_MESHES}")
-        mesh = {"torus": lambda: procedural.torus(1.0, 0.42, 128, 64),
+        mesh = {"torus": procedural.default_torus,
                 "plane": lambda: procedural.plane(2.0, 8),
                 "sphere": lambda: procedural.uv_sphere(1.0, 96, 48)}[name]()
     else:

@@ -1,0 +1,180 @@
+"""Normal-map fitting: recovery of a known map, held-out lights, solvers, bad input, the CLI."""
+
+import dataclasses
+import json
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxnm import fit as F
+from jaxnm import fit_cli
+from jaxnm.cli import main
+from jaxnm.io import save_png
+from jaxnm.textures import linear_to_srgb
+
+
+@pytest.fixture(scope="module")
+def small():
+    """The built-in problem, small: 64x64 renders, a 32x32 map, 6 lights, 2 views."""
+    problem, gt, scene = F.default_problem(render_size=64, map_size=32, n_lights=6, views=2)
+    prep = F.prepare(problem)
+    seen = F.seen_texels(prep, problem.map_size)
+    return problem, gt, scene, prep, seen
+
+
+def test_recovers_known_map_noise_free(small):
+    problem, gt, _, prep, seen = small
+    assert 0.2 < seen.mean() < 0.9
+    res = F.fit_normal_map(problem, F.FitOptions(max_steps=25), ground_truth=gt, prepared=prep,
+                           progress=False)
+    rep = F.error_report(res.normals, gt, seen)
+    assert rep["mean_deg"] < 1.0, rep
+    # the start (a flat map) is far from the answer: the fit did the work
+    flat = np.zeros_like(gt)
+    flat[..., 2] = 1
+    assert F.error_report(flat, gt, seen)["mean_deg"] > 10
+    # unit vectors with positive z, by construction of the parameterisation
+    np.testing.assert_allclose(np.linalg.norm(res.normals, axis=-1), 1, atol=1e-5)
+    assert (res.normals[..., 2] > 0).all()
+    hist = [h["loss"] for h in res.history]
+    assert hist[-1] < 1e-3 * hist[0]
+
+
+def test_held_out_light_matches_ground_truth_render(small):
+    problem, gt, scene, prep, seen = small
+    res = F.fit_normal_map(problem, F.FitOptions(max_steps=25), prepared=prep, progress=False)
+    cam = problem.targets[0].camera
+    d = F._view_relative(cam, [0.45, 0.35, 0.82])
+    held = F.FitTarget(cam, 64, 64, F._directional(d), np.zeros((64, 64, 3), np.float32))
+    hp = F.prepare(dataclasses.replace(problem, targets=(held,)))
+    fitted = np.asarray(F.render_with_map(hp, jnp.asarray(res.normals))[0][0])
+    truth = np.asarray(F.render_with_map(hp, jnp.asarray(gt))[0][0])
+    m = np.asarray(hp.weights[0][0, ..., 0] > 0)
+    assert F.psnr(fitted, truth, m) > 35.0
+
+
+def test_noisy_targets(small):
+    problem, gt, _, _, _ = small
+    noisy, _, _ = F.default_problem(render_size=64, map_size=32, n_lights=6, views=2, noise=0.02,
+                                    seed=3)
+    prep = F.prepare(noisy)
+    seen = F.seen_texels(prep, noisy.map_size)
+    res = F.fit_normal_map(noisy, F.FitOptions(max_steps=20), prepared=prep, progress=False)
+    assert F.error_report(res.normals, gt, seen)["mean_deg"] < 3.0
+
+
+def test_render_with_map_reproduces_targets(small):
+    """The fit's model renders exactly what the full renderer rendered (same pipeline)."""
+    problem, gt, _, prep, _ = small
+    out = F.render_with_map(prep, jnp.asarray(gt))
+    for v, imgs in enumerate(out):
+        np.testing.assert_allclose(np.asarray(imgs), np.asarray(prep.images[v]), atol=2e-3)
+
+
+def test_lbfgs_baseline_decreases_loss_and_is_deterministic(small):
+    problem, gt, _, prep, seen = small
+    opts = F.FitOptions(solver="lbfgs", max_steps=15, seed=1, init_noise=0.05)
+    a = F.fit_normal_map(problem, opts, prepared=prep, progress=False)
+    b = F.fit_normal_map(problem, opts, prepared=prep, progress=False)
+    np.testing.assert_array_equal(a.normals, b.normals)
+    assert a.history[-1]["loss"] < 0.5 * a.history[0]["loss"]
+
+
+def test_time_limit_keeps_best_so_far(small):
+    problem, gt, _, prep, _ = small
+    res = F.fit_normal_map(problem, F.FitOptions(max_steps=50), prepared=prep, progress=False,
+                           time_limit=0.0)
+    assert res.stopped == "time_limit" and len(res.history) == 1
+    assert np.isfinite(res.best_loss) and res.best_loss <= min(h["loss"] for h in res.history)
+
+
+def test_gradient_wrt_slopes_matches_finite_differences(small):
+    problem, _, _, prep, _ = small
+    rng = np.random.default_rng(0)
+    z = jnp.asarray(rng.normal(0, 0.3, (32, 32, 2)), jnp.float32)
+    args = (prep, None, jnp.asarray(1.0), jnp.ones((32, 32, 1)))
+    loss = jax.jit(F._loss)
+    g = jax.jit(jax.grad(F._loss))(z, args)
+    assert np.all(np.isfinite(np.asarray(g)))
+    d = jnp.asarray(rng.normal(size=z.shape), jnp.float32)
+    d = d / jnp.linalg.norm(d)
+    eps = 1e-2
+    fd = (loss(z + eps * d, args) - loss(z - eps * d, args)) / (2 * eps)
+    np.testing.assert_allclose(float(jnp.vdot(g, d)), float(fd), rtol=2e-2)
+
+
+def test_one_light_warns_that_the_map_is_not_determined(small):
+    problem = small[0]
+    one = dataclasses.replace(problem, targets=problem.targets[:1])
+    with pytest.warns(F.FitWarning, match="one light cannot determine"):
+        F.check_identifiability(F.prepare(one))
+
+
+def _bad(problem, **target_changes):
+    t = dataclasses.replace(problem.targets[0], **target_changes)
+    return dataclasses.replace(problem, targets=(t,) + problem.targets[1:])
+
+
+@pytest.mark.parametrize("change,match", [
+    (lambda p: _bad(p, image=np.zeros((32, 64, 3), np.float32)), "32 but its camera"),
+    (lambda p: _bad(p, image=np.full((64, 64, 3), np.nan, np.float32)), "NaN"),
+    (lambda p: _bad(p, mask=np.zeros((64, 64), bool)), "covers nothing"),
+    (lambda p: _bad(p, lights=F.Lights()), "no lights"),
+    (lambda p: dataclasses.replace(p, mesh=dataclasses.replace(p.mesh, uv=None)),
+     "no texture coordinates"),
+    (lambda p: dataclasses.replace(p, targets=()), "no target"),
+])
+def test_bad_input_is_refused_before_compiling(small, change, match):
+    with pytest.raises(ValueError, match=match):
+        F.prepare(change(small[0]))
+
+
+def test_fit_file_and_cli(tmp_path, small, capsys):
+    """A fit JSON with PNG targets (sRGB) runs through `jaxnm fit` and writes every output."""
+    problem, gt, scene, prep, _ = small
+    scene_file = tmp_path / "scene.json"
+    scene_file.write_text(json.dumps({
+        "mesh": "builtin:torus", "width": 64, "height": 64,
+        "camera": {"eye": [0.0, -2.35, 1.75], "target": [0, 0, 0], "up": [0, 0, 1],
+                   "fov_y_deg": 45},
+        "normal_map": {"path": "builtin:rivets", "filter": "trilinear"},
+        "albedo": [0.85, 0.6, 0.38],
+        "material": {"model": "blinn_phong", "specular": [0.15, 0.15, 0.15], "shininess": 24,
+                     "ambient": [0, 0, 0]}}))
+    targets = []
+    for i, t in enumerate(problem.targets[:6]):  # view 0, six lights
+        save_png(tmp_path / f"t{i}.png", np.asarray(linear_to_srgb(np.clip(t.image, 0, 1))),
+                 bits=16)
+        d = np.asarray(t.lights.directional.direction)[0].tolist()
+        targets.append({"view": 0, "image": f"t{i}.png", "lights": [
+            {"type": "directional", "direction": d}]})
+    save_png(tmp_path / "gt.png", (gt + 1) / 2, bits=16)
+    cfg = tmp_path / "fit.json"
+    cfg.write_text(json.dumps({
+        "scene": "scene.json", "targets": targets, "map": {"size": [32, 32], "bits": 16},
+        "ground_truth": {"path": "gt.png"}, "solver": {"method": "lm", "max_steps": 4}}))
+    problem2, options, extras = fit_cli.load_fit(cfg)
+    assert problem2.map_size == (32, 32) and len(problem2.targets) == 6
+    # the camera of the scene file is the view: the sRGB round trip keeps the targets
+    np.testing.assert_allclose(problem2.targets[0].image, problem.targets[0].image, atol=2e-3)
+    out = tmp_path / "out"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", F.FitWarning)  # one view: identifiable, no warning
+        rc = main(["fit", str(cfg), "-o", str(out), "--no-progress"])
+    assert rc == 0
+    for name in ("normal_map.png", "normal_map.npz", "render_00.png", "loss.png", "loss.json",
+                 "report.json", "error_map.png"):
+        assert (out / name).exists(), name
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["error"]["mean_deg"] < 20 and rep["steps"] == 4
+    assert "angular error" in capsys.readouterr().out
+
+
+def test_fit_file_errors_name_the_file(tmp_path):
+    cfg = tmp_path / "fit.json"
+    cfg.write_text(json.dumps({"targets": []}))
+    with pytest.raises(ValueError, match="fit.json.*scene"):
+        fit_cli.load_fit(cfg)
