@@ -1,15 +1,60 @@
-"""jaxnm: a differentiable software rasterizer in JAX for normal-mapping research."""
+"""jaxnm: a differentiable software rasterizer in JAX for normal-mapping research.
+
+The pipeline, one verb per stage::
+
+    clip  = jaxnm.to_clip(mesh.positions, camera)                 # camera
+    frags = jaxnm.rasterize(clip, mesh.faces, width=W, height=H)  # raster
+    attrs = jaxnm.interpolate({"p": ..., "uv": ...}, frags, derivatives="fine")
+    frame = jaxnm.compute_frame("cotangent", N=n, p_attr=attrs["p"], uv_attr=attrs["uv"])
+    m     = jaxnm.decode_normal_map(jaxnm.sample(mips, attrs["uv"], filter="trilinear"))
+    n2    = jaxnm.perturb_normal(frame, m)
+    rgb   = jaxnm.shade("blinn_phong", n2, p, camera.eye, lights, material)
+
+or, for a whole scene, `jaxnm.render(scene, outputs=(...))` and
+`jaxnm.fit_normal_map(problem)`.
+"""
 
 from .camera import Camera as Camera
 from .camera import look_at as look_at
 from .camera import orthographic as orthographic
 from .camera import perspective as perspective
 from .camera import to_clip as to_clip
+from .fit import FitOptions as FitOptions
+from .fit import FitProblem as FitProblem
+from .fit import FitTarget as FitTarget
+from .fit import fit_normal_map as fit_normal_map
+from .frames import Frame as Frame
+from .frames import compute_frame as compute_frame
+from .frames import cotangent_frame as cotangent_frame
+from .frames import perturb_normal as perturb_normal
+from .geometry import Mesh as Mesh
 from .interpolate import Attribute as Attribute
 from .interpolate import Barycentrics as Barycentrics
 from .interpolate import barycentrics as barycentrics
 from .interpolate import interpolate as interpolate
 from .raster import Fragments as Fragments
 from .raster import rasterize as rasterize
+from .render import render as render
+from .scene import Scene as Scene
+from .scene import default_scene as default_scene
+from .scene import load_scene as load_scene
+from .shading import DirectionalLight as DirectionalLight
+from .shading import Lights as Lights
+from .shading import Material as Material
+from .shading import PointLight as PointLight
+from .shading import shade as shade
+from .textures import build_mipmaps as build_mipmaps
+from .textures import decode_normal_map as decode_normal_map
+from .textures import encode_normal_map as encode_normal_map
+from .textures import sample as sample
 
 __version__ = "0.1.0"
+
+__all__ = [
+    "Attribute", "Barycentrics", "Camera", "DirectionalLight", "FitOptions", "FitProblem",
+    "FitTarget", "Fragments", "Frame", "Lights", "Material", "Mesh", "PointLight", "Scene",
+    "barycentrics", "build_mipmaps", "compute_frame", "cotangent_frame", "decode_normal_map",
+    "default_scene", "encode_normal_map", "fit_normal_map", "interpolate", "load_scene",
+    "look_at", "orthographic", "perspective", "perturb_normal", "rasterize", "render", "sample",
+    "shade", "to_clip",
+]
