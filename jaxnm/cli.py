@@ -35,6 +35,10 @@ def _add_render(sub) -> None:
     p.add_argument("--frame", choices=FRAMES, help="tangent frame method")
     p.add_argument("--normal-map", metavar="PATH",
                    help="use this tangent-space normal map (8/16-bit PNG, unsigned, green up)")
+    p.add_argument("--height-map", metavar="PATH", dest="height_map",
+                   help="bump the surface with this height map instead (grayscale image)")
+    p.add_argument("--height-scale", type=float, default=0.02, dest="height_scale",
+                   help="world units per unit of the height map (default: %(default)s)")
     p.add_argument("--width", type=int)
     p.add_argument("--height", type=int)
     p.add_argument("--exposure", type=float, default=1.0, help="linear scale before sRGB")
@@ -63,6 +67,12 @@ def _render(args) -> int:
         raw, bits = io.load_texture(args.normal_map, channels=3)
         changes.update(normal_map=raw, normal_map_options=_replace(
             scene.normal_map_options, bits=bits if bits in (8, 16) else 8))
+    if args.height_map:
+        from .scene import _height_map
+
+        d, opts = _height_map({"path": args.height_map, "scale": args.height_scale}, Path("."),
+                              "--height-map")
+        changes.update(normal_map=d, normal_map_options=opts)
     if changes:
         scene = scene.replace(**changes)
     outputs = ["color"]

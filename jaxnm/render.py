@@ -122,15 +122,18 @@ class GBuffer:
 def _needs(opts: RenderOptions):
     """Which stages the requested outputs need: (map, frame, tangent frame, uv, p, N)."""
     out = set(opts.outputs)
+    need_p = False
     need_frame = bool(out & _NEEDS_FRAME)
     has_map = opts.normal_map is not None and opts.frame != "none" and bool(
         out & {"perturbed_normal", "color"})
     # T and B only when they are shown or a tangent-space map uses them
     need_tb = opts.frame not in ("none", "axis") and (bool(out & {"tangent", "bitangent"}) or (
         has_map and opts.normal_map.space == "tangent"))
+    if has_map and opts.normal_map.space == "derivative":
+        need_p = True  # the surface gradient needs the position's screen derivatives
     need_uv = bool(out & {"uv", "duvdx", "duvdy"}) or need_tb or has_map or (
         "color" in out and opts.albedo_shape is not None)
-    need_p = bool(out & _NEEDS_P)
+    need_p = need_p or bool(out & _NEEDS_P)
     need_n = bool(out & ({"normal"} | _NEEDS_FRAME))
     return has_map, need_frame, need_tb, need_uv, need_p, need_n
 
@@ -232,6 +235,10 @@ def perturbed_normal(gb: GBuffer, normal_map: Array, opts: RenderOptions,
     mips = (_tex.build_mipmaps(normal_map, levels=opts.levels) if opts.levels > 1
             else (normal_map,))
     raw = _tex.apply_plan(gb.plan, mips)
+    if nm.space == "derivative":  # surface-gradient bump mapping (Mikkelsen)
+        s = nm.strength if strength is None else strength
+        return _maps.derivative_map_normal(gb.frame.N, gb.view.ddx, gb.view.ddy, gb.uv.ddx,
+                                           gb.uv.ddy, raw[..., :2], scale=s)
     # an object-space map stores object xyz: no green/uv-origin flip applies to it
     tangent = nm.space == "tangent"
     m = _tex.decode_normal_map(raw, encoding=nm.encoding, channels=nm.channels,

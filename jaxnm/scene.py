@@ -71,7 +71,10 @@ class NormalMapOptions:
     - `uv_origin`: ``"bottom_left"`` (OpenGL/OBJ) or ``"top_left"`` (glTF/D3D images).
     - `wrap`, `filter`: texture sampling (``"repeat"|"clamp"|"mirror"``,
       ``"nearest"|"bilinear"|"trilinear"``).
-    - `space`: ``"tangent"`` or ``"object"`` (an object-space normal map).
+    - `space`: ``"tangent"``, ``"object"`` (an object-space normal map), or
+      ``"derivative"`` (a derivative map ``(dh/du, dh/dv)`` in world units per
+      unit of uv, Mikkelsen's surface-gradient bump mapping; scene files give a
+      ``height_map`` instead, converted on load).
     - `bits`: bit depth of the stored values (for ``"unsigned_exact"``).
     """
 
@@ -208,8 +211,9 @@ def load_scene(path) -> Scene:
     return scene_from_dict(data, base_dir=path.parent, source=str(path))
 
 
-_KNOWN_KEYS = {"mesh", "model", "camera", "width", "height", "normal_map", "albedo", "lights",
-               "material", "frame", "derivatives", "double_sided", "cull_back", "shading"}
+_KNOWN_KEYS = {"mesh", "model", "camera", "width", "height", "normal_map", "height_map",
+               "albedo", "lights", "material", "frame", "derivatives", "double_sided",
+               "cull_back", "shading"}
 
 
 def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scene:
@@ -254,6 +258,10 @@ def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scen
     spec = data.get("normal_map")
     if spec is not None:
         nm, nm_opts = _normal_map(spec, base, source)
+    if data.get("height_map") is not None:
+        if nm is not None:
+            raise ValueError(f"{source}: give either 'normal_map' or 'height_map', not both")
+        nm, nm_opts = _height_map(data["height_map"], base, source)
 
     albedo = _albedo(data.get("albedo", [0.8, 0.8, 0.8]), base, source)
     lights = _lights(data["lights"], source) if "lights" in data else None
@@ -357,11 +365,42 @@ def _normal_map(spec: Any, base: Path, source: str):
                                                       else opts.bits)
 
 
+def _height_map(spec: Any, base: Path, source: str):
+    """A height (bump) map file -> its derivative map, rendered by surface-gradient bump mapping."""
+    from . import io
+    from .maps import height_to_derivative_map
+
+    if isinstance(spec, str):
+        spec = {"path": spec}
+    if not isinstance(spec, dict) or "path" not in spec:
+        raise ValueError(f"{source}: 'height_map' must be a path or an object with 'path'")
+    spec = dict(spec)
+    known = {"path", "scale", "uv_origin", "wrap", "filter"}
+    if set(spec) - known:
+        raise ValueError(f"{source}: unknown height_map keys {sorted(set(spec) - known)}; known: "
+                         f"{sorted(known)}")
+    scale = spec.get("scale", 0.02)
+    if not isinstance(scale, (int, float)) or not np.isfinite(scale):
+        raise ValueError(f"{source}: height_map.scale must be a finite number (world units)")
+    opts = NormalMapOptions(encoding="signed", channels=2, space="derivative",
+                            uv_origin=spec.get("uv_origin", "bottom_left"),
+                            wrap=spec.get("wrap", "repeat"), filter=spec.get("filter", "trilinear"))
+    _check_options(opts, source)
+    if opts.wrap == "mirror":
+        raise ValueError(f"{source}: height_map.wrap must be 'repeat' or 'clamp'")
+    raw, _ = io.load_texture(base / spec["path"], channels=1)
+    d = np.array(height_to_derivative_map(raw[..., 0], scale=float(scale), wrap=opts.wrap))
+    if opts.uv_origin == "top_left":  # v grows down the image: dh/dv changes sign
+        d[..., 1] = -d[..., 1]
+    return d.astype(np.float32), opts
+
+
 def _check_options(opts: NormalMapOptions, source: str) -> None:
     choices = {"encoding": ("unsigned", "unsigned_exact", "signed"), "channels": (2, 3),
                "green": ("up", "down"), "uv_origin": ("bottom_left", "top_left"),
                "wrap": ("repeat", "clamp", "mirror"),
-               "filter": ("nearest", "bilinear", "trilinear"), "space": ("tangent", "object")}
+               "filter": ("nearest", "bilinear", "trilinear"),
+               "space": ("tangent", "object", "derivative")}
     for key, valid in choices.items():
         if getattr(opts, key) not in valid:
             raise ValueError(f"{source}: normal_map.{key} must be one of {valid}, got "

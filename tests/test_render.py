@@ -175,3 +175,38 @@ def test_lights_and_material_change_the_image(plane_scene):
     b = render(base.replace(lights=left, material=Material(
         jnp.ones(3), jnp.zeros(3), jnp.asarray(1.0), jnp.zeros(3))))["color"]
     assert np.abs(a - b).mean() > 0.05
+
+
+def test_height_map_bumps_toward_the_light(tmp_path):
+    """A single bump as a height map (surface-gradient bump mapping) on a plane lit from +x:
+    the bump's +x flank is brighter than its -x flank, and it agrees with the equivalent
+    tangent-space normal map."""
+    from jaxnm.io import save_png
+
+    n = 64
+    t = (np.arange(n) + 0.5) / n
+    u, v = np.meshgrid(t, 1 - t)
+    h = np.exp(-((u - 0.5) ** 2 + (v - 0.5) ** 2) / 0.02)
+    save_png(tmp_path / "h.png", h.astype(np.float32), bits=16)
+    base = {"mesh": "builtin:plane", "width": 64, "height": 64,
+            "camera": {"eye": [0, 0, 3], "target": [0, 0, 0], "fov_y_deg": 40},
+            "lights": [{"type": "directional", "direction": [1, 0, 0.3]}],
+            "material": {"model": "lambert", "ambient": [0, 0, 0]}, "albedo": [1, 1, 1]}
+    p = tmp_path / "s.json"
+    p.write_text(json.dumps({**base, "height_map": {"path": "h.png", "scale": 0.1}}))
+    sc = load_scene(p)
+    assert sc.normal_map_options.space == "derivative"
+    c = render(sc, outputs=("color", "perturbed_normal"))
+    lum = c["color"][..., 0]
+    assert lum[32, 40:46].mean() > lum[32, 18:24].mean() + 0.2
+    assert np.isfinite(c["perturbed_normal"]).all()
+    # the same bump as a tangent-space normal map (builtin:plane spans 2 x 2 world units)
+    hn = procedural.height_to_normals(h * 0.1 / 2.0 * n, strength=1.0)
+    q = tmp_path / "s2.json"
+    save_png(tmp_path / "n.png", (hn + 1) / 2, bits=16)
+    q.write_text(json.dumps({**base, "normal_map": {"path": "n.png"}}))
+    c2 = render(load_scene(q), outputs=("perturbed_normal", "mask"))
+    m = c2["mask"][..., 0] > 0
+    ang = np.degrees(np.arccos(np.clip((c["perturbed_normal"] * c2["perturbed_normal"]).sum(-1),
+                                       -1, 1)))
+    assert np.median(ang[m]) < 1.0 and np.percentile(ang[m], 95) < 4.0
