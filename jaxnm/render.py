@@ -60,6 +60,7 @@ class RenderOptions:
     shading: str = "blinn_phong"
     double_sided: bool = True
     cull_back: bool = False
+    ddy_sign: int = 1
     normal_map: NormalMapOptions | None = NormalMapOptions()
     normal_map_shape: tuple[int, int] | None = None
     albedo_shape: tuple[int, int] | None = None  # None: a constant albedo
@@ -82,7 +83,7 @@ class RenderOptions:
         return RenderOptions(
             width=int(scene.width), height=int(scene.height), derivatives=derivatives,
             frame=frame, shading=scene.shading, double_sided=scene.double_sided,
-            cull_back=scene.cull_back,
+            cull_back=scene.cull_back, ddy_sign=1 if scene.ddy == "up" else -1,
             normal_map=None if nm is None else scene.normal_map_options,
             normal_map_shape=None if nm is None else tuple(nm.shape[:2]),
             albedo_shape=tuple(alb.shape[:2]) if alb.ndim == 3 else None, outputs=outputs)
@@ -213,7 +214,7 @@ def _frame(opts: RenderOptions, mesh: Mesh, frags, gb) -> _frames.Frame:
         method = "nonperspective" if kind == "nonperspective" else "cotangent"
         normalize = "none" if kind == "cotangent_unnormalized" else "max"
         return _frames.compute_frame(method, N=n, p_attr=gb["view"], uv_attr=gb["uv"],
-                                     normalize=normalize, **common)
+                                     normalize=normalize, ddy_sign=opts.ddy_sign, **common)
     if kind in ("exact", "exact_face"):
         return _frames.compute_frame(
             "exact", N=n, tri_p=_frames.triangle_corners(mesh.positions, frags),

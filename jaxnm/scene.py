@@ -19,7 +19,8 @@ A scene JSON file (paths are relative to the file) looks like::
                   "falloff": "inverse_square"}],
       "material": {"model": "blinn_phong", "diffuse": [1,1,1], "specular": [0.4,0.4,0.4],
                    "shininess": 48, "ambient": [0.03,0.03,0.03]},
-      "frame": "cotangent", "derivatives": "fine", "double_sided": true, "cull_back": false
+      "frame": "cotangent", "derivatives": "fine", "double_sided": true, "cull_back": false,
+      "ddy": "up"             // "down": emulate HLSL's ddy (y down) in the screen-space frames
     }
 
 Every key but ``mesh`` and ``camera`` is optional (defaults: 512 x 512, no
@@ -114,6 +115,7 @@ class Scene:
     derivatives: str = "fine"
     double_sided: bool = True
     cull_back: bool = False
+    ddy: str = "up"
     source: str = "<built-in>"
 
     def replace(self, **changes) -> Scene:
@@ -134,6 +136,9 @@ def _validated(scene: Scene) -> Scene:
     if scene.derivatives not in DERIVATIVES:
         raise ValueError(f"{src}: unknown derivatives {scene.derivatives!r}; expected one of "
                          f"{DERIVATIVES}")
+    if scene.ddy not in ("up", "down"):
+        raise ValueError(f"{src}: 'ddy' must be 'up' (GLSL dFdy) or 'down' (HLSL ddy), got "
+                         f"{scene.ddy!r}")
     if scene.shading not in SHADING_MODELS:
         raise ValueError(f"{src}: unknown shading model {scene.shading!r}; expected one of "
                          f"{SHADING_MODELS}")
@@ -213,7 +218,7 @@ def load_scene(path) -> Scene:
 
 _KNOWN_KEYS = {"mesh", "model", "camera", "width", "height", "normal_map", "height_map",
                "albedo", "lights", "material", "frame", "derivatives", "double_sided",
-               "cull_back", "shading"}
+               "cull_back", "shading", "ddy"}
 
 
 def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scene:
@@ -274,7 +279,8 @@ def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scen
         shading=shading, frame=_get(data, "frame", str, "cotangent", source),
         derivatives=_get(data, "derivatives", str, "fine", source),
         double_sided=_get(data, "double_sided", bool, True, source),
-        cull_back=_get(data, "cull_back", bool, False, source), source=source))
+        cull_back=_get(data, "cull_back", bool, False, source),
+        ddy=_get(data, "ddy", str, "up", source), source=source))
 
 
 def _get(data: dict, key: str, kind, default, source: str):

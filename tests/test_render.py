@@ -210,3 +210,22 @@ def test_height_map_bumps_toward_the_light(tmp_path):
     ang = np.degrees(np.arccos(np.clip((c["perturbed_normal"] * c2["perturbed_normal"]).sum(-1),
                                        -1, 1)))
     assert np.median(ang[m]) < 1.0 and np.percentile(ang[m], 95) < 4.0
+
+
+def test_hlsl_ddy_turns_bumps_into_dents(plane_scene):
+    """HLSL's ddy points down: fed to the GLSL cotangent frame it negates T and B (not the
+    handedness), i.e. the map's tangential part is rotated by 180 degrees about N."""
+    nm = procedural.encode_unsigned(procedural.default_normal_map(64))
+    sc = plane_scene.replace(normal_map=nm)
+    up = render(sc, outputs=("tangent", "bitangent", "perturbed_normal", "normal", "mask"))
+    down = render(sc.replace(ddy="down"), outputs=("tangent", "bitangent", "perturbed_normal"))
+    m = up["mask"][..., 0] > 0
+    np.testing.assert_allclose(down["tangent"][m], -up["tangent"][m], atol=1e-5)
+    np.testing.assert_allclose(down["bitangent"][m], -up["bitangent"][m], atol=1e-5)
+    # the tangential offset from N flips: reflection of the perturbed normal about N
+    n = up["normal"][m]
+    pu, pd = up["perturbed_normal"][m], down["perturbed_normal"][m]
+    refl = 2 * (pu * n).sum(-1, keepdims=True) * n - pu
+    np.testing.assert_allclose(pd, refl, atol=2e-4)
+    with pytest.raises(ValueError, match="ddy"):
+        sc.replace(ddy="sideways")
