@@ -308,24 +308,31 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, bx0, by0, nbx, counts, start
     live = live & (sg[:, 0] != 0)
     n_pix = height * width
 
-    # The per-pixel work runs in a loop over the block's pixels: a loop body is a separate
+    # The per-pixel work runs in a loop over the block's rows: a loop body is a separate
     # computation, so the per-slot coefficients above are computed once and materialised
     # (fused into one big kernel, XLA would recompute them for every pixel of the block).
-    def pixel(k, out):
-        dx, dy = k % block, k // block
-        fx, fy = dx.astype(a.dtype), dy.astype(a.dtype)
-        e = c + a * fx + b * fy  # (S, 3)
-        ok = jnp.where(tie, e >= 0, e > 0)
-        inside = ok[:, 0] & ok[:, 1] & ok[:, 2]
-        depth = dz_c + dz_a * fx + dz_b * fy
-        pi, pj = bx * block + dx, by * block + dy
-        inside = inside & live & (depth >= 0.0) & (depth <= 1.0) & (pi < width) & (pj < height)
-        flat = jnp.where(inside, (height - 1 - pj) * width + pi, n_pix)
-        return (out[0].at[k].set(flat), out[1].at[k].set(depth))
+    fx = jnp.arange(block, dtype=a.dtype)[None, :]  # (1, block): the pixels of one row
+    ix = jnp.arange(block, dtype=jnp.int32)[None, :]
+    ea = [a[:, i:i + 1] for i in range(3)]
+    eb = [b[:, i:i + 1] for i in range(3)]
+    ec = [c[:, i:i + 1] for i in range(3)]
+    et = [tie[:, i:i + 1] for i in range(3)]
 
-    npx = block * block
+    def row(dy, out):
+        fy = dy.astype(a.dtype)
+        inside = live[:, None]
+        for i in range(3):
+            e = ec[i] + ea[i] * fx + eb[i] * fy  # (S, block)
+            inside = inside & jnp.where(et[i], e >= 0, e > 0)
+        depth = dz_c[:, None] + dz_a[:, None] * fx + dz_b[:, None] * fy
+        pi, pj = bx[:, None] * block + ix, by[:, None] * block + dy
+        inside = inside & (depth >= 0.0) & (depth <= 1.0) & (pi < width) & (pj < height)
+        flat = jnp.where(inside, (height - 1 - pj) * width + pi, n_pix)
+        return (out[0].at[dy].set(flat.T), out[1].at[dy].set(depth.T))
+
     flat, depth = jax.lax.fori_loop(
-        0, npx, pixel, (jnp.zeros((npx, slots), jnp.int32), jnp.zeros((npx, slots), a.dtype)))
+        0, block, row, (jnp.zeros((block, block, slots), jnp.int32),
+                        jnp.zeros((block, block, slots), a.dtype)))
     tri_index = jnp.broadcast_to(t[None, :], flat.shape)
     return flat.reshape(-1), depth.reshape(-1), tri_index.reshape(-1)
 
