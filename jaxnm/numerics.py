@@ -50,13 +50,11 @@ def sum_last(x: ArrayLike, keepdims: bool = False) -> Array:
 def dot(a: ArrayLike, b: ArrayLike, keepdims: bool = False) -> Array:
     """Dot product over the (short) last axis, see `sum_last`."""
     a, b = jnp.asarray(a), jnp.asarray(b)
-    n = max(a.shape[-1], b.shape[-1])
-    a = jnp.broadcast_to(a, a.shape[:-1] + (n,))
-    b = jnp.broadcast_to(b, b.shape[:-1] + (n,))
-    out = a[..., 0] * b[..., 0]
-    for i in range(1, n):
-        out = out + a[..., i] * b[..., i]
-    return out[..., None] if keepdims else out
+    if a.ndim != b.ndim:  # explicit rank alignment (rank promotion may be disabled)
+        n = max(a.ndim, b.ndim)
+        a = a.reshape((1,) * (n - a.ndim) + a.shape)
+        b = b.reshape((1,) * (n - b.ndim) + b.shape)
+    return sum_last(a * b, keepdims=keepdims)
 
 
 def cross(a: ArrayLike, b: ArrayLike) -> Array:

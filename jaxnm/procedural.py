@@ -112,10 +112,10 @@ def rivet_height(size: int = 256, *, cells: int = 8, groove: float = 0.08) -> np
 def height_to_normals(height: np.ndarray, *, strength: float = 4.0) -> np.ndarray:
     """Tangent-space unit normals (H, W, 3) of a periodic height field (image layout).
 
-    Central differences in texel units with wrap-around; +x = +u (right), +y =
-    +v (up the image, i.e. towards row 0), z out of the surface:
-    ``n = normalize(-strength dh/du, -strength dh/dv, 1)`` with ``dh/du`` and
-    ``dh/dv`` per unit of uv.
+    Central differences with wrap-around; +x = +u (right), +y = +v (up the
+    image, i.e. towards row 0), z out of the surface:
+    ``n = normalize(-strength dh/dc, -strength dh/dr, 1)`` with the slopes per
+    *texel* (``dh/dc`` along a row, ``dh/dr`` upwards along a column).
     """
     h = np.asarray(height, np.float64)
     rows, cols = h.shape

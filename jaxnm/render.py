@@ -127,12 +127,13 @@ def _needs(opts: RenderOptions):
     need_frame = bool(out & _NEEDS_FRAME)
     has_map = opts.normal_map is not None and opts.frame != "none" and bool(
         out & {"perturbed_normal", "color"})
-    # T and B only when they are shown or a tangent-space map uses them
-    need_tb = opts.frame not in ("none", "axis") and (bool(out & {"tangent", "bitangent"}) or (
+    # the named frame (T and B) only when they are shown or a tangent-space map uses them
+    need_tb = opts.frame != "none" and (bool(out & {"tangent", "bitangent"}) or (
         has_map and opts.normal_map.space == "tangent"))
     if has_map and opts.normal_map.space == "derivative":
         need_p = True  # the surface gradient needs the position's screen derivatives
-    need_uv = bool(out & {"uv", "duvdx", "duvdy"}) or need_tb or has_map or (
+    need_uv = bool(out & {"uv", "duvdx", "duvdy"}) or (need_tb and opts.frame != "axis") or (
+        has_map) or (
         "color" in out and opts.albedo_shape is not None)
     need_p = need_p or bool(out & _NEEDS_P)
     need_n = bool(out & ({"normal"} | _NEEDS_FRAME))

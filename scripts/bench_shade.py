@@ -41,7 +41,7 @@ frame):
 - ``ref_cot``: ``T, B = (grad u, grad v) / max(|grad u|, |grad v|)``,
   Schüler's max-normalisation of the exact smooth-surface gradients: what
   ``cotangent`` converges to under refinement. ``|T| != |B|`` here
-  (``|grad u| / |grad v|`` runs from 0.71 to 1.78 on this torus), so the
+  (``|grad u| / |grad v|`` runs from 0.89 to 2.17 on this torus), so the
   map's bumps are stretched with the uv density.
 - ``ref_unit``: ``T = normalize(grad u)``, ``B = normalize(grad v)``, the
   orthonormal frame a per-vertex (MikkTSpace-like) tangent frame converges to.
@@ -53,7 +53,9 @@ analytic N: the floor that tessellation alone gives). ``none`` (no map) shows
 the size of the map's perturbation itself.
 
 Prints one JSON line per (method, derivatives) and a final JSON summary with
-the machine's CPU count, platform and JAX version.
+the machine's CPU count, platform, JAX version and the load average at the start
+and end (other processes on a small machine make the timings noisy: compare
+methods within one run, and rerun when the load is not ~0).
 """
 
 from __future__ import annotations
@@ -243,6 +245,7 @@ def main(argv=None):
         raise SystemExit(f"bench_shade: the default torus no longer matches the analytic "
                          f"parametrisation (max deviation {dev:.3g}); update MAJOR/MINOR/U_SCALE")
     t_start = time.perf_counter()
+    load_start = os.getloadavg()
     results = []
     for deriv in args.derivatives:
         for frame in args.frames:
@@ -264,6 +267,8 @@ def main(argv=None):
         "machine": _machine(), "scene": "default_scene (torus, 16384 triangles, 256^2 map)",
         "size": args.size, "repeats": args.repeats, "statistic": "median after 1 warm-up",
         "triangles": int(scene.mesh.num_faces), "wall_s": round(time.perf_counter() - t_start, 1),
+        "load_avg_1_5_15_start": [round(x, 2) for x in load_start],
+        "load_avg_1_5_15_end": [round(x, 2) for x in os.getloadavg()],
         "table": table}))
 
 
