@@ -38,7 +38,7 @@ class Camera:
 
     @staticmethod
     def from_matrices(view, projection) -> Camera:
-        """A camera from explicit 4x4 ``view`` and ``projection`` matrices (column-vector convention)."""
+        """A camera from explicit 4x4 ``view`` and ``projection`` matrices (column vectors)."""
         view64 = _as_matrix(view, "view")
         proj64 = _as_matrix(projection, "projection")
         if not np.allclose(view64[3], [0.0, 0.0, 0.0, 1.0]):

@@ -58,9 +58,18 @@ from .geometry import Mesh
 from .numerics import angle_between, safe_normalize
 from .render import GBuffer, RenderOptions, build_gbuffer, check_mesh
 from .scene import NormalMapOptions, Scene
-from .shading import DirectionalLight, Lights, Material, PointLight, shade
+from .shading import DirectionalLight, Lights, Material, shade
 
 __all__ = [
+    "FitWarning",
+    "default_problem",
+    "default_light_directions",
+    "directional_light",
+    "view_relative",
+    "psnr",
+    "error_report",
+    "texel_influence",
+    "validate_problem",
     "FitTarget",
     "FitProblem",
     "FitOptions",
@@ -384,7 +393,8 @@ def _loss(slopes, args):
 # --------------------------------------------------------------------------------------
 
 
-def seen_texels(prep: Prepared, map_size: tuple[int, int], *, min_weight: float = 0.25) -> np.ndarray:
+def seen_texels(prep: Prepared, map_size: tuple[int, int], *,
+                min_weight: float = 0.25) -> np.ndarray:
     """(h, w) bool: texels that some view samples at the finest mip level with total filter
     weight >= ``min_weight`` (i.e. that directly influence at least part of a pixel)."""
     h, w = map_size
@@ -574,6 +584,12 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
             loss0 = float(_loss_jit(z, args))
             if loss0 < best[0]:
                 best = (loss0, slopes)
+            rec0 = {"level": level, "size": list(size), "step": 0, "loss": loss0,
+                    "seconds": time.perf_counter() - t_start}
+            if gt is not None and size == (h, w):
+                rec0["mean_angular_error_deg"] = float(
+                    angular_error(slopes_to_normals(slopes), gt)[seen].mean())
+            history.append(rec0)
             for k in range(options.max_steps):
                 z, done, result = stepper.step(z)
                 slopes = z * scale
@@ -633,7 +649,7 @@ class _progress:
     def __init__(self, total: int, enabled: bool):
         self.bar = None
         if enabled:
-            from tqdm.auto import tqdm
+            from tqdm import tqdm
 
             self.bar = tqdm(total=total, desc="fit", unit="step", dynamic_ncols=True)
 
@@ -664,10 +680,11 @@ def default_light_directions(n: int = 6, elevation_deg: float = 50.0, seed: int 
     return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1)
 
 
-def _directional(d) -> Lights:
-    return Lights(directional=DirectionalLight(jnp.asarray(d, jnp.float32)[None],
-                                               jnp.ones((1, 3), jnp.float32),
-                                               jnp.ones((1,), jnp.float32)))
+def directional_light(direction, color=(1.0, 1.0, 1.0), intensity: float = 1.0) -> Lights:
+    """A `Lights` holding one directional light (``direction`` points towards the light)."""
+    return Lights(directional=DirectionalLight(jnp.asarray(direction, jnp.float32)[None],
+                                               jnp.asarray(color, jnp.float32)[None],
+                                               jnp.full((1,), intensity, jnp.float32)))
 
 
 def default_problem(*, render_size: int = 512, map_size: int = 256, n_lights: int = 6,
@@ -698,12 +715,12 @@ def default_problem(*, render_size: int = 512, map_size: int = 256, n_lights: in
                                    perspective(45.0, 1.0, 0.1, 50.0))
         for li, d in enumerate(dirs):
             # light directions are given relative to the view, so each view sees its lit side
-            d_world = _view_relative(cam, d)
-            sc = scene.replace(camera=cam, lights=_directional(d_world))
+            d_world = view_relative(cam, d)
+            sc = scene.replace(camera=cam, lights=directional_light(d_world))
             img = render(sc, outputs=("color",))["color"]
             if noise > 0:
                 img = img + rng.normal(0.0, noise * img.max(), img.shape).astype(np.float32)
-            targets.append(FitTarget(cam, render_size, render_size, _directional(d_world), img,
+            targets.append(FitTarget(cam, render_size, render_size, directional_light(d_world), img,
                                      name=f"view{vi}_light{li}"))
     problem = FitProblem(mesh=scene.mesh, material=scene.material, targets=tuple(targets),
                          map_size=(map_size, map_size), albedo=np.asarray(scene.albedo),
@@ -716,7 +733,8 @@ def default_problem(*, render_size: int = 512, map_size: int = 256, n_lights: in
     return problem, gt, scene
 
 
-def _view_relative(cam: Camera, d) -> np.ndarray:
+def view_relative(cam: Camera, d) -> np.ndarray:
+    """World direction of ``d`` given in the camera's frame (x right, y up, z towards the eye)."""
     inv = np.linalg.inv(np.asarray(cam.view, np.float64))
     v = inv[:3, :3] @ np.asarray(d, np.float64)
     return v / np.linalg.norm(v)

@@ -138,13 +138,14 @@ def default_fit(quick: bool = False):
     """The built-in problem (see `jaxnm.fit.default_problem`) with a held-out light."""
     size, msize = (128, 64) if quick else (512, 256)
     problem, gt, scene = F.default_problem(render_size=size, map_size=msize, n_lights=6, views=2)
-    # held out: a light direction between the fitted ones, at a lower elevation
-    d = F._view_relative(problem.targets[0].camera, [0.45, 0.35, 0.82])
+    # held out: a direction not among the fitted ones (elevation ~55 deg, azimuth ~38 deg,
+    # between fitted lights 0 and 1 in the view's frame)
+    d = F.view_relative(problem.targets[0].camera, [0.45, 0.35, 0.82])
     from .render import render
 
-    sc = scene.replace(camera=problem.targets[0].camera, lights=F._directional(d))
+    sc = scene.replace(camera=problem.targets[0].camera, lights=F.directional_light(d))
     img = render(sc, outputs=("color",))["color"]
-    held = (F.FitTarget(problem.targets[0].camera, size, size, F._directional(d), img,
+    held = (F.FitTarget(problem.targets[0].camera, size, size, F.directional_light(d), img,
                         name="held-out light"),)
     options = F.FitOptions(solver="lm", max_steps=30, lsmr_steps=10)
     return problem, options, {"ground_truth": gt, "held_out": held,
@@ -223,15 +224,13 @@ def _score_held_out(problem, held, n, gt) -> list:
 
 
 def _plot_loss(path: Path, history: list) -> None:
-    import matplotlib
+    from matplotlib.figure import Figure  # no pyplot: leaves the caller's backend alone
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
-    steps = np.arange(1, len(history) + 1)
+    fig = Figure(figsize=(6, 3.5), dpi=100)
+    ax = fig.add_subplot()
+    steps = np.arange(len(history))  # iterations, across coarse-to-fine levels
     ax.semilogy(steps, [max(h["loss"], 1e-30) for h in history], label="loss")
-    ax.set_xlabel("step")
+    ax.set_xlabel("iteration")
     ax.set_ylabel("0.5 * sum of squared residuals")
     if history and "mean_angular_error_deg" in history[-1]:
         ax2 = ax.twinx()
@@ -241,7 +240,6 @@ def _plot_loss(path: Path, history: list) -> None:
     ax.set_title("jaxnm fit")
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)
 
 
 def cli_main(args) -> int:

@@ -16,8 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .numerics import cross as _cross
 from .numerics import angle_between, safe_normalize
+from .numerics import cross as _cross
 
 __all__ = ["Mesh", "face_normals", "vertex_normals", "validate_arrays"]
 

@@ -102,7 +102,8 @@ def safe_sqrt(x: ArrayLike) -> Array:
 
 
 def safe_rsqrt(x: ArrayLike, fallback: ArrayLike = 0.0) -> Array:
-    """``1/sqrt(x)`` for ``x > tiny``; ``fallback`` elsewhere (GLSL ``inversesqrt`` is undefined there)."""
+    """``1/sqrt(x)`` for ``x > tiny``; ``fallback`` elsewhere (where GLSL's ``inversesqrt`` is
+    undefined)."""
     x = jnp.asarray(x)
     ok = x > tiny(x.dtype)
     return jnp.where(ok, jnp.reciprocal(jnp.sqrt(jnp.where(ok, x, jnp.ones_like(x)))), fallback)

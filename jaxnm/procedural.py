@@ -11,7 +11,8 @@ import numpy as np
 
 from .geometry import Mesh
 
-__all__ = ["torus", "default_torus", "plane", "uv_sphere", "rivet_height", "height_to_normals", "encode_unsigned",
+__all__ = ["torus", "default_torus", "plane", "uv_sphere", "rivet_height", "height_to_normals",
+           "encode_unsigned",
            "default_normal_map"]
 
 
@@ -22,7 +23,8 @@ def torus(major_radius: float = 1.0, minor_radius: float = 0.4, major_segments: 
     ``u = phi / 2 pi`` (angle around the z axis, counter-clockwise seen from +z),
     ``v = theta / 2 pi`` (angle around the tube, 0 on the outer equator, moving
     towards +z first), each multiplied by ``uv_scale``. Seam vertices are
-    duplicated so uvs are continuous on every triangle. ``2 * major_segments * minor_segments`` triangles, CCW seen
+    duplicated so uvs are continuous on every triangle.
+    ``2 * major_segments * minor_segments`` triangles, CCW seen
     from outside.
     """
     i = np.arange(major_segments + 1)

@@ -103,7 +103,7 @@ class Fragments:
 
 
 def window_homogeneous(clip: Array, width: int, height: int) -> Array:
-    """Homogeneous window coordinates ``((X+W) w/2, (Y+W) h/2, (Z+W)/2, W)`` of clip points ``(..., 4)``.
+    """Homogeneous window coordinates ``((X+W) w/2, (Y+W) h/2, (Z+W)/2, W)`` of clip points.
 
     Dividing the first three by the last gives window x, y (pixels, y up) and
     window depth.
@@ -256,7 +256,7 @@ def _triangle_setup(h: Array, faces: Array, width: int, height: int, block: int,
 
 
 def _depth_plane(th: Array, x0: Array, y0: Array):
-    """Window depth ``dz_c + dz_a dx + dz_b dy`` around ``(x0, y0)`` for triangles ``th`` (S, 3, 4)."""
+    """Window depth ``dz_c + dz_a dx + dz_b dy`` around ``(x0, y0)``; triangles ``th`` (S, 3, 4)."""
     hx = th[..., 0] - x0[:, None] * th[..., 3]
     hy = th[..., 1] - y0[:, None] * th[..., 3]
     hw, hz = th[..., 3], th[..., 2]
@@ -348,7 +348,8 @@ def _fragment_source(clip, faces, *, width, height, cull_back, block, slots, sub
     starts = ends - counts
     total = ends[-1]
     fragments = functools.partial(
-        _slot_fragments, tri_h=tri_h, tri_depth=h_unsnapped[faces], sigma=sigma, bx0=bx0, by0=by0, nbx=nbx, counts=counts,
+        _slot_fragments, tri_h=tri_h, tri_depth=h_unsnapped[faces], sigma=sigma, bx0=bx0,
+        by0=by0, nbx=nbx, counts=counts,
         starts=starts, total=total, width=width, height=height, block=block, slots=slots,
     )
     return fragments, total, sigma, h_unsnapped
@@ -447,7 +448,8 @@ def _max_triangles_per_chunk(width: int, height: int, block: int) -> int:
 
 
 def default_slots(num_faces: int, width: int, height: int, block: int) -> int:
-    """Slots per round: about one round for small scenes, at most 2**15 (rounds repeat as needed)."""
+    """Slots per round: about one round for small scenes, at most 2**15 (more rounds run as
+    needed)."""
     n_blocks = (-(-width // block)) * (-(-height // block))
     want = max(4 * num_faces, n_blocks, 256)
     return int(min(1 << 15, 1 << (want - 1).bit_length()))

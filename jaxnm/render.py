@@ -1,4 +1,4 @@
-"""The whole pipeline: scene -> rasterize -> interpolate -> derivatives -> frame -> texture -> shade.
+"""The pipeline: scene -> rasterize -> interpolate -> derivatives -> frame -> texture -> shade.
 
 It is split where the data stop depending on the geometry:
 

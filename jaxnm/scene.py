@@ -3,7 +3,8 @@
 A scene JSON file (paths are relative to the file) looks like::
 
     {
-      "mesh": "torus.obj",   // or "builtin:torus" (the default scene's), "builtin:plane", "builtin:sphere"
+      "mesh": "torus.obj",   // or "builtin:torus" (the default scene's), "builtin:plane",
+                             // "builtin:sphere"
       "model": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]],   // optional, row-major, column vectors
       "camera": {"eye": [0,-2.4,1.7], "target": [0,0,0], "up": [0,0,1],
                  "fov_y_deg": 45, "near": 0.1, "far": 100},
@@ -146,7 +147,8 @@ def _validated(scene: Scene) -> Scene:
     validate_arrays(np.asarray(m.positions), np.asarray(m.faces),
                     None if m.uv is None else np.asarray(m.uv),
                     None if m.normals is None else np.asarray(m.normals), source=src)
-    if scene.normal_map is not None and m.uv is None and scene.normal_map_options.space == "tangent":
+    needs_uv = scene.normal_map_options.space in ("tangent", "derivative")
+    if scene.normal_map is not None and m.uv is None and needs_uv:
         raise ValueError(f"{src}: the scene has a tangent-space normal map but the mesh has no "
                          "texture coordinates (uv)")
     lights, material = scene.lights, scene.material

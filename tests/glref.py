@@ -141,7 +141,6 @@ with moderngl's default DEPTH_COMPONENT24 it loses when drawn second.
 from __future__ import annotations
 
 import ctypes
-from typing import Dict, Tuple
 
 import numpy as np
 
@@ -310,7 +309,7 @@ def _get_state() -> dict:
     return _STATE
 
 
-def gl_available() -> Tuple[bool, str]:
+def gl_available() -> tuple[bool, str]:
     """Return ``(True, renderer string)`` or ``(False, reason)``; never raises."""
     try:
         st = _get_state()
@@ -333,12 +332,12 @@ def _pad4(a: np.ndarray) -> np.ndarray:
 def render_gl(
     clip,
     faces,
-    attrs: Dict[str, np.ndarray],
+    attrs: dict[str, np.ndarray],
     width: int,
     height: int,
     *,
     cull_back: bool = False,
-) -> Dict[str, np.ndarray]:
+) -> dict[str, np.ndarray]:
     """Rasterize ``faces`` with OpenGL (llvmpipe) and return fragment data.
 
     Args:
@@ -396,7 +395,7 @@ def render_gl(
 
     flat = faces.reshape(-1)  # non-indexed: 3 vertices per face, in order
     n_verts = int(flat.size)
-    out: Dict[str, np.ndarray] = {}
+    out: dict[str, np.ndarray] = {}
 
     to_release = []
 

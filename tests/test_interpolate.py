@@ -76,8 +76,7 @@ def _plane_truth(a_uv, eye, mvp, size):
     eps = 1e-4  # central differences of an analytic function (float64): error ~ eps^2
     px = (hit(X + eps, Y)[0] - hit(X - eps, Y)[0]) / (2 * eps)
     py = (hit(X, Y + eps)[0] - hit(X, Y - eps)[0]) / (2 * eps)
-    uv_of = (lambda q: q[..., :2] @ a_uv.T)
-    return p, depth, px, py, uv_of(px), uv_of(py)
+    return p, depth, px, py, px[..., :2] @ a_uv.T, py[..., :2] @ a_uv.T
 
 
 @pytest.mark.parametrize("ortho", [False, True])

@@ -73,7 +73,7 @@ def _camera_matrices(kind):
     return view, proj
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _screen_samples(kind, size=32):
     """Window positions -> plane points, with exact screen derivatives (jacfwd, float64)."""
     view, proj = _camera_matrices(kind)
