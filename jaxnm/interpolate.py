@@ -55,7 +55,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from .numerics import safe_div, sum_last
+from .numerics import roll_last, safe_div, sum_last, xyw
 from .raster import Fragments, window_homogeneous
 
 __all__ = [
@@ -128,7 +128,7 @@ def _pixel_setup(frags: Fragments):
     height, width = frags.shape
     mask = frags.mask
     tri = jnp.maximum(frags.triangle_id, 0)
-    h = window_homogeneous(frags.clip, width, height)[..., (0, 1, 3)]  # (V, 3): x, y, w
+    h = xyw(window_homogeneous(frags.clip, width, height))  # (V, 3): x, y, w
     hv = h[frags.faces[tri]]  # (H, W, 3 vertices, 3)
     x, y = pixel_centers(height, width, h.dtype)
     # translate so the pixel centre is the origin, and normalise the scale: b = E / sum(E)
@@ -141,10 +141,12 @@ def _pixel_setup(frags: Fragments):
     scale = jnp.where(mask & (scale > 0), scale, 1.0)[..., None]
     scale = jax.lax.stop_gradient(scale)
     hx, hy, hw = hx / scale, hy / scale, hw / scale
-    j, k = (1, 2, 0), (2, 0, 1)
-    e = hx[..., j] * hy[..., k] - hy[..., j] * hx[..., k]
-    a = hy[..., j] * hw[..., k] - hw[..., j] * hy[..., k]
-    b = hw[..., j] * hx[..., k] - hx[..., j] * hw[..., k]
+    # edge i joins vertices j = i + 1 and k = i + 2
+    hxj, hyj, hwj = roll_last(hx, 1), roll_last(hy, 1), roll_last(hw, 1)
+    hxk, hyk, hwk = roll_last(hx, 2), roll_last(hy, 2), roll_last(hw, 2)
+    e = hxj * hyk - hyj * hxk
+    a = hyj * hwk - hwj * hyk
+    b = hwj * hxk - hxj * hwk
     return e, a, b, mask
 
 
@@ -277,7 +279,9 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
 
     attr = jnp.asarray(attr)
     if bary is None:
-        bary = barycentrics(frags, derivatives=derivatives)
+        # materialised once: fused into the (H, W, C) consumers below, XLA would recompute
+        # the barycentrics for every attribute channel
+        bary = jax.lax.optimization_barrier(barycentrics(frags, derivatives=derivatives))
     elif bary.mode != derivatives:
         raise ValueError(f"interpolate: `bary` was computed for derivatives={bary.mode!r}, "
                          f"not {derivatives!r}")

@@ -22,6 +22,8 @@ __all__ = [
     "sum_last",
     "dot",
     "cross",
+    "roll_last",
+    "xyw",
     "eps",
     "tiny",
     "safe_div",
@@ -55,6 +57,19 @@ def dot(a: ArrayLike, b: ArrayLike, keepdims: bool = False) -> Array:
         a = a.reshape((1,) * (n - a.ndim) + a.shape)
         b = b.reshape((1,) * (n - b.ndim) + b.shape)
     return sum_last(a * b, keepdims=keepdims)
+
+
+def roll_last(x: ArrayLike, shift: int) -> Array:
+    """``x[..., (i + shift) % n]`` for a short last axis, as slices (tuple indexing is a gather)."""
+    x = jnp.asarray(x)
+    k = shift % x.shape[-1]
+    return x if k == 0 else jnp.concatenate([x[..., k:], x[..., :k]], -1)
+
+
+def xyw(h: ArrayLike) -> Array:
+    """The x, y and w components of homogeneous ``(..., 4)`` points, as slices."""
+    h = jnp.asarray(h)
+    return jnp.concatenate([h[..., 0:2], h[..., 3:4]], -1)
 
 
 def cross(a: ArrayLike, b: ArrayLike) -> Array:

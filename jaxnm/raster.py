@@ -51,7 +51,7 @@ import numpy as np
 from jax import Array
 
 from .numerics import cross as _cross
-from .numerics import dot
+from .numerics import dot, roll_last, xyw
 
 __all__ = ["Fragments", "rasterize", "window_homogeneous", "TIE_RULE"]
 
@@ -184,7 +184,7 @@ def _triangle_setup(h: Array, faces: Array, width: int, height: int, block: int,
     the slot count per triangle (0 for triangles that cannot cover a pixel).
     """
     tri = h[faces]  # (F, 3, 4)
-    hxyw = tri[..., (0, 1, 3)]
+    hxyw = xyw(tri)
     det = dot(hxyw[:, 0], _cross(hxyw[:, 1], hxyw[:, 2]))
     sigma = jnp.sign(det)
 
@@ -260,10 +260,11 @@ def _depth_plane(th: Array, x0: Array, y0: Array):
     hx = th[..., 0] - x0[:, None] * th[..., 3]
     hy = th[..., 1] - y0[:, None] * th[..., 3]
     hw, hz = th[..., 3], th[..., 2]
-    j, k = (1, 2, 0), (2, 0, 1)
-    c = hx[:, j] * hy[:, k] - hy[:, j] * hx[:, k]
-    a = hy[:, j] * hw[:, k] - hw[:, j] * hy[:, k]
-    b = hw[:, j] * hx[:, k] - hx[:, j] * hw[:, k]
+    hxj, hyj, hwj = roll_last(hx, 1), roll_last(hy, 1), roll_last(hw, 1)
+    hxk, hyk, hwk = roll_last(hx, 2), roll_last(hy, 2), roll_last(hw, 2)
+    c = hxj * hyk - hyj * hxk
+    a = hyj * hwk - hwj * hyk
+    b = hwj * hxk - hxj * hwk
     det = dot(c, hw)  # sum_i E_i(p) w_i = det M at any p
     det = jnp.where(det == 0, 1.0, det)
     return dot(c, hz) / det, dot(a, hz) / det, dot(b, hz) / det
@@ -292,10 +293,11 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, bx0, by0, nbx, counts, start
 
     th = tri_h[t]  # (S, 3, 4)
     sg = sigma[t][:, None]
-    hxyw = th[..., (0, 1, 3)]
+    hxyw = xyw(th)
     a, b, c = [], [], []
     for i in range(3):
-        ai, bi, ci = _edge_coefficients(hxyw[:, (i + 1) % 3], hxyw[:, (i + 2) % 3], x0, y0)
+        ai, bi, ci = _edge_coefficients(hxyw[:, (i + 1) % 3, :], hxyw[:, (i + 2) % 3, :], x0,
+                                        y0)
         a.append(ai)
         b.append(bi)
         c.append(ci)
@@ -397,8 +399,7 @@ def _pixel_depth(h: Array, faces: Array, tid: Array) -> Array:
     y = (height - 1 - jnp.arange(height, dtype=h.dtype))[:, None, None] + 0.5
     hx = hv[..., 0] - x * hv[..., 3]
     hy = hv[..., 1] - y * hv[..., 3]
-    j, k = (1, 2, 0), (2, 0, 1)
-    e = hx[..., j] * hy[..., k] - hy[..., j] * hx[..., k]
+    e = roll_last(hx, 1) * roll_last(hy, 2) - roll_last(hy, 1) * roll_last(hx, 2)
     num = dot(e, hv[..., 2])
     den = dot(e, hv[..., 3])
     return num / jnp.where(den == 0, 1.0, den)
