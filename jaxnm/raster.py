@@ -270,7 +270,7 @@ def _depth_plane(th: Array, x0: Array, y0: Array):
     return dot(c, hz) / det, dot(a, hz) / det, dot(b, hz) / det
 
 
-def _slot_fragments(slot0, tri_h, tri_depth, sigma, bx0, by0, nbx, counts, starts, total, *,
+def _slot_fragments(slot0, tri_h, tri_depth, sigma, bx0, by0, nbx, starts, ends, total, *,
                     width, height, block, slots):
     """Evaluate ``slots`` consecutive (triangle, block) slots starting at ``slot0``.
 
@@ -281,7 +281,6 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, bx0, by0, nbx, counts, start
     """
     s = slot0 + jnp.arange(slots, dtype=jnp.int32)
     live = s < total
-    ends = starts + counts
     t = jnp.searchsorted(ends, s, side="right").astype(jnp.int32)
     t = jnp.minimum(t, tri_h.shape[0] - 1)
     local = s - starts[t]
@@ -351,8 +350,8 @@ def _fragment_source(clip, faces, *, width, height, cull_back, block, slots, sub
     total = ends[-1]
     fragments = functools.partial(
         _slot_fragments, tri_h=tri_h, tri_depth=h_unsnapped[faces], sigma=sigma, bx0=bx0,
-        by0=by0, nbx=nbx, counts=counts,
-        starts=starts, total=total, width=width, height=height, block=block, slots=slots,
+        by0=by0, nbx=nbx, starts=starts, ends=ends, total=total, width=width, height=height,
+        block=block, slots=slots,
     )
     return fragments, total, sigma, h_unsnapped
 
@@ -360,33 +359,83 @@ def _fragment_source(clip, faces, *, width, height, cull_back, block, slots, sub
 _STATIC = ("width", "height", "cull_back", "block", "slots", "subpixel_bits")
 
 
-@functools.partial(jax.jit, static_argnames=_STATIC)
-def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits):
-    fragments, total, sigma, h_unsnapped = _fragment_source(
+def _depth_test(clip, faces, zbuf, ids, face_offset, *, width, height, cull_back, block, slots,
+                subpixel_bits):
+    """Depth-test ``faces`` (their ids offset by ``face_offset``) into ``zbuf``/``ids``."""
+    fragments, total, _, _ = _fragment_source(
         clip, faces, width=width, height=height, cull_back=cull_back, block=block, slots=slots,
         subpixel_bits=subpixel_bits)
     n_pix = height * width
 
     def round_(carry):
         # one round of slots: its own depth test, then merged into the running buffers
+        # (nearer wins; on equal depth the lower triangle index, as GL_LESS in draw order)
         q, zbuf, ids = carry
         flat, depth, t = fragments(q * slots)
         zr = jnp.full((n_pix,), jnp.inf, depth.dtype).at[flat].min(depth, mode="drop")
         win = depth == zr[jnp.minimum(flat, n_pix - 1)]
         idr = jnp.full((n_pix,), _NO_TRIANGLE, jnp.int32).at[jnp.where(win, flat, n_pix)].min(
-            t, mode="drop")
+            t + face_offset, mode="drop")
         ids = jnp.where(zr < zbuf, idr, jnp.where(zr == zbuf, jnp.minimum(ids, idr), ids))
         return q + 1, jnp.minimum(zbuf, zr), ids
 
+    _, zbuf, ids = jax.lax.while_loop(lambda c: c[0] * slots < total, round_,
+                                      (jnp.int32(0), zbuf, ids))
+    return zbuf, ids
+
+
+def _slot_total_fits(clip, faces, *, width, height, cull_back, block, subpixel_bits):
+    """Whether the frame's (triangle, block) count fits the int32 slot indices."""
+    h = _snap_vertices(window_homogeneous(jax.lax.stop_gradient(clip), width, height),
+                       subpixel_bits)
+    _, _, _, _, nbx, nby = _triangle_setup(h, faces, width, height, block, cull_back)
+    return jnp.sum((nbx * nby).astype(jnp.float32)) < 2.0**31 - 2.0**26  # margin for rounding
+
+
+@functools.partial(jax.jit, static_argnames=_STATIC + ("chunk", "force_chunks"))
+def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits, chunk,
+               force_chunks=False):
+    kw = dict(width=width, height=height, cull_back=cull_back, block=block, slots=slots,
+              subpixel_bits=subpixel_bits)
+    n_pix = height * width
     zbuf0 = jnp.full((n_pix,), jnp.inf, clip.dtype)
     ids0 = jnp.full((n_pix,), _NO_TRIANGLE, jnp.int32)
-    _, _, ids = jax.lax.while_loop(lambda c: c[0] * slots < total, round_,
-                                   (jnp.int32(0), zbuf0, ids0))
+    n_faces = faces.shape[0]
+
+    def all_at_once():
+        return _depth_test(clip, faces, zbuf0, ids0, 0, **kw)[1]
+
+    def in_chunks():
+        # A frame with more than 2**31 (triangle, block) pairs (only possible with huge
+        # triangles by the tens of thousands): depth-test the faces a chunk at a time.
+        n_chunks = -(-n_faces // chunk)
+        padded = jnp.concatenate([faces, jnp.zeros((n_chunks * chunk - n_faces, 3),
+                                                   faces.dtype)])  # degenerate: no slots
+
+        def body(i, carry):
+            f = jax.lax.dynamic_slice_in_dim(padded, i * chunk, chunk)
+            return _depth_test(clip, f, *carry, i * chunk, **kw)
+
+        return jax.lax.fori_loop(0, n_chunks, body, (zbuf0, ids0))[1]
+
+    if force_chunks:  # for tests: exercise the overflow path on a small mesh
+        ids = in_chunks()
+    elif n_faces <= chunk:
+        ids = all_at_once()
+    else:
+        fits = _slot_total_fits(clip, faces, width=width, height=height, cull_back=cull_back,
+                                block=block, subpixel_bits=subpixel_bits)
+        ids = jax.lax.cond(fits, all_at_once, in_chunks)
 
     shape = (height, width)
     covered = (ids != _NO_TRIANGLE).reshape(shape)
     tid = jnp.where(covered, ids.reshape(shape), -1)
-    front = covered & (sigma[jnp.maximum(tid, 0)] > 0)
+    h_unsnapped = window_homogeneous(jax.lax.stop_gradient(clip), width, height)
+    # facing from the coverage (snapped) vertices, as the rasterizer saw the triangle: per
+    # triangle (F,), then gathered (per-pixel work here would fuse badly with the depth below)
+    tri = xyw(_snap_vertices(h_unsnapped, subpixel_bits)[faces])  # (F, 3, 3)
+    det = dot(tri[:, 0], _cross(tri[:, 1], tri[:, 2]))
+    front = covered & (det[jnp.maximum(tid, 0)] > 0)
     depth = jnp.where(covered, _pixel_depth(h_unsnapped, faces, tid), 1.0)
     return tid, depth, front
 
@@ -484,10 +533,7 @@ def rasterize(clip: Array, faces: Array, *, width: int, height: int, cull_back: 
         tid = jnp.full((height, width), -1, jnp.int32)
         return Fragments(tid, jnp.ones((height, width), clip.dtype),
                          jnp.zeros((height, width), bool), clip, faces)
-    if num_faces <= chunk:
-        tid, depth, front = _rasterize(clip, faces, **kw)
-    else:
-        tid, depth, front = _rasterize_chunked(clip, faces, chunk=chunk, **kw)
+    tid, depth, front = _rasterize(clip, faces, chunk=chunk, **kw)
     return Fragments(tid, depth, front, clip, faces)
 
 
@@ -528,19 +574,3 @@ def _prepare_args(clip, faces, width, height, cull_back, subpixel_bits, block, s
     kw = dict(width=width, height=height, cull_back=cull_back, block=block, slots=slots,
               subpixel_bits=subpixel_bits)
     return clip, faces, kw
-
-
-def _rasterize_chunked(clip, faces, *, chunk, **kw):
-    """Visibility of a mesh too large for one int32 slot count: merge per-chunk results."""
-    tid = depth = front = None
-    for start in range(0, faces.shape[0], chunk):
-        t, d, f = _rasterize(clip, faces[start:start + chunk], **kw)
-        t = jnp.where(t >= 0, t + start, -1)
-        if tid is None:
-            tid, depth, front = t, d, f
-        else:
-            # nearer wins; on equal depth the earlier chunk (lower index) wins
-            take = (t >= 0) & ((tid < 0) | (d < depth))
-            tid, depth, front = (jnp.where(take, t, tid), jnp.where(take, d, depth),
-                                 jnp.where(take, f, front))
-    return tid, depth, front

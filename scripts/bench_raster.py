@@ -5,7 +5,7 @@ Prints one JSON object per (mesh, resolution) line and a final JSON summary:
     python scripts/bench_raster.py [--repeats 15] [--sizes 512 1024] [--tris 4k 20k 200k]
 
 Reported per case: median and min wall time (ms) of ``rasterize`` (visibility:
-triangle ids + depth), of the G-buffer (rasterize + interpolate p, uv, N with
+triangle ids + depth; also with back-face culling), of the G-buffer (rasterize + interpolate p, uv, N with
 fine derivatives), Mpix/s, compile time (s), XLA temp buffer size of the
 visibility program (MB), and the process's peak RSS (MB) after the case.
 """
@@ -58,6 +58,9 @@ def bench_case(tris: str, size: int, repeats: int) -> dict:
     def vis():
         return jaxnm.rasterize(clip, faces, **kw).triangle_id
 
+    def vis_culled():
+        return jaxnm.rasterize(clip, faces, cull_back=True, **kw).triangle_id
+
     attrs = {"p": mesh.positions, "uv": mesh.uv, "n": mesh.normals}
 
     @jax.jit
@@ -66,6 +69,7 @@ def bench_case(tris: str, size: int, repeats: int) -> dict:
         return jaxnm.interpolate(attrs, fr, derivatives="fine")
 
     vis_med, vis_min = _time(vis, repeats)
+    cull_med, _ = _time(vis_culled, repeats)
     gb_med, gb_min = _time(lambda: gbuffer(clip, faces), repeats)
     fr = jaxnm.rasterize(clip, faces, **kw)
     return {
@@ -75,6 +79,7 @@ def bench_case(tris: str, size: int, repeats: int) -> dict:
         "covered_fraction": round(float(jnp.mean(fr.mask)), 3),
         "visibility_ms_median": round(vis_med, 2),
         "visibility_ms_min": round(vis_min, 2),
+        "visibility_cull_back_ms_median": round(cull_med, 2),
         "gbuffer_ms_median": round(gb_med, 2),
         "gbuffer_ms_min": round(gb_min, 2),
         "visibility_mpix_per_s": round(size * size / vis_med / 1e3, 1),

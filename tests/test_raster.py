@@ -186,10 +186,12 @@ def test_many_rounds_and_chunks_give_the_same_image():
     assert np.array_equal(np.asarray(a.triangle_id), np.asarray(b.triangle_id))
     from jaxnm import raster
 
-    c_tid, _, _ = raster._rasterize_chunked(jnp.asarray(clip), jnp.asarray(faces, jnp.int32),
-                                            chunk=50, width=40, height=40, cull_back=False,
-                                            block=4, slots=64, subpixel_bits=8)
+    # the int32-overflow fallback (faces depth-tested a chunk at a time), forced
+    c_tid, c_depth, c_front = raster._rasterize(
+        jnp.asarray(clip), jnp.asarray(faces, jnp.int32), chunk=50, force_chunks=True, width=40,
+        height=40, cull_back=False, block=4, slots=64, subpixel_bits=8)
     assert np.array_equal(np.asarray(a.triangle_id), np.asarray(c_tid))
+    assert np.array_equal(np.asarray(a.front_facing), np.asarray(c_front))
 
 
 @pytest.mark.parametrize(
