@@ -50,7 +50,8 @@ def bench_case(tris: str, size: int, repeats: int) -> dict:
     _, _, rkw = raster._prepare_args(clip, faces, size, size, False, raster.SUBPIXEL_BITS, 4,
                                      None)
     t0 = time.perf_counter()
-    compiled = raster._rasterize.lower(clip, faces, **rkw).compile()
+    chunk = raster._max_triangles_per_chunk(size, size, 4)
+    compiled = raster._rasterize.lower(clip, faces, chunk=chunk, **rkw).compile()
     compile_s = time.perf_counter() - t0
     mem = compiled.memory_analysis()
     temp_mb = getattr(mem, "temp_size_in_bytes", 0) / 2**20 if mem is not None else None
