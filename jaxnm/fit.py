@@ -55,7 +55,7 @@ from . import textures as _tex
 from .camera import Camera
 from .frames import perturb_normal
 from .geometry import Mesh
-from .numerics import angle_between, safe_normalize
+from .numerics import angle_between, materialize, safe_normalize
 from .render import GBuffer, RenderOptions, build_gbuffer, check_mesh
 from .scene import NormalMapOptions, Scene
 from .shading import DirectionalLight, Lights, Material, shade
@@ -348,7 +348,8 @@ def _pixel_model_jvp(shading, primals, tangents):
 def _shade_view(gb: GBuffer, mips, lights: Lights, material: Material, opts: RenderOptions,
                 strength) -> Array:
     """(T, H, W, 3): view ``gb`` under each stacked light, with the map's mip chain ``mips``."""
-    m = _tex.apply_plan(gb.plan, mips)
+    # materialised: fused into the shading, the 8-tap gather would be recomputed per use
+    m = materialize(_tex.apply_plan(gb.plan, mips))
     return _pixel_model(m, gb, lights, material, opts.shading, jnp.asarray(strength, m.dtype))
 
 

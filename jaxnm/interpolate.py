@@ -55,7 +55,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from .numerics import roll_last, safe_div, sum_last, xyw
+from .numerics import materialize, roll_last, safe_div, sum_last, xyw
 from .raster import Fragments, window_homogeneous
 
 __all__ = [
@@ -281,7 +281,7 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
     if bary is None:
         # materialised once: fused into the (H, W, C) consumers below, XLA would recompute
         # the barycentrics for every attribute channel
-        bary = jax.lax.optimization_barrier(barycentrics(frags, derivatives=derivatives))
+        bary = materialize(barycentrics(frags, derivatives=derivatives))
     elif bary.mode != derivatives:
         raise ValueError(f"interpolate: `bary` was computed for derivatives={bary.mode!r}, "
                          f"not {derivatives!r}")

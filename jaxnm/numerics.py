@@ -14,6 +14,7 @@ unselected branch is multiplied by zero, and ``0 * inf`` is NaN.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
@@ -22,6 +23,7 @@ __all__ = [
     "sum_last",
     "dot",
     "cross",
+    "materialize",
     "roll_last",
     "xyw",
     "eps",
@@ -78,6 +80,39 @@ def cross(a: ArrayLike, b: ArrayLike) -> Array:
     a0, a1, a2 = a[..., 0:1], a[..., 1:2], a[..., 2:3]
     b0, b1, b2 = b[..., 0:1], b[..., 1:2], b[..., 2:3]
     return jnp.concatenate([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], -1)
+
+
+@jax.custom_jvp
+def materialize(x):
+    """``x`` (an array or a pytree of arrays), computed once into its own buffer.
+
+    A fusion barrier that XLA keeps: XLA CPU may fuse a producer (a texture
+    gather, barycentric setup) into *every* consumer and recompute it per use,
+    which can cost 5-10x; `jax.lax.optimization_barrier` is dropped on CPU. The
+    value goes through a while loop whose trip count (0 or 1; the body is an
+    identity) depends on the data, so the compiler can neither delete the loop
+    nor fuse across it. An identity for values and (forward and reverse)
+    derivatives; use it where profiling shows recomputation.
+    """
+    leaves = jax.tree_util.tree_leaves(x)
+    probe = leaves[0].reshape(-1)[0]
+    one = jax.lax.bitcast_convert_type(probe.astype(jnp.float32), jnp.int32) & 1
+
+    def body(c):
+        # "+ 0 * counter" keeps x loop-variant (an untouched value would be hoisted out and
+        # the loop deleted); XLA does not fold float "0 * y", which could be NaN
+        k, v = c
+        return k + 1, jax.tree_util.tree_map(
+            lambda a: a + 0.0 * k.astype(a.dtype) if jnp.issubdtype(a.dtype, jnp.floating)
+            else a, v)
+
+    return jax.lax.while_loop(lambda c: c[0] < one, body, (jnp.int32(0), x))[1]
+
+
+@materialize.defjvp
+def _materialize_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    return materialize(x), dx
 
 
 def eps(dtype) -> float:

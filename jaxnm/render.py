@@ -31,7 +31,7 @@ from . import textures as _tex
 from .camera import Camera, to_clip
 from .geometry import Mesh
 from .interpolate import Attribute, interpolate
-from .numerics import safe_normalize
+from .numerics import materialize, safe_normalize
 from .raster import rasterize
 from .scene import DERIVATIVES, FRAMES, NormalMapOptions, Scene
 from .shading import Lights, Material, shade
@@ -236,7 +236,7 @@ def perturbed_normal(gb: GBuffer, normal_map: Array, opts: RenderOptions,
     nm = opts.normal_map
     mips = (_tex.build_mipmaps(normal_map, levels=opts.levels) if opts.levels > 1
             else (normal_map,))
-    raw = _tex.apply_plan(gb.plan, mips)
+    raw = materialize(_tex.apply_plan(gb.plan, mips))  # else refused into each use
     if nm.space == "derivative":  # surface-gradient bump mapping (Mikkelsen)
         s = nm.strength if strength is None else strength
         return _maps.derivative_map_normal(gb.frame.N, gb.view.ddx, gb.view.ddy, gb.uv.ddx,
