@@ -517,18 +517,28 @@ def _read_array_file(p: Path, ext: str) -> np.ndarray:
 
 
 def _read_exr(p: Path) -> np.ndarray:
+    """An OpenEXR image as float32 (H, W, C), via the OpenEXR bindings (RGBA, RGB or Y)."""
+    import OpenEXR
+
     src = str(p)
-    if importlib.util.find_spec("cv2") is None:
-        raise ImportError(
-            f"{src}: reading OpenEXR needs an imageio plugin that can read it, and none is "
-            f"installed. Install OpenCV (`pip install opencv-python-headless`) and set "
-            f"OPENCV_IO_ENABLE_OPENEXR=1 in the environment, or convert the image to .npy "
-            f"or 16-bit PNG.")
-    try:  # flags=-1 is cv2.IMREAD_UNCHANGED: keep float32 and the alpha channel
-        return iio.imread(p, plugin="opencv", flags=-1)
-    except Exception as e:  # anything cv2 or the plugin raises
-        raise ValueError(f"{src}: OpenCV cannot read this EXR file ({type(e).__name__}: {e}); "
-                         f"is OPENCV_IO_ENABLE_OPENEXR=1 set?") from None
+    try:
+        with OpenEXR.File(src) as f:
+            channels = f.channels()
+            for name in ("RGBA", "RGB", "Y"):
+                if name in channels:
+                    arr = np.asarray(channels[name].pixels)
+                    break
+            else:
+                names = sorted(channels)
+                if len(names) != 1:
+                    raise ValueError(f"{src}: expected RGB(A) or Y channels, found {names}")
+                arr = np.asarray(channels[names[0]].pixels)
+    except ValueError:
+        raise
+    except Exception as e:  # OpenEXR raises RuntimeError/OSError on bad files
+        raise ValueError(f"{src}: not a readable OpenEXR file ({type(e).__name__}: {e})") from None
+    arr = arr.astype(np.float32)
+    return arr[..., None] if arr.ndim == 2 else arr
 
 
 def _image_to_float(raw: np.ndarray, src: str) -> tuple[np.ndarray, int]:

@@ -178,3 +178,40 @@ def test_fit_file_errors_name_the_file(tmp_path):
     cfg.write_text(json.dumps({"targets": []}))
     with pytest.raises(ValueError, match="fit.json.*scene"):
         fit_cli.load_fit(cfg)
+
+
+def test_coarse_to_fine_and_smoothness(small):
+    """Coarse-to-fine solves 16x16 then 32x32 (upsampling the start); smoothness pulls
+    towards flat slopes. Both still recover the map roughly and keep unit normals."""
+    problem, gt, _, prep, seen = small
+    res = F.fit_normal_map(problem, F.FitOptions(max_steps=8, coarse_to_fine=1), prepared=prep,
+                           progress=False)
+    sizes = [tuple(h["size"]) for h in res.history]
+    assert sizes[0] == (16, 16) and sizes[-1] == (32, 32)
+    assert res.normals.shape == (32, 32, 3)
+    assert F.error_report(res.normals, gt, seen)["mean_deg"] < 5.0
+    smooth = F.fit_normal_map(problem, F.FitOptions(max_steps=8, smoothness=10.0),
+                              prepared=prep, progress=False)
+    rough = F.fit_normal_map(problem, F.FitOptions(max_steps=8), prepared=prep, progress=False)
+    tv = lambda s: np.abs(np.diff(s, axis=0)).mean() + np.abs(np.diff(s, axis=1)).mean()  # noqa
+    assert tv(smooth.slopes) < 0.8 * tv(rough.slopes)
+
+
+def test_ctrl_c_stops_after_the_current_step_and_keeps_the_best(small):
+    import os
+    import signal
+    import threading
+
+    problem, _, _, prep, _ = small
+    # warm up the compiled step so that the interrupt lands mid-run
+    F.fit_normal_map(problem, F.FitOptions(max_steps=1), prepared=prep, progress=False)
+    timer = threading.Timer(1.0, lambda: os.kill(os.getpid(), signal.SIGINT))
+    timer.start()
+    try:
+        res = F.fit_normal_map(problem, F.FitOptions(max_steps=100000), prepared=prep,
+                               progress=False)
+    finally:
+        timer.cancel()
+    assert res.stopped == "interrupted"
+    assert np.isfinite(res.best_loss) and res.best_loss <= min(h["loss"] for h in res.history)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
