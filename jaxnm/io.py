@@ -20,7 +20,6 @@ Conventions:
 from __future__ import annotations
 
 import copy
-import importlib.util
 import io
 import json
 import os

@@ -5,8 +5,8 @@ Prints one JSON object per (mesh, resolution) line and a final JSON summary:
     python scripts/bench_raster.py [--repeats 15] [--sizes 512 1024] [--tris 4k 20k 200k]
 
 Reported per case: median and min wall time (ms) of ``rasterize`` (visibility:
-triangle ids + depth; also with back-face culling), of the G-buffer (rasterize + interpolate p, uv, N with
-fine derivatives), Mpix/s, compile time (s), XLA temp buffer size of the
+triangle ids + depth; also with back-face culling), of the G-buffer (rasterize +
+interpolate p, uv, N with fine derivatives), Mpix/s, compile time (s), XLA temp buffer size of the
 visibility program (MB), and the process's peak RSS (MB) after the case.
 """
 
