@@ -42,6 +42,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from .interpolate import Attribute
+from .interpolate import triangle_corners as _interp_corners
 from .numerics import cross as _cross
 from .numerics import dot as _ndot
 from .numerics import eps, safe_norm, safe_normalize, safe_rsqrt, tiny
@@ -469,17 +470,7 @@ def triangle_corners(attr: Array, frags: Fragments) -> Array:
     - `attr`: per-vertex ``(V, C)`` or per-face-corner ``(F, 3, C)``.
     - `frags`: from `jaxnm.rasterize`.
     """
-    attr = jnp.asarray(attr)
-    tri = jnp.maximum(frags.triangle_id, 0)
-    num_faces = frags.faces.shape[0]
-    if attr.ndim == 3 and attr.shape[:2] == (num_faces, 3):
-        corners = attr[tri]
-    elif attr.ndim == 2 and attr.shape[0] == frags.clip.shape[0]:
-        corners = attr[frags.faces[tri]]
-    else:
-        raise ValueError("triangle_corners: `attr` must be per-vertex (V, C) with V = "
-                         f"{frags.clip.shape[0]} or per face corner (F, 3, C) with F = "
-                         f"{num_faces}; got shape {attr.shape}")
+    corners = _interp_corners(jnp.asarray(attr), frags)
     return jnp.where(frags.mask[..., None, None], corners, 0.0)
 
 

@@ -66,6 +66,7 @@ __all__ = [
     "barycentrics",
     "interpolate",
     "pixel_centers",
+    "triangle_corners",
 ]
 
 DERIVATIVE_MODES = ("fine", "coarse", "analytic", "gbuffer", "none")
@@ -201,8 +202,12 @@ def barycentrics(frags: Fragments, *, derivatives: str = "fine") -> Barycentrics
     return Barycentrics(value, ddx, ddy, derivatives)
 
 
-def _corner_values(attr: Array, frags: Fragments) -> Array:
-    """Per-pixel attribute values at the triangle's three corners, (H, W, 3, C)."""
+def triangle_corners(attr: Array, frags: Fragments) -> Array:
+    """Each pixel's triangle's corner values, (H, W, 3, C) (garbage-free but unmasked on
+    background pixels, which read triangle 0).
+
+    ``attr``: per-vertex ``(V, C)`` or per-face-corner ``(F, 3, C)``.
+    """
     tri = jnp.maximum(frags.triangle_id, 0)
     num_faces = frags.faces.shape[0]
     if attr.ndim == 3 and attr.shape[:2] == (num_faces, 3):  # face-varying (F, 3, C)
@@ -285,7 +290,7 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
     elif bary.mode != derivatives:
         raise ValueError(f"interpolate: `bary` was computed for derivatives={bary.mode!r}, "
                          f"not {derivatives!r}")
-    corners = _corner_values(attr, frags)  # (H, W, 3, C)
+    corners = triangle_corners(attr, frags)  # (H, W, 3, C)
     rel = corners[..., 1:, :] - corners[..., :1, :]  # (H, W, 2, C)
     mask = frags.mask[..., None]
 

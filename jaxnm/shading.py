@@ -382,17 +382,6 @@ def shade(model: str, N: ArrayLike, p: ArrayLike, eye: ArrayLike, lights: AnyLig
 # --------------------------------------------------------------------------------------
 
 
-def _srgb_encode(x: Array) -> Array:
-    """Exact piecewise sRGB OETF (IEC 61966-2-1) of linear ``x`` in [0, 1].
-
-    ``12.92 x`` for ``x <= 0.0031308``, else ``1.055 x^(1/2.4) - 0.055``; the
-    power branch is fed a harmless input below the threshold (double where).
-    """
-    lin = x <= 0.0031308
-    xp = jnp.where(lin, jnp.ones_like(x), x)
-    return jnp.where(lin, 12.92 * x, 1.055 * jnp.power(xp, 1.0 / 2.4) - 0.055)
-
-
 def to_display(linear: ArrayLike, *, exposure: ArrayLike = 1.0) -> Array:
     """Linear radiance to sRGB-encoded display values in [0, 1] (for PNG output).
 
@@ -409,4 +398,6 @@ def to_display(linear: ArrayLike, *, exposure: ArrayLike = 1.0) -> Array:
         linear = linear.astype(jnp.float32)
     x = linear * jnp.asarray(exposure, linear.dtype)
     x = jnp.where(x < 0.0, 0.0, jnp.where(x > 1.0, 1.0, x))  # clamp; gradient 1 at 0 and 1
-    return _srgb_encode(x)
+    from .textures import linear_to_srgb  # (textures imports nothing from here)
+
+    return linear_to_srgb(x)
