@@ -300,8 +300,10 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
 
     value = jnp.where(mask, corners[..., 0, :] + combine(bary.value), 0.0)
     if derivatives == "none":
-        return Attribute(value)
+        return materialize(Attribute(value))
     if derivatives == "gbuffer":
-        return Attribute(value, *_gbuffer_derivatives(value, frags.mask))
-    return Attribute(value, jnp.where(mask, combine(bary.ddx), 0.0),
-                     jnp.where(mask, combine(bary.ddy), 0.0))
+        return materialize(Attribute(value, *_gbuffer_derivatives(value, frags.mask)))
+    # materialised: consumers (frames, shading) read each channel many times, and a fused
+    # consumer would redo the corner gathers for every read
+    return materialize(Attribute(value, jnp.where(mask, combine(bary.ddx), 0.0),
+                                 jnp.where(mask, combine(bary.ddy), 0.0)))

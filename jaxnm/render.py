@@ -185,10 +185,10 @@ def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOpti
             gb["uv"] = out["uv"]
     if need_n:
         n = interpolate(mesh.normals, frags, derivatives="none").value
-        gb["normal"] = safe_normalize(n)
+        gb["normal"] = materialize(safe_normalize(n))
     if need_frame:
-        gb["frame"] = _frame(opts if need_tb else dataclasses.replace(opts, frame="none"), mesh,
-                             frags, gb)
+        gb["frame"] = materialize(_frame(opts if need_tb else dataclasses.replace(opts, frame="none"),
+                                         mesh, frags, gb))
     if has_map:
         nm = opts.normal_map
         gb["plan"] = _tex.plan_sample(gb["uv"], size_hw=opts.normal_map_shape, levels=opts.levels,
