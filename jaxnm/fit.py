@@ -6,10 +6,12 @@ find the normal map whose rendering matches the targets.
 **Model.** The geometry is fixed, so each view's G-buffer — visibility, the
 perspective-correct position, uv, normal, their screen derivatives, the
 cotangent frame and the normal map's sample plan (texel indices, filter
-weights, mip level of detail) — is computed **once** (`prepare`). A step then
-only runs the texel-dependent stages: build the mip chain of the current map,
-one gather and weighted sum per pixel and view, perturb, shade every light
-(``vmap``), subtract the target.
+weights, mip level of detail) — is computed **once** (`prepare`), and kept
+only for the pixels the mesh covers, as a flat list. A step then only runs
+the texel-dependent stages on those pixels: build the mip chain of the current
+map, one gather and weighted sum per pixel and view (4 taps where the fixed
+level of detail reads a single mip level, 8 elsewhere), perturb, shade every
+light (``vmap``), subtract the target.
 
 **Parameterisation.** Each texel holds two slopes ``(s_x, s_y)``; its normal is
 ``normalize(s_x, s_y, 1)``: always a unit vector with positive z, with no
@@ -160,17 +162,43 @@ class FitOptions:
 class Prepared:
     """Everything a fit step needs, computed once (see `prepare`).
 
-    Per view ``v``: ``gbuffers[v]``; its targets are stacked: ``images[v]``
-    (T_v, H, W, 3), ``weights[v]`` (T_v, H, W, 1) (0 outside the mask or the
-    mesh), ``lights[v]`` (stacked over T_v).
+    Only the pixels a view's mesh covers take part, stored as a flat list
+    (``K_v`` pixels): ``pixels[v]`` (K_v,) are their row-major indices into
+    the (H, W) image. Per view ``v``: ``gbuffers[v]`` holds the G-buffer of
+    those pixels (every field (K_v, ...)); its targets are stacked:
+    ``images[v]`` (T_v, K_v, 3), ``weights[v]`` (T_v, K_v, 1) (0 outside a
+    target's mask), ``lights[v]`` (stacked over T_v). ``splits[v]`` (static):
+    the pixels are ordered so that the first ``splits[v]`` read a single mip
+    level (4 filter taps, e.g. magnified texels) and the rest two (8 taps);
+    the step gathers each group with only the taps it needs.
+
+    `target_images` and `target_mask` give image-layout views of the targets.
     """
 
     gbuffers: tuple[GBuffer, ...]
+    pixels: tuple[Array, ...]
     images: tuple[Array, ...]
     weights: tuple[Array, ...]
     lights: tuple[Lights, ...]
     material: Material
     options: tuple[RenderOptions, ...] = dataclasses.field(metadata=dict(static=True))
+    splits: tuple[int, ...] = dataclasses.field(metadata=dict(static=True))
+
+    def to_image(self, v: int, values: Array) -> Array:
+        """Scatter per-pixel ``values`` (..., K_v, C) of view ``v`` into (..., H, W, C) (0 elsewhere)."""
+        o = self.options[v]
+        values = jnp.asarray(values)
+        out = jnp.zeros(values.shape[:-2] + (o.height * o.width, values.shape[-1]), values.dtype)
+        out = out.at[..., self.pixels[v], :].set(values)
+        return out.reshape(values.shape[:-2] + (o.height, o.width, values.shape[-1]))
+
+    def target_images(self, v: int) -> np.ndarray:
+        """(T_v, H, W, 3) linear targets of view ``v`` (0 where the mesh is not)."""
+        return np.asarray(self.to_image(v, self.images[v]))
+
+    def target_mask(self, v: int, t: int = 0) -> np.ndarray:
+        """(H, W) bool: the pixels that count for target ``t`` of view ``v``."""
+        return np.asarray(self.to_image(v, self.weights[v][t]))[..., 0] > 0
 
 
 @dataclasses.dataclass
@@ -269,7 +297,7 @@ def prepare(problem: FitProblem) -> Prepared:
     groups: dict = {}
     for t in problem.targets:
         groups.setdefault(_view_key(t), []).append(t)
-    gbs, images, weights, lights, opts_all = [], [], [], [], []
+    gbs, pixels, images, weights, lights, opts_all = [], [], [], [], [], []
     nm = dataclasses.replace(problem.sampling, encoding="signed", channels=3)
     for ts in groups.values():
         t0 = ts[0]
@@ -290,13 +318,47 @@ def prepare(problem: FitProblem) -> Prepared:
                 raise ValueError(f"{problem.source}: {t.name or 'a target'}: the mask and the "
                                  "mesh's silhouette do not overlap")
             ws.append(m[..., None].astype(np.float32))
-        gbs.append(gb)
-        images.append(jnp.asarray(np.stack([np.asarray(t.image, np.float32) for t in ts])))
-        weights.append(jnp.asarray(np.stack(ws)))
+        pix = np.flatnonzero(cover).astype(np.int32)
+        flat = lambda x: x.reshape((-1,) + x.shape[2:])[pix]  # noqa: E731
+        gbs.append(_map_pixels(gb, flat))
+        pixels.append(jnp.asarray(pix))
+        images.append(jnp.asarray(np.stack([flat(np.asarray(t.image, np.float32)) for t in ts])))
+        weights.append(jnp.asarray(np.stack([flat(w) for w in ws])))
         lights.append(_stack_lights([t.lights for t in ts]))
         opts_all.append(opts)
-    return Prepared(tuple(gbs), tuple(images), tuple(weights), tuple(lights), problem.material,
-                    tuple(opts_all))
+    prep = Prepared(tuple(gbs), tuple(pixels), tuple(images), tuple(weights), tuple(lights),
+                    problem.material, tuple(opts_all), (0,) * len(gbs))
+    return _order_by_taps(prep)
+
+
+def _map_pixels(gb: GBuffer, fn) -> GBuffer:
+    """Apply ``fn`` to every per-pixel field of ``gb`` (all but the eye position)."""
+    out = jax.tree_util.tree_map(fn, dataclasses.replace(gb, eye=None))
+    return dataclasses.replace(out, eye=gb.eye)
+
+
+def _order_by_taps(prep: Prepared) -> Prepared:
+    """Reorder each view's pixels: those whose plan reads one mip level first (see `Prepared`).
+
+    A trilinear plan always has 8 taps, but where the level of detail is
+    clamped (magnification, or the coarsest level) or integral, the second
+    level's 4 weights are exactly 0. The geometry is fixed, so this is known
+    once; gathering those pixels with 4 taps halves their gather and its
+    transpose (the scatter-add that dominates the backward pass).
+    """
+    if not prep.gbuffers or prep.gbuffers[0].plan.num_taps != 8:
+        return dataclasses.replace(prep, splits=(0,) * len(prep.gbuffers))
+    gbs, pixels, images, weights, splits = [], [], [], [], []
+    for v, gb in enumerate(prep.gbuffers):
+        one_level = np.all(np.asarray(gb.plan.weight)[:, 4:] == 0, axis=-1)
+        order = np.argsort(~one_level, kind="stable")
+        gbs.append(_map_pixels(gb, lambda x: x[order]))
+        pixels.append(prep.pixels[v][order])
+        images.append(prep.images[v][:, order])
+        weights.append(prep.weights[v][:, order])
+        splits.append(int(one_level.sum()))
+    return dataclasses.replace(prep, gbuffers=tuple(gbs), pixels=tuple(pixels),
+                               images=tuple(images), weights=tuple(weights), splits=tuple(splits))
 
 
 # --------------------------------------------------------------------------------------
@@ -310,8 +372,8 @@ def _mips(normals: Array, opts: RenderOptions) -> tuple[Array, ...]:
 
 def _pixel_colors(m: Array, gb: GBuffer, lights: Lights, material: Material, shading: str,
                   strength) -> Array:
-    """(T, H, W, 3): each stacked light's shading of the map vectors ``m`` (H, W, 3)."""
-    m = m * jnp.stack([strength, strength, jnp.ones_like(strength)]).astype(m.dtype)[None, None]
+    """(T, K, 3): each stacked light's shading of the per-pixel map vectors ``m`` (K, 3)."""
+    m = m * jnp.stack([strength, strength, jnp.ones_like(strength)]).astype(m.dtype)[None]
     n = perturb_normal(gb.frame, m)
     return jax.vmap(lambda lt: shade(shading, n, gb.position, gb.eye, lt, material,
                                      albedo=gb.albedo))(lights)
@@ -338,18 +400,28 @@ def _pixel_model_jvp(shading, primals, tangents):
     y = f(m)
     basis = jnp.eye(3, dtype=m.dtype)
     blocks = jax.vmap(lambda e: jax.jvp(f, (m,), (jnp.broadcast_to(e, m.shape),))[1])(basis)
-    # blocks: (3, T, H, W, 3) = d colour / d m_k
-    out = jnp.einsum("kthwc,hwk->thwc", blocks, dm)
+    # blocks: (3, T, K, 3) = d colour / d m_k
+    out = jnp.einsum("kt...c,...k->t...c", blocks, dm)
     rest = jax.jvp(lambda g, lt, mt, s: _pixel_colors(m, g, lt, mt, shading, s),
                    (gb, lights, material, strength), (dgb, dlights, dmaterial, dstrength))[1]
     return y, out + rest
 
 
+def _sample_split(plan: _tex.SamplePlan, mips, split: int) -> Array:
+    """`apply_plan`, with the first ``split`` pixels gathered from their 4 non-zero taps."""
+    if split == 0:
+        return _tex.apply_plan(plan, mips)
+    head = dataclasses.replace(plan, index=plan.index[:split, :4], weight=plan.weight[:split, :4])
+    tail = dataclasses.replace(plan, index=plan.index[split:], weight=plan.weight[split:])
+    return jnp.concatenate([_tex.apply_plan(head, mips), _tex.apply_plan(tail, mips)], 0)
+
+
 def _shade_view(gb: GBuffer, mips, lights: Lights, material: Material, opts: RenderOptions,
-                strength) -> Array:
-    """(T, H, W, 3): view ``gb`` under each stacked light, with the map's mip chain ``mips``."""
+                strength, split: int = 0) -> Array:
+    """(T, K, 3): the pixels of ``gb`` under each stacked light, with the map's mip chain
+    ``mips``."""
     # materialised: fused into the shading, the 8-tap gather would be recomputed per use
-    m = materialize(_tex.apply_plan(gb.plan, mips))
+    m = materialize(_sample_split(gb.plan, mips, split))
     return _pixel_model(m, gb, lights, material, opts.shading, jnp.asarray(strength, m.dtype))
 
 
@@ -364,8 +436,9 @@ def render_with_map(prep: Prepared, normals: Array, *, strength: float = 1.0,
     for v, gb in enumerate(prep.gbuffers):
         opts = prep.options[v]
         lt = prep.lights[v] if lights is None else lights[v]
-        img = _shade_view(gb, _mips(normals, opts), lt, prep.material, opts, strength)
-        out.append(jnp.where(gb.mask[None, ..., None], img, 0.0))
+        img = _shade_view(gb, _mips(normals, opts), lt, prep.material, opts, strength,
+                          prep.splits[v])
+        out.append(prep.to_image(v, img))
     return out
 
 
@@ -376,7 +449,8 @@ def _residuals(z: Array, args) -> tuple[Array, ...]:
     res = []
     for v, gb in enumerate(prep.gbuffers):
         opts = prep.options[v]
-        img = _shade_view(gb, _mips(n, opts), prep.lights[v], prep.material, opts, strength)
+        img = _shade_view(gb, _mips(n, opts), prep.lights[v], prep.material, opts, strength,
+                          prep.splits[v])
         res.append(((img - prep.images[v]) * prep.weights[v]).reshape(-1))
     if smooth is not None:
         dx = slopes[:, 1:] - slopes[:, :-1]
@@ -425,7 +499,7 @@ def texel_influence(prep: Prepared) -> Array:
 
     zeros = jnp.zeros((h, w, 1), jnp.float32)
     _, vjp = jax.vjp(sampled, zeros)
-    ones = [jnp.ones(gb.mask.shape, jnp.float32) for gb in prep.gbuffers]
+    ones = [jnp.ones(gb.mask.shape, jnp.float32) for gb in prep.gbuffers]  # (K_v,)
     return vjp(ones)[0][..., 0]
 
 
@@ -637,7 +711,7 @@ def _with_map_size(problem: FitProblem, prep: Prepared, size) -> Prepared:
                                 filter=nm.filter, wrap=nm.wrap, uv_origin=nm.uv_origin)
         gbs.append(dataclasses.replace(gb, plan=plan))
         opts_all.append(o)
-    return dataclasses.replace(prep, gbuffers=tuple(gbs), options=tuple(opts_all))
+    return _order_by_taps(dataclasses.replace(prep, gbuffers=tuple(gbs), options=tuple(opts_all)))
 
 
 def _uv_attr(gb: GBuffer):

@@ -186,7 +186,7 @@ def write_outputs(outdir: Path, problem, prep, result, extras, summary) -> None:
     k = 0
     for v, imgs in enumerate(renders):
         imgs = np.asarray(imgs)
-        targets = np.asarray(prep.images[v])
+        targets = prep.target_images(v)
         for t in range(imgs.shape[0]):
             row = np.concatenate([targets[t], imgs[t], np.abs(imgs[t] - targets[t]) * 4], 1)
             io.save_png(outdir / f"render_{k:02d}.png",
@@ -214,7 +214,7 @@ def _score_held_out(problem, held, n, gt) -> list:
         hp = dataclasses.replace(problem, targets=(t,))
         prep = F.prepare(hp)
         fitted = np.asarray(F.render_with_map(prep, jnp.asarray(n))[0][0])
-        m = np.asarray(prep.weights[0][0, ..., 0] > 0)
+        m = prep.target_mask(0)
         rec = {"name": t.name, "psnr_db_vs_target": round(F.psnr(fitted, t.image, m), 2)}
         if gt is not None:
             truth = np.asarray(F.render_with_map(prep, jnp.asarray(gt))[0][0])

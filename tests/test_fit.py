@@ -52,7 +52,7 @@ def test_held_out_light_matches_ground_truth_render(small):
     hp = F.prepare(dataclasses.replace(problem, targets=(held,)))
     fitted = np.asarray(F.render_with_map(hp, jnp.asarray(res.normals))[0][0])
     truth = np.asarray(F.render_with_map(hp, jnp.asarray(gt))[0][0])
-    m = np.asarray(hp.weights[0][0, ..., 0] > 0)
+    m = hp.target_mask(0)
     assert F.psnr(fitted, truth, m) > 35.0
 
 
@@ -71,7 +71,35 @@ def test_render_with_map_reproduces_targets(small):
     problem, gt, _, prep, _ = small
     out = F.render_with_map(prep, jnp.asarray(gt))
     for v, imgs in enumerate(out):
-        np.testing.assert_allclose(np.asarray(imgs), np.asarray(prep.images[v]), atol=2e-3)
+        np.testing.assert_allclose(np.asarray(imgs), prep.target_images(v), atol=2e-3)
+
+
+def test_prepared_keeps_only_covered_pixels_and_needed_taps(small):
+    """The compact step model: covered pixels only, 4-tap gathers where one mip level is read."""
+    problem, gt, _, prep, _ = small
+    from jaxnm import textures as T
+    for v, gb in enumerate(prep.gbuffers):
+        k = prep.pixels[v].shape[0]
+        split = prep.splits[v]
+        assert 0 < split < k  # both groups are exercised by this problem
+        # the first `split` pixels really read a single level: their other 4 weights are 0
+        assert np.all(np.asarray(gb.plan.weight)[:split, 4:] == 0)
+        assert np.any(np.asarray(gb.plan.weight)[split:, 4:] > 0, axis=-1).all()
+        mips = T.build_mipmaps(jnp.asarray(gt), levels=prep.options[v].levels)
+        full = T.apply_plan(gb.plan, mips)
+        np.testing.assert_allclose(F._sample_split(gb.plan, mips, split), full, atol=1e-6)
+        # the pixel list is the mesh's coverage; scattering back gives image layout
+        o = prep.options[v]
+        cover = np.zeros(o.height * o.width, bool)
+        cover[np.asarray(prep.pixels[v])] = True
+        assert len(np.unique(np.asarray(prep.pixels[v]))) == k
+        np.testing.assert_array_equal(prep.target_mask(v).reshape(-1), cover)
+        keys = list(dict.fromkeys(F._view_key(t) for t in problem.targets))
+        mine = [t for t in problem.targets if F._view_key(t) == keys[v]]
+        imgs = prep.target_images(v).reshape(len(mine), -1, 3)
+        for t, img in zip(mine, imgs):
+            np.testing.assert_array_equal(img[cover], np.asarray(t.image).reshape(-1, 3)[cover])
+            assert np.all(img[~cover] == 0)
 
 
 def test_lbfgs_baseline_decreases_loss_and_is_deterministic(small):
