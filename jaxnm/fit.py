@@ -185,7 +185,8 @@ class Prepared:
     splits: tuple[int, ...] = dataclasses.field(metadata=dict(static=True))
 
     def to_image(self, v: int, values: Array) -> Array:
-        """Scatter per-pixel ``values`` (..., K_v, C) of view ``v`` into (..., H, W, C) (0 elsewhere)."""
+        """Per-pixel ``values`` (..., K_v, C) of view ``v`` in image layout (..., H, W, C), 0
+        off the mesh."""
         o = self.options[v]
         values = jnp.asarray(values)
         out = jnp.zeros(values.shape[:-2] + (o.height * o.width, values.shape[-1]), values.dtype)

@@ -187,8 +187,8 @@ def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOpti
         n = interpolate(mesh.normals, frags, derivatives="none").value
         gb["normal"] = materialize(safe_normalize(n))
     if need_frame:
-        gb["frame"] = materialize(_frame(opts if need_tb else dataclasses.replace(opts, frame="none"),
-                                         mesh, frags, gb))
+        frame_opts = opts if need_tb else dataclasses.replace(opts, frame="none")
+        gb["frame"] = materialize(_frame(frame_opts, mesh, frags, gb))
     if has_map:
         nm = opts.normal_map
         gb["plan"] = _tex.plan_sample(gb["uv"], size_hw=opts.normal_map_shape, levels=opts.levels,
