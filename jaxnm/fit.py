@@ -9,9 +9,11 @@ cotangent frame and the normal map's sample plan (texel indices, filter
 weights, mip level of detail) — is computed **once** (`prepare`), and kept
 only for the pixels the mesh covers, as a flat list. A step then only runs
 the texel-dependent stages on those pixels: build the mip chain of the current
-map, one gather and weighted sum per pixel and view (4 taps where the fixed
-level of detail reads a single mip level, 8 elsewhere), perturb, shade every
-light (``vmap``), subtract the target.
+map (once, for all views), one gather and weighted sum per pixel (4 taps
+where the fixed level of detail reads a single mip level, 8 elsewhere),
+perturb, shade, subtract the target. Views and their lights are batched with
+``vmap`` (views padded to a common pixel and target count; views whose lights
+differ in kind or count form separate batches, see `ViewBatch`).
 
 **Parameterisation.** Each texel holds two slopes ``(s_x, s_y)``; its normal is
 ``normalize(s_x, s_y, 1)``: always a unit vector with positive z, with no
@@ -77,6 +79,7 @@ __all__ = [
     "FitOptions",
     "FitResult",
     "Prepared",
+    "ViewBatch",
     "SOLVERS",
     "prepare",
     "fit_normal_map",
@@ -159,47 +162,102 @@ class FitOptions:
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
+class ViewBatch:
+    """Views whose lights have the same kinds and counts, stacked so one ``vmap`` shades them.
+
+    Only the pixels a view's mesh covers take part, as a flat list; views with
+    fewer pixels or targets are padded (copies of a real pixel or target with
+    weight 0, so padding is NaN-free and changes nothing). ``V`` views, ``T``
+    targets, ``K`` pixels each:
+
+    - `gbuffer`: the G-buffer of those pixels, every field (V, K, ...) (the
+      eye (V, 3)).
+    - `pixels`: (V, K) int32 row-major pixel indices into the view's image,
+      -1 for padding.
+    - `images`: (V, T, K, 3) linear targets; `weights`: (V, T, K, 1), 0
+      outside a target's mask and for padding.
+    - `lights`: `Lights` with leaves (V, T, ...): one (stacked) light per target.
+    - `views` (static): the view indices (into `Prepared.options`) of the rows;
+      `targets` (static): each view's real number of targets.
+    - `split` (static): the first ``split`` pixels of every view read a single
+      mip level (4 non-zero filter taps: magnified texels, or the coarsest
+      level), the rest two (8 taps); the step gathers each group with only the
+      taps it needs.
+    """
+
+    gbuffer: GBuffer
+    pixels: Array
+    images: Array
+    weights: Array
+    lights: Lights
+    views: tuple[int, ...] = dataclasses.field(metadata=dict(static=True))
+    targets: tuple[int, ...] = dataclasses.field(metadata=dict(static=True))
+    split: int = dataclasses.field(metadata=dict(static=True), default=0)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
 class Prepared:
     """Everything a fit step needs, computed once (see `prepare`).
 
-    Only the pixels a view's mesh covers take part, stored as a flat list
-    (``K_v`` pixels): ``pixels[v]`` (K_v,) are their row-major indices into
-    the (H, W) image. Per view ``v``: ``gbuffers[v]`` holds the G-buffer of
-    those pixels (every field (K_v, ...)); its targets are stacked:
-    ``images[v]`` (T_v, K_v, 3), ``weights[v]`` (T_v, K_v, 1) (0 outside a
-    target's mask), ``lights[v]`` (stacked over T_v). ``splits[v]`` (static):
-    the pixels are ordered so that the first ``splits[v]`` read a single mip
-    level (4 filter taps, e.g. magnified texels) and the rest two (8 taps);
-    the step gathers each group with only the taps it needs.
-
-    `target_images` and `target_mask` give image-layout views of the targets.
+    A view is one camera (with its image size); each of its targets is one
+    image under one (stacked) light. ``batches`` group the views into
+    `ViewBatch` stacks; ``options[v]`` are view ``v``'s render options (they
+    differ only in image size). `target_images`, `target_mask` and `view`
+    give per-view, image-layout access.
     """
 
-    gbuffers: tuple[GBuffer, ...]
-    pixels: tuple[Array, ...]
-    images: tuple[Array, ...]
-    weights: tuple[Array, ...]
-    lights: tuple[Lights, ...]
+    batches: tuple[ViewBatch, ...]
     material: Material
     options: tuple[RenderOptions, ...] = dataclasses.field(metadata=dict(static=True))
-    splits: tuple[int, ...] = dataclasses.field(metadata=dict(static=True))
+
+    @property
+    def num_views(self) -> int:
+        return len(self.options)
+
+    def view(self, v: int) -> _View:
+        """View ``v`` unpadded: its G-buffer (K_v, ...), pixels, targets and lights."""
+        for b in self.batches:
+            if v in b.views:
+                i = b.views.index(v)
+                keep = np.flatnonzero(np.asarray(b.pixels[i]) >= 0)
+                t = b.targets[i]
+                gb = _map_pixels(jax.tree_util.tree_map(lambda x: x[i], b.gbuffer),
+                                 lambda x: x[keep])
+                return _View(gb, b.pixels[i][keep], b.images[i, :t][:, keep],
+                             b.weights[i, :t][:, keep],
+                             jax.tree_util.tree_map(lambda x: x[i, :t], b.lights))
+        raise IndexError(f"fit: no view {v} (the problem has {self.num_views})")
 
     def to_image(self, v: int, values: Array) -> Array:
-        """Per-pixel ``values`` (..., K_v, C) of view ``v`` in image layout (..., H, W, C), 0
-        off the mesh."""
+        """Per-pixel ``values`` (..., K_v, C) of `view` ``v`` in image layout (..., H, W, C),
+        0 off the mesh."""
         o = self.options[v]
+        pix = self.view(v).pixels
         values = jnp.asarray(values)
         out = jnp.zeros(values.shape[:-2] + (o.height * o.width, values.shape[-1]), values.dtype)
-        out = out.at[..., self.pixels[v], :].set(values)
+        out = out.at[..., pix, :].set(values)
         return out.reshape(values.shape[:-2] + (o.height, o.width, values.shape[-1]))
 
     def target_images(self, v: int) -> np.ndarray:
         """(T_v, H, W, 3) linear targets of view ``v`` (0 where the mesh is not)."""
-        return np.asarray(self.to_image(v, self.images[v]))
+        return np.asarray(self.to_image(v, self.view(v).images))
 
     def target_mask(self, v: int, t: int = 0) -> np.ndarray:
         """(H, W) bool: the pixels that count for target ``t`` of view ``v``."""
-        return np.asarray(self.to_image(v, self.weights[v][t]))[..., 0] > 0
+        return np.asarray(self.to_image(v, self.view(v).weights[t]))[..., 0] > 0
+
+
+@dataclasses.dataclass(frozen=True)
+class _View:
+    """One view, unpadded: ``gbuffer`` (K, ...), ``pixels`` (K,), ``images`` (T, K, 3),
+    ``weights`` (T, K, 1), ``lights`` (leaves (T, ...))."""
+
+    gbuffer: GBuffer
+    pixels: Array
+    images: Array
+    weights: Array
+    lights: Lights
 
 
 @dataclasses.dataclass
@@ -298,7 +356,7 @@ def prepare(problem: FitProblem) -> Prepared:
     groups: dict = {}
     for t in problem.targets:
         groups.setdefault(_view_key(t), []).append(t)
-    gbs, pixels, images, weights, lights, opts_all = [], [], [], [], [], []
+    views, opts_all = [], []
     nm = dataclasses.replace(problem.sampling, encoding="signed", channels=3)
     for ts in groups.values():
         t0 = ts[0]
@@ -321,15 +379,13 @@ def prepare(problem: FitProblem) -> Prepared:
             ws.append(m[..., None].astype(np.float32))
         pix = np.flatnonzero(cover).astype(np.int32)
         flat = lambda x: x.reshape((-1,) + x.shape[2:])[pix]  # noqa: E731
-        gbs.append(_map_pixels(gb, flat))
-        pixels.append(jnp.asarray(pix))
-        images.append(jnp.asarray(np.stack([flat(np.asarray(t.image, np.float32)) for t in ts])))
-        weights.append(jnp.asarray(np.stack([flat(w) for w in ws])))
-        lights.append(_stack_lights([t.lights for t in ts]))
+        views.append(_View(_map_pixels(gb, flat), jnp.asarray(pix),
+                           jnp.asarray(np.stack([flat(np.asarray(t.image, np.float32))
+                                                 for t in ts])),
+                           jnp.asarray(np.stack([flat(w) for w in ws])),
+                           _stack_lights([t.lights for t in ts])))
         opts_all.append(opts)
-    prep = Prepared(tuple(gbs), tuple(pixels), tuple(images), tuple(weights), tuple(lights),
-                    problem.material, tuple(opts_all), (0,) * len(gbs))
-    return _order_by_taps(prep)
+    return _assemble(views, tuple(opts_all), problem.material)
 
 
 def _map_pixels(gb: GBuffer, fn) -> GBuffer:
@@ -338,28 +394,57 @@ def _map_pixels(gb: GBuffer, fn) -> GBuffer:
     return dataclasses.replace(out, eye=gb.eye)
 
 
-def _order_by_taps(prep: Prepared) -> Prepared:
-    """Reorder each view's pixels: those whose plan reads one mip level first (see `Prepared`).
+def _light_key(lights: Lights):
+    leaves, tree = jax.tree_util.tree_flatten(lights)
+    return tree, tuple(x.shape[1:] for x in leaves)
+
+
+def _assemble(views: Sequence[_View], options: tuple[RenderOptions, ...],
+              material: Material) -> Prepared:
+    """Order each view's pixels by the taps they need, pad, and stack views into batches.
 
     A trilinear plan always has 8 taps, but where the level of detail is
     clamped (magnification, or the coarsest level) or integral, the second
     level's 4 weights are exactly 0. The geometry is fixed, so this is known
     once; gathering those pixels with 4 taps halves their gather and its
-    transpose (the scatter-add that dominates the backward pass).
+    transpose (the scatter-add that dominates the backward pass). Views whose
+    lights have the same structure share one batch (see `ViewBatch`).
     """
-    if not prep.gbuffers or prep.gbuffers[0].plan.num_taps != 8:
-        return dataclasses.replace(prep, splits=(0,) * len(prep.gbuffers))
-    gbs, pixels, images, weights, splits = [], [], [], [], []
-    for v, gb in enumerate(prep.gbuffers):
-        one_level = np.all(np.asarray(gb.plan.weight)[:, 4:] == 0, axis=-1)
-        order = np.argsort(~one_level, kind="stable")
-        gbs.append(_map_pixels(gb, lambda x: x[order]))
-        pixels.append(prep.pixels[v][order])
-        images.append(prep.images[v][:, order])
-        weights.append(prep.weights[v][:, order])
-        splits.append(int(one_level.sum()))
-    return dataclasses.replace(prep, gbuffers=tuple(gbs), pixels=tuple(pixels),
-                               images=tuple(images), weights=tuple(weights), splits=tuple(splits))
+    groups: dict = {}
+    for v, view in enumerate(views):
+        groups.setdefault(_light_key(view.lights), []).append(v)
+    batches = []
+    for members in groups.values():
+        eight = views[members[0]].gbuffer.plan.num_taps == 8
+        parts = []  # per view: (indices of its one-level pixels, of the others)
+        for v in members:
+            w = np.asarray(views[v].gbuffer.plan.weight)
+            one = np.all(w[:, 4:] == 0, axis=-1) if eight else np.zeros(len(w), bool)
+            parts.append((np.flatnonzero(one), np.flatnonzero(~one)))
+        ka = max(len(a) for a, _ in parts)
+        kb = max(len(b) for _, b in parts)
+        t_max = max(views[v].images.shape[0] for v in members)
+        rows = []
+        for v, (a, b) in zip(members, parts):
+            view = views[v]
+            fill = int(a[0] if len(a) else b[0])  # a real pixel, copied into the padding
+            order = np.concatenate([a, np.full(ka - len(a), fill), b, np.full(kb - len(b), fill)])
+            real = np.concatenate([np.ones(len(a), bool), np.zeros(ka - len(a), bool),
+                                   np.ones(len(b), bool), np.zeros(kb - len(b), bool)])
+            t = view.images.shape[0]
+            tsel = np.minimum(np.arange(t_max), t - 1)  # padded targets repeat the last one
+            weights = view.weights[tsel][:, order] * jnp.asarray(
+                real[None, :, None] & (np.arange(t_max) < t)[:, None, None], jnp.float32)
+            rows.append(dict(
+                gbuffer=_map_pixels(view.gbuffer, lambda x: x[order]),
+                pixels=jnp.where(jnp.asarray(real), view.pixels[order], -1),
+                images=view.images[tsel][:, order], weights=weights,
+                lights=jax.tree_util.tree_map(lambda x: x[tsel], view.lights)))
+        stacked = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *rows)
+        batches.append(ViewBatch(**stacked, views=tuple(members),
+                                 targets=tuple(views[v].images.shape[0] for v in members),
+                                 split=ka if eight else 0))
+    return Prepared(tuple(batches), material, options)
 
 
 # --------------------------------------------------------------------------------------
@@ -426,19 +511,28 @@ def _shade_view(gb: GBuffer, mips, lights: Lights, material: Material, opts: Ren
     return _pixel_model(m, gb, lights, material, opts.shading, jnp.asarray(strength, m.dtype))
 
 
+def _shade_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions,
+                 strength, lights: Lights | None = None) -> Array:
+    """(V, T, K, 3): every view of ``batch`` under each of its lights (``vmap`` over views)."""
+    lights = batch.lights if lights is None else lights
+    return jax.vmap(lambda gb, lt: _shade_view(gb, mips, lt, material, opts, strength,
+                                               batch.split))(batch.gbuffer, lights)
+
+
 def render_with_map(prep: Prepared, normals: Array, *, strength: float = 1.0,
                     lights: Sequence[Lights] | None = None) -> list[Array]:
     """Render every view of ``prep`` with the map ``normals`` (h, w, 3); one (T, H, W, 3) per view.
 
-    ``lights`` (one stacked `Lights` per view) replaces the prepared lights,
-    e.g. to render from held-out light directions.
+    ``lights`` (one stacked `Lights` per view, leaves (T, ...)) replaces the
+    prepared lights, e.g. to render from held-out light directions.
     """
+    opts = prep.options[0]
+    mips = _mips(jnp.asarray(normals), opts)
     out = []
-    for v, gb in enumerate(prep.gbuffers):
-        opts = prep.options[v]
-        lt = prep.lights[v] if lights is None else lights[v]
-        img = _shade_view(gb, _mips(normals, opts), lt, prep.material, opts, strength,
-                          prep.splits[v])
+    for v in range(prep.num_views):
+        view = prep.view(v)
+        lt = view.lights if lights is None else lights[v]
+        img = _shade_view(view.gbuffer, mips, lt, prep.material, opts, strength)
         out.append(prep.to_image(v, img))
     return out
 
@@ -446,13 +540,12 @@ def render_with_map(prep: Prepared, normals: Array, *, strength: float = 1.0,
 def _residuals(z: Array, args) -> tuple[Array, ...]:
     prep, smooth, strength, scale = args
     slopes = z * scale
-    n = slopes_to_normals(slopes)
+    opts = prep.options[0]
+    mips = _mips(slopes_to_normals(slopes), opts)  # shared by every view
     res = []
-    for v, gb in enumerate(prep.gbuffers):
-        opts = prep.options[v]
-        img = _shade_view(gb, _mips(n, opts), prep.lights[v], prep.material, opts, strength,
-                          prep.splits[v])
-        res.append(((img - prep.images[v]) * prep.weights[v]).reshape(-1))
+    for batch in prep.batches:
+        img = _shade_batch(batch, mips, prep.material, opts, strength)
+        res.append(((img - batch.images) * batch.weights).reshape(-1))
     if smooth is not None:
         dx = slopes[:, 1:] - slopes[:, :-1]
         dy = slopes[1:] - slopes[:-1]
@@ -475,9 +568,9 @@ def seen_texels(prep: Prepared, map_size: tuple[int, int], *,
     weight >= ``min_weight`` (i.e. that directly influence at least part of a pixel)."""
     h, w = map_size
     acc = jnp.zeros(h * w, jnp.float32)
-    for v, gb in enumerate(prep.gbuffers):
-        wmask = (prep.weights[v].max(0)[..., 0] > 0)[..., None]
-        idx, wt = gb.plan.index, gb.plan.weight
+    for b in prep.batches:
+        wmask = (b.weights.max(1)[..., 0] > 0)[..., None]  # (V, K, 1): used pixels
+        idx, wt = b.gbuffer.plan.index, b.gbuffer.plan.weight
         wt = jnp.where((idx < h * w) & wmask, wt, 0.0)  # level 0 texels come first
         acc = acc.at[jnp.minimum(idx, h * w - 1).reshape(-1)].add(wt.reshape(-1))
     return np.asarray(acc.reshape(h, w) >= min_weight)
@@ -492,15 +585,13 @@ def texel_influence(prep: Prepared) -> Array:
     h, w = prep.options[0].normal_map_shape
 
     def sampled(t):
-        out = []
-        for v, gb in enumerate(prep.gbuffers):
-            m = _tex.apply_plan(gb.plan, _mips(t, prep.options[v]))
-            out.append(m[..., 0] * prep.weights[v].sum(0)[..., 0])
-        return out
+        mips = _mips(t, prep.options[0])
+        return [_tex.apply_plan(b.gbuffer.plan, mips)[..., 0] * b.weights.sum(1)[..., 0]
+                for b in prep.batches]
 
     zeros = jnp.zeros((h, w, 1), jnp.float32)
     _, vjp = jax.vjp(sampled, zeros)
-    ones = [jnp.ones(gb.mask.shape, jnp.float32) for gb in prep.gbuffers]  # (K_v,)
+    ones = [jnp.ones(b.pixels.shape, jnp.float32) for b in prep.batches]  # (V, K)
     return vjp(ones)[0][..., 0]
 
 
@@ -518,11 +609,11 @@ def check_identifiability(prep: Prepared, *, warn: bool = True) -> dict:
     """
     report = {"views": []}
     ok_any = False
-    for v, gb in enumerate(prep.gbuffers):
-        mask = np.asarray(gb.mask)
-        centre = np.asarray(gb.position)[mask].mean(0) if mask.any() else np.zeros(3)
+    for v in range(prep.num_views):
+        view = prep.view(v)
+        centre = np.asarray(view.gbuffer.position).mean(0)
         dirs = []
-        lt = prep.lights[v]
+        lt = view.lights
         if lt.directional is not None:
             d = np.asarray(lt.directional.direction).reshape(-1, 3)
             dirs += list(d / np.linalg.norm(d, axis=-1, keepdims=True))
@@ -532,7 +623,7 @@ def check_identifiability(prep: Prepared, *, warn: bool = True) -> dict:
         dirs = np.asarray(dirs)
         unique = np.unique(np.round(dirs, 6), axis=0) if len(dirs) else dirs
         rank = int(np.linalg.matrix_rank(unique, tol=1e-3)) if len(unique) else 0
-        report["views"].append({"targets": int(prep.images[v].shape[0]),
+        report["views"].append({"targets": int(view.images.shape[0]),
                                 "distinct_light_directions": int(len(unique)),
                                 "direction_rank": rank})
         ok_any |= rank >= 3
@@ -704,15 +795,17 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
 
 def _with_map_size(problem: FitProblem, prep: Prepared, size) -> Prepared:
     """The prepared problem re-planned for a coarser map (same G-buffers, new sample plans)."""
-    gbs, opts_all = [], []
-    for gb, opts in zip(prep.gbuffers, prep.options):
+    views, opts_all = [], []
+    for v, opts in enumerate(prep.options):
+        view = prep.view(v)
         o = dataclasses.replace(opts, normal_map_shape=tuple(size))
         nm = o.normal_map
-        plan = _tex.plan_sample(_uv_attr(gb), size_hw=tuple(size), levels=o.levels,
+        plan = _tex.plan_sample(_uv_attr(view.gbuffer), size_hw=tuple(size), levels=o.levels,
                                 filter=nm.filter, wrap=nm.wrap, uv_origin=nm.uv_origin)
-        gbs.append(dataclasses.replace(gb, plan=plan))
+        views.append(dataclasses.replace(view, gbuffer=dataclasses.replace(view.gbuffer,
+                                                                           plan=plan)))
         opts_all.append(o)
-    return _order_by_taps(dataclasses.replace(prep, gbuffers=tuple(gbs), options=tuple(opts_all)))
+    return _assemble(views, tuple(opts_all), prep.material)
 
 
 def _uv_attr(gb: GBuffer):
