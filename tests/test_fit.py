@@ -255,6 +255,31 @@ def test_fit_file_and_cli(tmp_path, small, capsys):
     assert "angular error" in capsys.readouterr().out
 
 
+def test_example_fit_script_writes_the_built_in_problem(tmp_path, small):
+    """scripts/make_example_fit.py writes a fit file that loads back as the built-in problem."""
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "make_example_fit.py"
+    spec = importlib.util.spec_from_file_location("make_example_fit", script)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    problem, gt, _, _, _ = small
+    path = mod.write_example(tmp_path, render_size=64, map_size=32)
+    loaded, options, extras = fit_cli.load_fit(path)
+    assert loaded.map_size == (32, 32) and len(loaded.targets) == len(problem.targets) == 12
+    for a, b in zip(loaded.targets, problem.targets):
+        np.testing.assert_allclose(np.asarray(a.camera.view), np.asarray(b.camera.view),
+                                   atol=1e-6)
+        np.testing.assert_allclose(np.asarray(a.lights.directional.direction),
+                                   np.asarray(b.lights.directional.direction), atol=1e-6)
+        np.testing.assert_allclose(a.image, b.image, atol=2e-3)  # 16-bit sRGB round trip
+    np.testing.assert_allclose(extras["ground_truth"], gt, atol=1e-6)
+    assert len(extras["held_out"]) == 1 and options.solver == "lm"
+    np.testing.assert_allclose(np.asarray(loaded.material.shininess),
+                               np.asarray(problem.material.shininess))
+
+
 def test_fit_file_errors_name_the_file(tmp_path):
     cfg = tmp_path / "fit.json"
     cfg.write_text(json.dumps({"targets": []}))
