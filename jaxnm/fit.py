@@ -167,7 +167,8 @@ class ViewBatch:
 
     Only the pixels a view's mesh covers take part, as a flat list; views with
     fewer pixels or targets are padded (copies of a real pixel or target with
-    weight 0, so padding is NaN-free and changes nothing). ``V`` views, ``T``
+    weight 0, so padding is NaN-free and changes nothing); views are batched
+    only when padding at most doubles a view's pixels. ``V`` views, ``T``
     targets, ``K`` pixels each:
 
     - `gbuffer`: the G-buffer of those pixels, every field (V, K, ...) (the
@@ -408,13 +409,26 @@ def _assemble(views: Sequence[_View], options: tuple[RenderOptions, ...],
     level's 4 weights are exactly 0. The geometry is fixed, so this is known
     once; gathering those pixels with 4 taps halves their gather and its
     transpose (the scatter-add that dominates the backward pass). Views whose
-    lights have the same structure share one batch (see `ViewBatch`).
+    lights have the same structure share one batch (see `ViewBatch`), unless
+    padding a view to the batch's largest would more than double its pixels.
     """
-    groups: dict = {}
+    by_lights: dict = {}
     for v, view in enumerate(views):
-        groups.setdefault(_light_key(view.lights), []).append(v)
+        by_lights.setdefault(_light_key(view.lights), []).append(v)
+    size = [view.pixels.shape[0] for view in views]
+    groups = []  # by decreasing pixel count; a new batch where padding would double the work
+    for members in by_lights.values():
+        members = sorted(members, key=lambda v: -size[v])
+        batch = [members[0]]
+        for v in members[1:]:
+            if 2 * size[v] >= size[batch[0]]:
+                batch.append(v)
+            else:
+                groups.append(batch)
+                batch = [v]
+        groups.append(batch)
     batches = []
-    for members in groups.values():
+    for members in groups:
         eight = views[members[0]].gbuffer.plan.num_taps == 8
         parts = []  # per view: (indices of its one-level pixels, of the others)
         for v in members:
