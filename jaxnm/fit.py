@@ -526,11 +526,10 @@ def _shade_view(gb: GBuffer, mips, lights: Lights, material: Material, opts: Ren
 
 
 def _shade_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions,
-                 strength, lights: Lights | None = None) -> Array:
+                 strength) -> Array:
     """(V, T, K, 3): every view of ``batch`` under each of its lights (``vmap`` over views)."""
-    lights = batch.lights if lights is None else lights
     return jax.vmap(lambda gb, lt: _shade_view(gb, mips, lt, material, opts, strength,
-                                               batch.split))(batch.gbuffer, lights)
+                                               batch.split))(batch.gbuffer, batch.lights)
 
 
 def render_with_map(prep: Prepared, normals: Array, *, strength: float = 1.0,
