@@ -813,16 +813,12 @@ def _with_map_size(problem: FitProblem, prep: Prepared, size) -> Prepared:
         view = prep.view(v)
         o = dataclasses.replace(opts, normal_map_shape=tuple(size))
         nm = o.normal_map
-        plan = _tex.plan_sample(_uv_attr(view.gbuffer), size_hw=tuple(size), levels=o.levels,
+        plan = _tex.plan_sample(view.gbuffer.uv, size_hw=tuple(size), levels=o.levels,
                                 filter=nm.filter, wrap=nm.wrap, uv_origin=nm.uv_origin)
         views.append(dataclasses.replace(view, gbuffer=dataclasses.replace(view.gbuffer,
                                                                            plan=plan)))
         opts_all.append(o)
     return _assemble(views, tuple(opts_all), prep.material)
-
-
-def _uv_attr(gb: GBuffer):
-    return gb.uv
 
 
 class _progress:
