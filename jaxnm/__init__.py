@@ -10,8 +10,9 @@ The pipeline, one verb per stage::
     n2    = jaxnm.perturb_normal(frame, m)
     rgb   = jaxnm.shade("blinn_phong", n2, p, camera.eye, lights, material)
 
-or, for a whole scene, `jaxnm.render(scene, outputs=(...))` and
-`jaxnm.fit_normal_map(problem)`.
+or, for a whole scene, `jaxnm.render(scene, outputs=(...))` (differentiable in the
+scene's arrays) and `jaxnm.fit_normal_map(problem)`. Scene and fit files are read
+by `jaxnm.config`; files are read and written by `jaxnm.io` only.
 """
 
 from .camera import Camera as Camera
@@ -19,6 +20,9 @@ from .camera import look_at as look_at
 from .camera import orthographic as orthographic
 from .camera import perspective as perspective
 from .camera import to_clip as to_clip
+from .config import load_fit as load_fit
+from .config import load_scene as load_scene
+from .fit import FitJob as FitJob
 from .fit import FitOptions as FitOptions
 from .fit import FitProblem as FitProblem
 from .fit import FitTarget as FitTarget
@@ -32,29 +36,33 @@ from .interpolate import Attribute as Attribute
 from .interpolate import Barycentrics as Barycentrics
 from .interpolate import barycentrics as barycentrics
 from .interpolate import interpolate as interpolate
+from .procedural import default_problem as default_problem
+from .procedural import default_scene as default_scene
 from .raster import Fragments as Fragments
 from .raster import rasterize as rasterize
 from .render import render as render
 from .scene import Scene as Scene
-from .scene import default_scene as default_scene
-from .scene import load_scene as load_scene
 from .shading import DirectionalLight as DirectionalLight
 from .shading import Lights as Lights
 from .shading import Material as Material
 from .shading import PointLight as PointLight
+from .shading import directional_light as directional_light
 from .shading import shade as shade
+from .textures import NormalMapOptions as NormalMapOptions
 from .textures import build_mipmaps as build_mipmaps
 from .textures import decode_normal_map as decode_normal_map
 from .textures import encode_normal_map as encode_normal_map
 from .textures import sample as sample
 
-__version__ = "0.1.0"
+#: The package version (the one place it is written; pyproject.toml reads it from here).
+__version__ = "0.2.0"
 
 __all__ = [
-    "Attribute", "Barycentrics", "Camera", "DirectionalLight", "FitOptions", "FitProblem",
-    "FitTarget", "Fragments", "Frame", "Lights", "Material", "Mesh", "PointLight", "Scene",
-    "barycentrics", "build_mipmaps", "compute_frame", "cotangent_frame", "decode_normal_map",
-    "default_scene", "encode_normal_map", "fit_normal_map", "interpolate", "load_scene",
-    "look_at", "orthographic", "perspective", "perturb_normal", "rasterize", "render", "sample",
-    "shade", "to_clip",
+    "Attribute", "Barycentrics", "Camera", "DirectionalLight", "FitJob", "FitOptions",
+    "FitProblem", "FitTarget", "Fragments", "Frame", "Lights", "Material", "Mesh",
+    "NormalMapOptions", "PointLight", "Scene", "barycentrics", "build_mipmaps", "compute_frame",
+    "cotangent_frame", "decode_normal_map", "default_problem", "default_scene",
+    "directional_light", "encode_normal_map", "fit_normal_map", "interpolate", "load_fit",
+    "load_scene", "look_at", "orthographic", "perspective", "perturb_normal", "rasterize",
+    "render", "sample", "shade", "to_clip",
 ]

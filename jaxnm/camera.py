@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-__all__ = ["Camera", "look_at", "perspective", "orthographic", "to_clip"]
+__all__ = ["Camera", "look_at", "perspective", "orthographic", "to_clip", "eye_to_world"]
 
 
 @jax.tree_util.register_dataclass
@@ -142,3 +142,11 @@ def to_clip(positions: Array, camera: Camera) -> Array:
     eye_space = (p - camera.eye[None, :]) @ camera.view[:3, :3].T
     proj = camera.projection
     return eye_space @ proj[:, :3].T + proj[None, :, 3]
+
+
+def eye_to_world(camera: Camera, direction) -> np.ndarray:
+    """The unit world-space direction (float64) of ``direction`` given in the camera's eye
+    frame (x right, y up, z towards the viewer), e.g. a light placed relative to the view."""
+    rot = np.asarray(camera.view, np.float64)[:3, :3]
+    v = np.linalg.solve(rot, np.asarray(direction, np.float64))
+    return v / np.linalg.norm(v)

@@ -4,13 +4,15 @@
                  [--frame FRAME] [--normal-map PATH] [--width W --height H]
     jaxnm fit [FIT.json] [-o OUTDIR] ...
 
-Options override the scene file; with no scene file the built-in default scene
-(a rivet-mapped torus, generated in code) is used.
+Options override the scene (or fit) file; with no file the built-in scene or
+problem (a rivet-mapped torus, generated in code) is used. Errors in the
+input are one line naming the file and the field, with exit code 2.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -19,8 +21,9 @@ __all__ = ["main"]
 
 
 def _add_render(sub) -> None:
+    from .frames import FRAMES
+    from .interpolate import DERIVATIVE_MODES
     from .render import OUTPUTS
-    from .scene import DERIVATIVES, FRAMES
 
     p = sub.add_parser("render", help="render a scene to a PNG (and optional AOVs)",
                        description="Render SCENE.json (or the built-in default scene) to a PNG.")
@@ -31,10 +34,11 @@ def _add_render(sub) -> None:
                    + " and color (linear); see --aov-list")
     p.add_argument("--aov-list", default=",".join(OUTPUTS), metavar="NAMES",
                    help="comma-separated AOV names to write with --aovs (default: all)")
-    p.add_argument("--derivatives", choices=DERIVATIVES, help="screen-space derivative mode")
+    p.add_argument("--derivatives", choices=DERIVATIVE_MODES, help="screen-space derivative mode")
     p.add_argument("--frame", choices=FRAMES, help="tangent frame method")
     p.add_argument("--normal-map", metavar="PATH",
-                   help="use this tangent-space normal map (8/16-bit PNG, unsigned, green up)")
+                   help="use this tangent-space normal map (8/16-bit PNG, unsigned, green up; "
+                   "the scene's uv origin, wrap, filter and strength)")
     p.add_argument("--height-map", metavar="PATH", dest="height_map",
                    help="bump the surface with this height map instead (grayscale image)")
     p.add_argument("--height-scale", type=float, default=0.02, dest="height_scale",
@@ -45,15 +49,37 @@ def _add_render(sub) -> None:
     p.add_argument("--bits", type=int, choices=(8, 16), default=8, help="PNG bit depth")
 
 
+def _rescaled_camera(scene, width: int, height: int):
+    """The scene's camera with the projection's aspect ratio adapted to a new image size."""
+    import numpy as np
+
+    from .camera import Camera
+
+    proj = np.array(scene.camera.projection, np.float64)
+    proj[0, :] *= (scene.width / scene.height) / (width / height)  # x scale ~ 1 / aspect
+    return Camera.from_matrices(np.asarray(scene.camera.view, np.float64), proj)
+
+
 def _render(args) -> int:
     import numpy as np
 
     from . import io
+    from .config import load_height_map, load_scene
+    from .procedural import default_scene
     from .render import OUTPUTS, render
-    from .scene import default_scene, load_scene
     from .shading import to_display
 
     t0 = time.perf_counter()
+    names = ["color"]
+    if args.aovs:  # check the cheap arguments before loading anything
+        asked = [n.strip() for n in args.aov_list.split(",") if n.strip()]
+        bad = [n for n in asked if n not in OUTPUTS]
+        if bad:
+            raise ValueError(f"--aov-list: unknown AOV names {bad}; known: {', '.join(OUTPUTS)}")
+        names += [n for n in asked if n != "color"]
+    for flag, v in (("--width", args.width), ("--height", args.height)):
+        if v is not None and v <= 0:
+            raise ValueError(f"{flag} must be positive, got {v}")
     if args.scene:
         scene = load_scene(args.scene)
     else:
@@ -65,25 +91,16 @@ def _render(args) -> int:
             changes.update(width=w, height=h, camera=_rescaled_camera(scene, w, h))
     if args.normal_map:
         raw, bits = io.load_texture(args.normal_map, channels=3)
-        changes.update(normal_map=raw, normal_map_options=_replace(
-            scene.normal_map_options, bits=bits if bits in (8, 16) else 8))
+        changes.update(normal_map=raw, normal_map_options=dataclasses.replace(
+            scene.normal_map_options, encoding="unsigned", channels=3, green="up",
+            space="tangent", bits=bits if bits in (8, 16) else 8))
     if args.height_map:
-        from .scene import _height_map
-
-        d, opts = _height_map({"path": args.height_map, "scale": args.height_scale}, Path("."),
-                              "--height-map")
+        d, opts = load_height_map({"path": args.height_map, "scale": args.height_scale},
+                                  where="--height-map: ")
         changes.update(normal_map=d, normal_map_options=opts)
     if changes:
         scene = scene.replace(**changes)
-    outputs = ["color"]
-    if args.aovs:
-        names = [n.strip() for n in args.aov_list.split(",") if n.strip()]
-        bad = [n for n in names if n not in OUTPUTS]
-        if bad:
-            raise ValueError(f"--aov-list: unknown AOV names {bad}; known: {', '.join(OUTPUTS)}")
-        outputs += [n for n in names if n != "color"]
-    result = render(scene, outputs=tuple(outputs), derivatives=args.derivatives,
-                    frame=args.frame)
+    result = render(scene, outputs=tuple(names), derivatives=args.derivatives, frame=args.frame)
     io.save_png(args.output, np.asarray(to_display(result["color"], exposure=args.exposure)),
                 bits=args.bits)
     msg = f"wrote {args.output} ({scene.width}x{scene.height})"
@@ -94,31 +111,14 @@ def _render(args) -> int:
     return 0
 
 
-def _replace(obj, **kw):
-    import dataclasses
-
-    return dataclasses.replace(obj, **kw)
-
-
-def _rescaled_camera(scene, width: int, height: int):
-    """The scene's camera with the projection's aspect ratio adapted to a new image size."""
-    import numpy as np
-
-    from .camera import Camera
-
-    proj = np.array(scene.camera.projection, np.float64)
-    old = scene.width / scene.height
-    new = width / height
-    proj[0, :] *= old / new  # x scale ~ 1 / aspect (perspective and orthographic alike)
-    return Camera.from_matrices(np.asarray(scene.camera.view, np.float64), proj)
-
-
 def _add_fit(sub) -> None:
+    from .fit import SOLVERS
+
     p = sub.add_parser("fit", help="fit a normal map to target shading",
                        description="Fit a tangent-space normal map to target images.")
     p.add_argument("config", nargs="?", help="fit JSON file (default: the built-in problem)")
     p.add_argument("-o", "--output", default="fit_out", help="output folder (default: %(default)s)")
-    p.add_argument("--solver", choices=("lm", "gn", "lbfgs"), help="optimiser (default: lm)")
+    p.add_argument("--solver", choices=SOLVERS, help="optimiser (default: lm)")
     p.add_argument("--max-steps", type=int, dest="max_steps", help="outer iterations")
     p.add_argument("--lsmr-steps", type=int, dest="lsmr_steps",
                    help="inner LSMR iterations per Gauss-Newton/LM step")
@@ -133,21 +133,66 @@ def _add_fit(sub) -> None:
 
 
 def _fit(args) -> int:
-    from .fit_cli import cli_main
+    from . import io
+    from .config import load_fit
+    from .fit import fit_normal_map, fit_outputs, prepare
+    from .procedural import default_fit_job
 
-    return cli_main(args)
+    say = (lambda msg: None) if args.no_progress else (  # noqa: E731
+        lambda msg: print(msg, file=sys.stderr, flush=True))
+    overrides = {k: getattr(args, k) for k in ("solver", "max_steps", "smoothness", "seed",
+                                                "lsmr_steps", "coarse_to_fine")
+                 if getattr(args, k) is not None}
+    if args.time_limit is not None and not args.time_limit > 0:
+        raise ValueError(f"--time-limit must be a positive number of seconds, got "
+                         f"{args.time_limit}")
+    if args.config:
+        say(f"reading {args.config} ...")
+        job = load_fit(args.config)
+    else:
+        say("rendering the built-in problem's targets ...")
+        job = default_fit_job(quick=args.quick)
+    if overrides:
+        try:
+            job = dataclasses.replace(job, options=dataclasses.replace(job.options, **overrides))
+        except ValueError as e:
+            raise ValueError(f"command line: {str(e).removeprefix('FitOptions: ')}") from None
+    if args.time_limit is not None:
+        job = dataclasses.replace(job, time_limit=args.time_limit)
+    say(f"preparing {len(job.problem.targets)} targets (rasterizing each view once) ...")
+    t0 = time.perf_counter()
+    prep = prepare(job.problem)
+    t_prep = time.perf_counter() - t0
+    say("fitting (the first step includes compilation) ...")
+    result = fit_normal_map(job.problem, job.options, ground_truth=job.ground_truth,
+                            progress=not args.no_progress, prepared=prep,
+                            time_limit=job.time_limit)
+    say("writing outputs ...")
+    outputs = fit_outputs(job, prep, result, prepare_seconds=t_prep)
+    written = io.write_fit_outputs(args.output, outputs)
+    rep = outputs.report
+    line = f"fit {rep['stopped']} after {rep['steps']} steps in {rep['fit_seconds']:.1f} s"
+    if "error" in rep:
+        e = rep["error"]
+        line += (f"; angular error over {e['seen_texels']} seen texels: mean {e['mean_deg']:.3f}"
+                 f", median {e['median_deg']:.3f}, p95 {e['p95_deg']:.3f} deg")
+    for h in rep.get("held_out", []):
+        line += f"; held-out PSNR {h['psnr_db_vs_target']:.1f} dB"
+    print(line)
+    print(f"outputs in {Path(args.output)}/ ({', '.join(written)})")
+    return 0
 
 
 def main(argv=None) -> int:
+    """Run ``jaxnm render`` or ``jaxnm fit`` with ``argv`` (default: ``sys.argv[1:]``);
+    returns the exit code (2 for bad input, with a one-line error on stderr)."""
     parser = argparse.ArgumentParser(prog="jaxnm", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     _add_render(sub)
     _add_fit(sub)
     args = parser.parse_args(argv)
     try:
-        if args.command == "render":
-            return _render(args)
-        return _fit(args)
+        return _render(args) if args.command == "render" else _fit(args)
     except (ValueError, FileNotFoundError, ImportError) as e:
         print(f"jaxnm {args.command}: error: {e}", file=sys.stderr)
         return 2

@@ -19,6 +19,9 @@ decoded tangent-space map vector ``m`` (``m.x`` along ``+u``, ``m.y`` along
   tangents with a handedness sign, Gram-Schmidt per pixel.
 - ``"axis"`` (`axis_frame`): the fixed-axis approximation (GLSL Hacker); it
   ignores the uv mapping.
+- ``"cotangent_unnormalized"``: ``"cotangent"`` with ``normalize="none"`` (the
+  true gradients of u and v); ``"exact_face"``: ``"exact"`` with the triangle's
+  face normal; ``"none"``: ``T = B = 0`` (no perturbation).
 
 **Conventions.** Screen derivatives are jaxnm's (`jaxnm.interpolate`):
 ``dp1 = dFdx(p)`` per pixel step to the right, ``dp2 = dFdy(p)`` per pixel step
@@ -42,14 +45,13 @@ import jax.numpy as jnp
 from jax import Array
 
 from .interpolate import Attribute
-from .interpolate import triangle_corners as _interp_corners
 from .numerics import cross as _cross
 from .numerics import dot as _ndot
 from .numerics import eps, safe_norm, safe_normalize, safe_rsqrt, tiny
-from .raster import Fragments
 
 __all__ = [
-    "FRAME_METHODS",
+    "FRAMES",
+    "check_frame",
     "Frame",
     "axis_frame",
     "compute_frame",
@@ -58,12 +60,13 @@ __all__ = [
     "face_forward",
     "nonperspective_frame",
     "perturb_normal",
-    "triangle_corners",
     "vertex_frame",
     "vertex_tangents",
 ]
 
-FRAME_METHODS = ("cotangent", "nonperspective", "exact", "vertex", "axis")
+#: The frame methods (`compute_frame`, the scene key ``frame``, ``--frame``).
+FRAMES = ("cotangent", "cotangent_unnormalized", "nonperspective", "exact", "exact_face",
+          "vertex", "axis", "none")
 _NORMALIZE_MODES = ("max", "none")
 
 #: A summed per-vertex tangent shorter than this fraction of the summed face weights
@@ -285,7 +288,8 @@ def exact_frame(tri_p: Array, tri_uv: Array, N: Array | None = None, *,
     triangle's plane, exactly, whatever the camera.
 
     **Arguments:**
-    - `tri_p`: ``(..., 3, 3)`` the triangle's corner positions (see `triangle_corners`).
+    - `tri_p`: ``(..., 3, 3)`` the triangle's corner positions
+      (`jaxnm.interpolate.triangle_corners`).
     - `tri_uv`: ``(..., 3, 2)`` the corner uvs.
     - `N`: ``(..., 3)`` unit interpolated normal, or None for the face normal.
       It is the frame's ``N``, and builds the perpendiculars unless
@@ -463,17 +467,6 @@ def face_forward(frame: Frame, front_facing: Array) -> Frame:
     return Frame(frame.T * s, frame.B * s, frame.N * s)
 
 
-def triangle_corners(attr: Array, frags: Fragments) -> Array:
-    """Each pixel's triangle's corner values, ``(H, W, 3, C)``; zero on background.
-
-    **Arguments:**
-    - `attr`: per-vertex ``(V, C)`` or per-face-corner ``(F, 3, C)``.
-    - `frags`: from `jaxnm.rasterize`.
-    """
-    corners = _interp_corners(jnp.asarray(attr), frags)
-    return jnp.where(frags.mask[..., None, None], corners, 0.0)
-
-
 def _value(x):
     return x.value if isinstance(x, Attribute) else jnp.asarray(x)
 
@@ -485,38 +478,50 @@ def _derivs(attr, name: str, frame: str):
     return attr.ddx, attr.ddy
 
 
+def check_frame(frame: str) -> None:
+    """Raise a `ValueError` unless ``frame`` is one of `FRAMES`."""
+    if frame not in FRAMES:
+        raise ValueError(f"unknown frame {frame!r}; expected one of {', '.join(FRAMES)}")
+
+
 def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None = None,
                   uv_attr: Attribute | None = None, tri_p: Array | None = None,
                   tri_uv: Array | None = None, tangent: Array | Attribute | None = None,
                   front_facing: Array | None = None, double_sided: bool = False,
-                  normalize: str = "max", ddy_sign: int = 1,
-                  use_face_normal: bool = False) -> Frame:
-    r"""Build the frame named by `frame` (one of `FRAME_METHODS`) per pixel.
+                  normalize: str = "max", ddy_sign: int = 1) -> Frame:
+    r"""Build the frame named by `frame` (one of `FRAMES`) per pixel.
 
     **Arguments** (all but `frame` keyword-only; `frame`, `normalize`,
-    `ddy_sign`, `double_sided`, `use_face_normal` are static):
+    `ddy_sign`, `double_sided` are static):
     - `N`: ``(..., 3)`` interpolated normal (or its `Attribute`); normalised here.
     - `p_attr`, `uv_attr`: position (world or camera-relative) and uv
       `Attribute`s with derivatives: ``"cotangent"``, ``"nonperspective"``.
     - `tri_p`, `tri_uv`: ``(..., 3, 3)``, ``(..., 3, 2)`` corners
-      (`triangle_corners`): ``"exact"`` (with `use_face_normal`).
+      (`jaxnm.interpolate.triangle_corners`): ``"exact"``, ``"exact_face"``.
     - `tangent`: ``(..., 4)`` interpolated `vertex_tangents`: ``"vertex"``.
     - `front_facing`: ``(...)`` bool, required when `double_sided`.
     - `double_sided`: apply `face_forward` to back-facing fragments (after
       re-orienting the published cotangent frame, see there).
     - `normalize`, `ddy_sign`: see `cotangent_frame` (``normalize`` also for
-      ``"nonperspective"`` and ``"exact"``; ``ddy_sign`` for the screen-space ones).
+      ``"nonperspective"`` and ``"exact"``; ``"cotangent_unnormalized"`` always
+      uses ``"none"``; ``ddy_sign`` for the screen-space ones).
 
     **Returns:** a `Frame` for `perturb_normal`. Where `N` is (numerically)
     zero, e.g. background pixels, every method returns ``T = B = N = 0``, so
     `perturb_normal` gives the zero vector there (not NaN).
     """
-    if frame not in FRAME_METHODS:
-        raise ValueError(f"unknown frame {frame!r}; expected one of {', '.join(FRAME_METHODS)}")
+    check_frame(frame)
+    if frame == "cotangent_unnormalized":
+        frame, normalize = "cotangent", "none"
+    use_face_normal = frame == "exact_face"
+    if use_face_normal:
+        frame = "exact"
     _check_normalize(normalize)
     _check_ddy_sign(ddy_sign)
     n = safe_normalize(_value(N))
-    if frame in ("cotangent", "nonperspective"):
+    if frame == "none":
+        out = Frame(jnp.zeros_like(n), jnp.zeros_like(n), n)
+    elif frame in ("cotangent", "nonperspective"):
         dp1, dp2 = _derivs(p_attr, "p_attr", frame)
         duv1, duv2 = _derivs(uv_attr, "uv_attr", frame)
         fn = cotangent_frame if frame == "cotangent" else nonperspective_frame
@@ -524,7 +529,7 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
     elif frame == "exact":
         if tri_p is None or tri_uv is None:
             raise ValueError("compute_frame(frame='exact') needs `tri_p` and `tri_uv` "
-                             "(see triangle_corners)")
+                             "(see jaxnm.interpolate.triangle_corners)")
         out = exact_frame(tri_p, tri_uv, n, use_face_normal=use_face_normal, normalize=normalize)
     elif frame == "vertex":
         if tangent is None:

@@ -114,36 +114,42 @@ def vertex_normals(positions: Array, faces: Array, *, weighting: str = "angle") 
 def validate_arrays(positions, faces, uv=None, normals=None, *, source: str = "mesh") -> None:
     """Raise ``ValueError`` naming ``source`` if the mesh arrays are unusable.
 
-    Checks shapes, non-empty faces, finite values, and face indices in range.
-    Degenerate (zero-area) triangles are allowed: they cover no pixel.
+    Checks shapes and dtypes (always), and, for concrete (not traced) arrays,
+    non-empty faces, finite values and face indices in range. Degenerate
+    (zero-area) triangles are allowed: they cover no pixel.
     """
-    positions = np.asarray(positions)
-    faces = np.asarray(faces)
-    if positions.ndim != 2 or positions.shape[1] != 3:
-        raise ValueError(f"{source}: positions must have shape (V, 3), got {positions.shape}")
-    if positions.shape[0] == 0:
+    shape = jnp.shape(positions)
+    fshape = jnp.shape(faces)
+    if len(shape) != 2 or shape[1] != 3:
+        raise ValueError(f"{source}: positions must have shape (V, 3), got {shape}")
+    if shape[0] == 0:
         raise ValueError(f"{source}: the mesh has no vertices")
-    if faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"{source}: faces must be triangles with shape (F, 3), got "
-                         f"{faces.shape}")
-    if faces.shape[0] == 0:
+    if len(fshape) != 2 or fshape[1] != 3:
+        raise ValueError(f"{source}: faces must be triangles with shape (F, 3), got {fshape}")
+    if fshape[0] == 0:
         raise ValueError(f"{source}: the mesh has no faces")
-    if not np.issubdtype(faces.dtype, np.integer):
-        raise ValueError(f"{source}: faces must be integer indices, got dtype {faces.dtype}")
-    bad = ~np.all(np.isfinite(positions), axis=1)
-    if bad.any():
-        raise ValueError(f"{source}: {int(bad.sum())} vertex positions are NaN or infinite "
-                         f"(first: vertex {int(np.argmax(bad))})")
-    lo, hi = int(faces.min()), int(faces.max())
-    if lo < 0 or hi >= positions.shape[0]:
-        raise ValueError(f"{source}: face indices must be in [0, {positions.shape[0] - 1}], "
-                         f"found {lo if lo < 0 else hi}")
+    fdtype = jnp.result_type(faces)
+    if not jnp.issubdtype(fdtype, jnp.integer):
+        raise ValueError(f"{source}: faces must be integer indices, got dtype {fdtype}")
     for name, arr, c in (("uv", uv, 2), ("normals", normals, 3)):
-        if arr is None:
-            continue
-        arr = np.asarray(arr)
-        if arr.shape != (positions.shape[0], c):
-            raise ValueError(f"{source}: {name} must have shape ({positions.shape[0]}, {c}), "
-                             f"got {arr.shape}")
-        if not np.all(np.isfinite(arr)):
+        if arr is not None and jnp.shape(arr) != (shape[0], c):
+            raise ValueError(f"{source}: {name} must have shape ({shape[0]}, {c}), "
+                             f"got {jnp.shape(arr)}")
+    if _is_concrete(positions):
+        bad = ~np.all(np.isfinite(np.asarray(positions)), axis=1)
+        if bad.any():
+            raise ValueError(f"{source}: {int(bad.sum())} vertex positions are NaN or infinite "
+                             f"(first: vertex {int(np.argmax(bad))})")
+    if _is_concrete(faces):
+        faces = np.asarray(faces)
+        lo, hi = int(faces.min()), int(faces.max())
+        if lo < 0 or hi >= shape[0]:
+            raise ValueError(f"{source}: face indices must be in [0, {shape[0] - 1}], "
+                             f"found {lo if lo < 0 else hi}")
+    for name, arr in (("uv", uv), ("normals", normals)):
+        if arr is not None and _is_concrete(arr) and not np.all(np.isfinite(np.asarray(arr))):
             raise ValueError(f"{source}: {name} contain NaN or infinite values")
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)

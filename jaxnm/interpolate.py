@@ -20,7 +20,8 @@ outside the image.
   as a deferred renderer would compute them: across a triangle edge or a
   silhouette the neighbour belongs to another triangle (or to the background,
   which stores 0), which produces the familiar edge artefacts.
-- ``"none"``: values only.
+
+``derivatives=None`` interpolates the values only.
 
 **How they relate.** With ``S(x, y) = \sum_i E_i(x, y)`` (the denominator of
 the barycentrics, affine in screen space and proportional to ``1/w``) and
@@ -62,6 +63,7 @@ __all__ = [
     "Attribute",
     "Barycentrics",
     "DERIVATIVE_MODES",
+    "check_derivatives",
     "COARSE_REFERENCE",
     "barycentrics",
     "interpolate",
@@ -69,7 +71,8 @@ __all__ = [
     "triangle_corners",
 ]
 
-DERIVATIVE_MODES = ("fine", "coarse", "analytic", "gbuffer", "none")
+#: The screen-space derivative modes (the scene key ``derivatives``, ``--derivatives``).
+DERIVATIVE_MODES = ("fine", "coarse", "analytic", "gbuffer")
 
 #: ``dFdxCoarse`` is taken from the quad's lower row (window y even) and
 #: ``dFdyCoarse`` from its left column (window x even): the quad's lower-left
@@ -100,14 +103,14 @@ class Barycentrics:
     """Perspective-correct barycentrics of each pixel's own triangle, with derivatives.
 
     ``value``, ``ddx``, ``ddy``: (H, W, 3), 0 on background. ``ddx``/``ddy`` are
-    None for the modes ``"gbuffer"`` and ``"none"`` (gbuffer derivatives are
+    None for ``"gbuffer"`` and for ``derivatives=None`` (gbuffer derivatives are
     taken from the interpolated values instead).
     """
 
     value: Array
     ddx: Array | None
     ddy: Array | None
-    mode: str = dataclasses.field(metadata=dict(static=True), default="fine")
+    mode: str | None = dataclasses.field(metadata=dict(static=True), default="fine")
 
 
 def pixel_centers(height: int, width: int, dtype=jnp.float32) -> tuple[Array, Array]:
@@ -118,7 +121,11 @@ def pixel_centers(height: int, width: int, dtype=jnp.float32) -> tuple[Array, Ar
                                                                            (height, width))
 
 
-def _check_mode(derivatives: str) -> None:
+def check_derivatives(derivatives: str | None, *, allow_none: bool = True) -> None:
+    """Raise a `ValueError` unless ``derivatives`` is one of `DERIVATIVE_MODES` (or None,
+    values only, where ``allow_none``)."""
+    if derivatives is None and allow_none:
+        return
     if derivatives not in DERIVATIVE_MODES:
         raise ValueError(f"unknown derivatives mode {derivatives!r}; expected one of "
                          f"{', '.join(DERIVATIVE_MODES)}")
@@ -152,24 +159,25 @@ def _pixel_setup(frags: Fragments):
 
 
 @functools.partial(jax.jit, static_argnames=("derivatives",))
-def barycentrics(frags: Fragments, *, derivatives: str = "fine") -> Barycentrics:
+def barycentrics(frags: Fragments, *, derivatives: str | None = "fine") -> Barycentrics:
     """Barycentrics of each pixel's triangle at its centre, and their screen derivatives.
 
     **Arguments:**
     - `frags`: from `jaxnm.rasterize`.
-    - `derivatives`: one of `DERIVATIVE_MODES` (keyword-only, static).
+    - `derivatives`: one of `DERIVATIVE_MODES`, or None for values only
+      (keyword-only, static).
 
     **Returns:** a `Barycentrics`; interpolating an attribute with it is linear,
     see `interpolate`.
     """
-    _check_mode(derivatives)
+    check_derivatives(derivatives)
     height, width = frags.shape
     e, a, b, mask = _pixel_setup(frags)
     m = mask[..., None]
     s = sum_last(e, keepdims=True)
     s = jnp.where(m, s, 1.0)  # covered pixels have S != 0 (all E_i share its sign)
     value = jnp.where(m, e / s, 0.0)
-    if derivatives in ("gbuffer", "none"):
+    if derivatives in ("gbuffer", None):
         return Barycentrics(value, None, None, derivatives)
 
     a_s = sum_last(a, keepdims=True)
@@ -203,11 +211,18 @@ def barycentrics(frags: Fragments, *, derivatives: str = "fine") -> Barycentrics
 
 
 def triangle_corners(attr: Array, frags: Fragments) -> Array:
-    """Each pixel's triangle's corner values, (H, W, 3, C) (garbage-free but unmasked on
-    background pixels, which read triangle 0).
+    """Each pixel's triangle's corner values, ``(H, W, 3, C)``; zero on background.
 
-    ``attr``: per-vertex ``(V, C)`` or per-face-corner ``(F, 3, C)``.
+    **Arguments:**
+    - `attr`: per-vertex ``(V, C)`` or per-face-corner ``(F, 3, C)``.
+    - `frags`: from `jaxnm.rasterize`.
     """
+    corners = _corners(jnp.asarray(attr), frags)
+    return jnp.where(frags.mask[..., None, None], corners, 0.0)
+
+
+def _corners(attr: Array, frags: Fragments) -> Array:
+    """`triangle_corners` unmasked: background pixels read triangle 0 (finite, unused)."""
     tri = jnp.maximum(frags.triangle_id, 0)
     num_faces = frags.faces.shape[0]
     if attr.ndim == 3 and attr.shape[:2] == (num_faces, 3):  # face-varying (F, 3, C)
@@ -247,7 +262,7 @@ def _gbuffer_derivatives(value: Array, mask: Array) -> tuple[Array, Array]:
 
 @functools.partial(jax.jit, static_argnames=("derivatives",))
 def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
-                derivatives: str = "fine",
+                derivatives: str | None = "fine",
                 bary: Barycentrics | None = None) -> Attribute | dict[str, Attribute]:
     r"""Interpolate vertex attributes perspective-correctly, with screen derivatives.
 
@@ -255,7 +270,8 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
     - `attr`: per-vertex ``(V, C)`` or per-face-corner ``(F, 3, C)`` values, or a
       dict of them (interpolated together, sharing one barycentric evaluation).
     - `frags`: from `jaxnm.rasterize`.
-    - `derivatives`: one of `DERIVATIVE_MODES` (keyword-only, static).
+    - `derivatives`: one of `DERIVATIVE_MODES`, or None for values only
+      (keyword-only, static).
     - `bary`: precomputed `barycentrics(frags, derivatives=...)` to reuse.
 
     **Returns:** an `Attribute` (or a dict of them). The value is
@@ -263,7 +279,7 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
     the barycentric derivatives the same way, so large common offsets (far
     from origin geometry) cancel exactly.
     """
-    _check_mode(derivatives)
+    check_derivatives(derivatives)
     if isinstance(attr, Mapping):
         names = list(attr)
         arrays = [jnp.asarray(attr[n]) for n in names]
@@ -290,7 +306,7 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
     elif bary.mode != derivatives:
         raise ValueError(f"interpolate: `bary` was computed for derivatives={bary.mode!r}, "
                          f"not {derivatives!r}")
-    corners = triangle_corners(attr, frags)  # (H, W, 3, C)
+    corners = _corners(attr, frags)  # (H, W, 3, C)
     rel = corners[..., 1:, :] - corners[..., :1, :]  # (H, W, 2, C)
     mask = frags.mask[..., None]
 
@@ -299,7 +315,7 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
         return w[..., 1:2] * rel[..., 0, :] + w[..., 2:3] * rel[..., 1, :]
 
     value = jnp.where(mask, corners[..., 0, :] + combine(bary.value), 0.0)
-    if derivatives == "none":
+    if derivatives is None:
         return materialize(Attribute(value))
     if derivatives == "gbuffer":
         return materialize(Attribute(value, *_gbuffer_derivatives(value, frags.mask)))

@@ -1,8 +1,9 @@
-"""Files in and out: meshes, textures, images, AOVs and JSON.
+"""Files in and out: meshes, textures, images, AOVs, JSON, and the outputs of a fit.
 
-This is the only module of jaxnm that touches files, trimesh or imageio. Every
-other module sees plain arrays. Errors about bad input are raised here,
-because only here is the file name at hand: every message starts with the path.
+This is the only module of jaxnm that reads or writes files, and the only one
+that imports trimesh or imageio. Every other module sees plain arrays. Errors
+about bad files are raised here, because only here is the file name at hand:
+every message starts with the path.
 
 Conventions:
 
@@ -48,6 +49,9 @@ __all__ = [
     "save_aovs",
     "load_aovs",
     "load_json",
+    "save_json",
+    "save_loss_plot",
+    "write_fit_outputs",
 ]
 
 PathLike = str | os.PathLike
@@ -455,8 +459,8 @@ def load_texture(path: PathLike, *, channels: int | None = None) -> tuple[np.nda
 def load_image_float(path: PathLike) -> tuple[np.ndarray, int]:
     """Like `load_texture` (all channels) but also reads OpenEXR (.exr), e.g. target images.
 
-    EXR needs an imageio plugin that can read it (OpenCV); none is a jaxnm
-    dependency, and an `ImportError` says how to get one.
+    EXR is read through the OpenEXR bindings (the ``exr`` extra:
+    ``pip install jaxnm[exr]``); without them an `ImportError` says so.
     """
     p = _existing_file(path)
     ext = _check_extension(p, IMAGE_EXTENSIONS, "image")
@@ -517,7 +521,11 @@ def _read_array_file(p: Path, ext: str) -> np.ndarray:
 
 def _read_exr(p: Path) -> np.ndarray:
     """An OpenEXR image as float32 (H, W, C), via the OpenEXR bindings (RGBA, RGB or Y)."""
-    import OpenEXR
+    try:
+        import OpenEXR
+    except ImportError:
+        raise ImportError(f"{p}: reading EXR images needs the OpenEXR bindings: "
+                          "pip install 'jaxnm[exr]'") from None
 
     src = str(p)
     try:
@@ -654,6 +662,75 @@ def load_aovs(path: PathLike) -> dict[str, np.ndarray]:
         raise ValueError(f"{p}: not an .npz archive of AOVs")
     with z:
         return {k: np.asarray(z[k], np.float32) for k in z.files}
+
+
+# ----------------------------------------------------------------------------- reports
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def save_json(path: PathLike, obj: Any) -> None:
+    """Write ``obj`` as indented JSON (NumPy scalars and arrays as numbers and lists)."""
+    p = Path(os.fspath(path))
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
+
+
+def save_loss_plot(path: PathLike, history: list[dict]) -> bool:
+    """Plot the loss (log scale) and, when recorded, the mean angular error per iteration.
+
+    Needs matplotlib (the ``plots`` extra: ``pip install jaxnm[plots]``); returns False,
+    writing nothing, when it is not installed.
+    """
+    try:
+        from matplotlib.figure import Figure  # no pyplot: leaves the caller's backend alone
+    except ImportError:
+        return False
+    fig = Figure(figsize=(6, 3.5), dpi=100)
+    ax = fig.add_subplot()
+    steps = np.arange(len(history))  # iterations, across coarse-to-fine levels
+    ax.semilogy(steps, [max(h["loss"], 1e-30) for h in history], label="loss")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("0.5 * sum of squared residuals")
+    if history and "mean_angular_error_deg" in history[-1]:
+        ax2 = ax.twinx()
+        ax2.plot(steps, [h.get("mean_angular_error_deg", np.nan) for h in history], "C1",
+                 label="mean angular error")
+        ax2.set_ylabel("mean angular error (deg)", color="C1")
+    ax.set_title("jaxnm fit")
+    fig.tight_layout()
+    p = Path(os.fspath(path))
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(p)
+    return True
+
+
+def write_fit_outputs(outdir: PathLike, outputs) -> list[str]:
+    """Write a `jaxnm.fit.FitOutputs` into ``outdir``: ``normal_map.png``,
+    ``normal_map.npz``, ``render_NN.png``, ``loss.json``, ``loss.png`` (with matplotlib),
+    ``error_map.png`` (with a ground truth) and ``report.json``. Returns the names written."""
+    out = Path(os.fspath(outdir))
+    out.mkdir(parents=True, exist_ok=True)
+    written = ["normal_map.png", "normal_map.npz"]
+    save_png(out / "normal_map.png", outputs.map_texels, bits=outputs.bits)
+    np.savez_compressed(out / "normal_map.npz", normals=outputs.normals, slopes=outputs.slopes)
+    for k, row in enumerate(outputs.renders):
+        save_png(out / f"render_{k:02d}.png", row)
+    written += ["render_*.png", "loss.json"]
+    (out / "loss.json").write_text(json.dumps(outputs.history, indent=1) + "\n")
+    if save_loss_plot(out / "loss.png", outputs.history):
+        written.append("loss.png")
+    if outputs.error_map is not None:
+        save_png(out / "error_map.png", outputs.error_map)
+        written.append("error_map.png")
+    save_json(out / "report.json", outputs.report)
+    return written + ["report.json"]
 
 
 # ----------------------------------------------------------------------------- PNG codec

@@ -22,7 +22,6 @@ import functools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax import Array
 
 from . import frames as _frames
@@ -30,11 +29,12 @@ from . import maps as _maps
 from . import textures as _tex
 from .camera import Camera, to_clip
 from .geometry import Mesh
-from .interpolate import Attribute, interpolate
+from .interpolate import Attribute, check_derivatives, interpolate, triangle_corners
 from .numerics import materialize, safe_normalize
 from .raster import rasterize
-from .scene import DERIVATIVES, FRAMES, NormalMapOptions, Scene
-from .shading import Lights, Material, shade
+from .scene import Scene, validate_scene
+from .shading import Lights, Material, check_shading_model, shade
+from .textures import NormalMapOptions
 
 __all__ = ["OUTPUTS", "GBuffer", "RenderOptions", "build_gbuffer", "shade_gbuffer", "render"]
 
@@ -51,7 +51,8 @@ _NEEDS_FRAME = {"tangent", "bitangent", "perturbed_normal", "color"}
 
 @dataclasses.dataclass(frozen=True)
 class RenderOptions:
-    """Static render configuration (hashable; a `jax.jit` static argument)."""
+    """Static render configuration (hashable; a `jax.jit` static argument), validated when
+    constructed. `RenderOptions.of` derives it from a `Scene`."""
 
     width: int
     height: int
@@ -66,27 +67,33 @@ class RenderOptions:
     albedo_shape: tuple[int, int] | None = None  # None: a constant albedo
     outputs: tuple[str, ...] = ("color",)
 
+    def __post_init__(self):
+        check_derivatives(self.derivatives, allow_none=False)
+        _frames.check_frame(self.frame)
+        check_shading_model(self.shading)
+        bad = [o for o in self.outputs if o not in OUTPUTS]
+        if bad or not isinstance(self.outputs, tuple):
+            raise ValueError(f"unknown outputs {bad or self.outputs!r}; expected a tuple of "
+                             f"any of {OUTPUTS}")
+        if self.ddy_sign not in (1, -1):
+            raise ValueError(f"RenderOptions: ddy_sign must be 1 or -1, got {self.ddy_sign!r}")
+
     @staticmethod
     def of(scene: Scene, *, outputs=("color",), derivatives=None, frame=None) -> RenderOptions:
-        derivatives = scene.derivatives if derivatives is None else derivatives
-        frame = scene.frame if frame is None else frame
-        if derivatives not in DERIVATIVES:
-            raise ValueError(f"unknown derivatives {derivatives!r}; expected one of {DERIVATIVES}")
-        if frame not in FRAMES:
-            raise ValueError(f"unknown frame {frame!r}; expected one of {FRAMES}")
-        outputs = tuple(dict.fromkeys(outputs))
-        bad = [o for o in outputs if o not in OUTPUTS]
-        if bad:
-            raise ValueError(f"unknown outputs {bad}; expected any of {OUTPUTS}")
+        """The options that render ``outputs`` of ``scene`` (``derivatives`` and ``frame``
+        override the scene's)."""
         nm = scene.normal_map
-        alb = np.asarray(scene.albedo)
+        alb = jnp.shape(scene.albedo)
         return RenderOptions(
-            width=int(scene.width), height=int(scene.height), derivatives=derivatives,
-            frame=frame, shading=scene.shading, double_sided=scene.double_sided,
-            cull_back=scene.cull_back, ddy_sign=1 if scene.ddy == "up" else -1,
+            width=int(scene.width), height=int(scene.height),
+            derivatives=scene.derivatives if derivatives is None else derivatives,
+            frame=scene.frame if frame is None else frame, shading=scene.shading,
+            double_sided=scene.double_sided, cull_back=scene.cull_back,
+            ddy_sign=1 if scene.ddy == "up" else -1,
             normal_map=None if nm is None else scene.normal_map_options,
-            normal_map_shape=None if nm is None else tuple(nm.shape[:2]),
-            albedo_shape=tuple(alb.shape[:2]) if alb.ndim == 3 else None, outputs=outputs)
+            normal_map_shape=None if nm is None else tuple(jnp.shape(nm)[:2]),
+            albedo_shape=tuple(alb[:2]) if len(alb) == 3 else None,
+            outputs=tuple(dict.fromkeys(outputs)))
 
     @property
     def levels(self) -> int:
@@ -184,7 +191,7 @@ def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOpti
         if need_uv:
             gb["uv"] = out["uv"]
     if need_n:
-        n = interpolate(mesh.normals, frags, derivatives="none").value
+        n = interpolate(mesh.normals, frags, derivatives=None).value
         gb["normal"] = materialize(safe_normalize(n))
     if need_frame:
         frame_opts = opts if need_tb else dataclasses.replace(opts, frame="none")
@@ -206,26 +213,17 @@ def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOpti
 def _frame(opts: RenderOptions, mesh: Mesh, frags, gb) -> _frames.Frame:
     """The tangent frame named by ``opts.frame`` (face-forwarded when double-sided)."""
     kind = opts.frame
-    n = gb["normal"]
-    common = dict(front_facing=frags.front_facing, double_sided=opts.double_sided)
-    if kind == "none":
-        frame = _frames.Frame(jnp.zeros_like(n), jnp.zeros_like(n), n)
-        return _frames.face_forward(frame, frags.front_facing) if opts.double_sided else frame
+    inputs = {}
     if kind in ("cotangent", "cotangent_unnormalized", "nonperspective"):
-        method = "nonperspective" if kind == "nonperspective" else "cotangent"
-        normalize = "none" if kind == "cotangent_unnormalized" else "max"
-        return _frames.compute_frame(method, N=n, p_attr=gb["view"], uv_attr=gb["uv"],
-                                     normalize=normalize, ddy_sign=opts.ddy_sign, **common)
-    if kind in ("exact", "exact_face"):
-        return _frames.compute_frame(
-            "exact", N=n, tri_p=_frames.triangle_corners(mesh.positions, frags),
-            tri_uv=_frames.triangle_corners(mesh.uv, frags),
-            use_face_normal=kind == "exact_face", **common)
-    if kind == "vertex":
+        inputs = dict(p_attr=gb["view"], uv_attr=gb["uv"], ddy_sign=opts.ddy_sign)
+    elif kind in ("exact", "exact_face"):
+        inputs = dict(tri_p=triangle_corners(mesh.positions, frags),
+                      tri_uv=triangle_corners(mesh.uv, frags))
+    elif kind == "vertex":
         tangents = _frames.vertex_tangents(mesh.positions, mesh.normals, mesh.uv, mesh.faces)
-        t = interpolate(tangents, frags, derivatives="none").value
-        return _frames.compute_frame("vertex", N=n, tangent=t, **common)
-    return _frames.compute_frame("axis", N=n, **common)
+        inputs = dict(tangent=interpolate(tangents, frags, derivatives=None).value)
+    return _frames.compute_frame(kind, N=gb["normal"], front_facing=frags.front_facing,
+                                 double_sided=opts.double_sided, **inputs)
 
 
 def perturbed_normal(gb: GBuffer, normal_map: Array, opts: RenderOptions,
@@ -280,11 +278,11 @@ def shade_gbuffer(gb: GBuffer, normal_map: Array | None, lights: Lights, materia
 
 
 def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
-           frame: str | None = None) -> dict[str, np.ndarray]:
-    """Render ``scene`` and return the requested outputs as float32 (H, W, C) NumPy arrays.
+           frame: str | None = None) -> dict[str, Array]:
+    """Render ``scene`` and return the requested outputs as float32 (H, W, C) arrays.
 
     **Arguments:**
-    - `scene`: a `Scene` (`load_scene`, `default_scene`).
+    - `scene`: a `Scene` (`jaxnm.config.load_scene`, `jaxnm.procedural.default_scene`).
     - `outputs`: any of `OUTPUTS`; only the stages they need are run.
     - `derivatives`, `frame`: override the scene's choices.
 
@@ -292,7 +290,14 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     `jaxnm.shading.to_display` for an sRGB PNG); ``triangle_id`` is -1 on the
     background; ``dpdx``/``dpdy`` are derivatives of the world position per
     pixel step in window x (right) and y (**up**).
+
+    Differentiable: the scene's arrays (normal map, albedo, vertex positions,
+    camera, lights, material) may be traced, e.g. ``jax.grad`` of a loss of
+    ``render(scene.replace(normal_map=x))["color"]`` with respect to ``x``
+    (visibility is piecewise constant: silhouettes and occlusion boundaries
+    contribute no gradient). The scene is validated first (`validate_scene`).
     """
+    scene = validate_scene(scene)
     opts = RenderOptions.of(scene, outputs=outputs, derivatives=derivatives, frame=frame)
     check_mesh(scene.mesh, opts, scene.source)
     gb = build_gbuffer(scene.mesh, scene.camera, jnp.asarray(scene.albedo), opts=opts)
@@ -316,9 +321,8 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     }
     result = {}
     for name in opts.outputs:
-        v = res[name] if name in res else geo[name]()
-        v = np.asarray(v)
+        v = jnp.asarray(res[name] if name in res else geo[name]())
         if v.ndim == 2:
             v = v[..., None]
-        result[name] = v.astype(np.float32)
+        result[name] = v.astype(jnp.float32)
     return result

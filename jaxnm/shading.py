@@ -70,6 +70,8 @@ __all__ = [
     "Material",
     "FALLOFFS",
     "SHADING_MODELS",
+    "check_shading_model",
+    "directional_light",
     "stack_lights",
     "lambert",
     "blinn_phong",
@@ -129,6 +131,11 @@ class PointLight:
     intensity: Array
     falloff: str = dataclasses.field(default="inverse_square", metadata=dict(static=True))
 
+    def __post_init__(self):  # static: checked however the light was built, never traced
+        if self.falloff not in FALLOFFS:
+            raise ValueError(f"PointLight: unknown falloff {self.falloff!r}; expected one of "
+                             f"{', '.join(FALLOFFS)}")
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -185,6 +192,15 @@ def stack_lights(lights: Sequence[DirectionalLight] | Sequence[PointLight]):
     return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *lights)
 
 
+def directional_light(direction, *, color=(1.0, 1.0, 1.0), intensity=1.0) -> Lights:
+    """A `Lights` holding one directional light, as a stack of one (``direction`` points
+    towards the light)."""
+    return Lights(directional=DirectionalLight(jnp.asarray(direction, jnp.float32)[None],
+                                               jnp.asarray(color, jnp.float32)[None],
+                                               jnp.reshape(jnp.asarray(intensity, jnp.float32),
+                                                           (1,))))
+
+
 # --------------------------------------------------------------------------------------
 # helpers
 # --------------------------------------------------------------------------------------
@@ -214,7 +230,8 @@ def _pos_pow(x: Array, n: Array) -> Array:
     return jnp.where(ok, y, jnp.where(n == 0, 1.0, 0.0).astype(y.dtype))
 
 
-def _check_model(model: str) -> None:
+def check_shading_model(model: str) -> None:
+    """Raise a `ValueError` unless ``model`` is one of `SHADING_MODELS`."""
     if model not in SHADING_MODELS:
         raise ValueError(f"shade: unknown shading model {model!r}; expected one of "
                          f"{', '.join(SHADING_MODELS)}")
@@ -228,9 +245,6 @@ def _incident(light, p: Array) -> tuple[Array, Array]:
         radiance = jnp.asarray(light.color, p.dtype) * jnp.asarray(light.intensity, p.dtype)
         return L, _expand_to(radiance, shape)
     if isinstance(light, PointLight):
-        if light.falloff not in FALLOFFS:
-            raise ValueError(f"PointLight: unknown falloff {light.falloff!r}; expected one of "
-                             f"{', '.join(FALLOFFS)}")
         d = _expand_to(jnp.asarray(light.position, p.dtype), shape) - p
         L = safe_normalize(d)
         radiance = jnp.asarray(light.color, p.dtype) * jnp.asarray(light.intensity, p.dtype)
@@ -276,7 +290,7 @@ def _flatten_stack(light):
 
 
 def _shade(model: str, N, p, eye, lights, material: Material, albedo) -> Array:
-    _check_model(model)
+    check_shading_model(model)
     N, p = jnp.asarray(N), jnp.asarray(p)
     dtype = jnp.result_type(N, p)
     if not jnp.issubdtype(dtype, jnp.floating):

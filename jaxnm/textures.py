@@ -47,6 +47,8 @@ from .interpolate import Attribute
 from .numerics import safe_normalize, safe_sqrt, tiny
 
 __all__ = [
+    "NormalMapOptions",
+    "MAP_SPACES",
     "FILTERS",
     "WRAPS",
     "UV_ORIGINS",
@@ -63,6 +65,7 @@ __all__ = [
     "encode_normal_map",
     "srgb_to_linear",
     "linear_to_srgb",
+    "quantize",
 ]
 
 FILTERS = ("nearest", "bilinear", "trilinear")
@@ -70,6 +73,9 @@ WRAPS = ("repeat", "clamp", "mirror")
 UV_ORIGINS = ("bottom_left", "top_left")
 ENCODINGS = ("unsigned", "unsigned_exact", "signed")
 GREENS = ("up", "down")
+#: What a map's texels mean: tangent-space normals, object-space normals, or a derivative
+#: map ``(dh/du, dh/dv)`` (Mikkelsen's surface-gradient bump mapping).
+MAP_SPACES = ("tangent", "object", "derivative")
 
 
 def _check_option(func: str, name: str, value, valid: Sequence) -> None:
@@ -88,6 +94,54 @@ def _check_texture(func: str, name: str, tex: Array) -> None:
     if tex.ndim != 3:
         raise ValueError(f"{func}: `{name}` must have shape (H, W, C), got {tex.shape}")
     _check_float(func, name, tex)
+
+
+@dataclasses.dataclass(frozen=True)
+class NormalMapOptions:
+    """How a normal map's texels are decoded and sampled (hashable: a static argument).
+
+    Validated when constructed, however it was built (a scene file, Python code,
+    `dataclasses.replace`), so a bad option is refused before anything compiles.
+
+    **Fields:**
+    - `encoding`: one of `ENCODINGS`: ``"unsigned"`` (``2x - 1``),
+      ``"unsigned_exact"`` (Schüler's exact expansion ``x*255/127 - 128/127``
+      for 8 bits), or ``"signed"`` (values already in [-1, 1]).
+    - `channels`: 3, or 2 (``z = sqrt(max(0, 1 - x^2 - y^2))``).
+    - `green`: one of `GREENS`: ``"up"`` (OpenGL: +green points to the top of
+      the image as displayed) or ``"down"`` (DirectX). With
+      ``uv_origin="bottom_left"``, "up" means the map's +y is along +v.
+    - `strength`: a finite number that scales the map's x and y.
+    - `uv_origin`: one of `UV_ORIGINS` (``"bottom_left"``: OpenGL/OBJ;
+      ``"top_left"``: glTF/D3D images).
+    - `wrap`, `filter`: texture sampling, one of `WRAPS` and `FILTERS`.
+    - `space`: one of `MAP_SPACES`: ``"tangent"``, ``"object"`` (an object-space
+      normal map), or ``"derivative"`` (a derivative map ``(dh/du, dh/dv)`` in
+      world units per unit of uv; scene files give a ``height_map`` instead,
+      converted on load).
+    - `bits`: bit depth of the stored values, 2 to 16 (used by ``"unsigned_exact"``).
+    """
+
+    encoding: str = "unsigned"
+    channels: int = 3
+    green: str = "up"
+    strength: float = 1.0
+    uv_origin: str = "bottom_left"
+    wrap: str = "repeat"
+    filter: str = "trilinear"
+    space: str = "tangent"
+    bits: int = 8
+
+    def __post_init__(self):
+        name = "NormalMapOptions"
+        _check_normal_options(name, self.encoding, self.channels, self.green, self.bits,
+                              self.uv_origin)
+        _check_option(name, "wrap", self.wrap, WRAPS)
+        _check_option(name, "filter", self.filter, FILTERS)
+        _check_option(name, "space", self.space, MAP_SPACES)
+        if (isinstance(self.strength, bool) or not isinstance(self.strength, (int, float))
+                or not math.isfinite(self.strength)):
+            raise ValueError(f"{name}: strength must be a finite number, got {self.strength!r}")
 
 
 # --------------------------------------------------------------------------- mipmaps
@@ -643,6 +697,15 @@ def _encode(n: Array, encoding: str, channels: int, flip: bool, bits: int) -> Ar
         half = 2 ** (bits - 1)
         return jnp.clip((v * (half - 1) + half) / (2**bits - 1), 0.0, 1.0)
     return jnp.clip(v, -1.0, 1.0)
+
+
+def quantize(x: ArrayLike, bits: int = 8) -> Array:
+    """Round unorm values in [0, 1] to the nearest of the ``2^bits`` codes a ``bits``-bit image
+    stores, ``round(x (2^b - 1)) / (2^b - 1)`` (what saving and reloading an image gives)."""
+    if not isinstance(bits, (int, np.integer)) or not 1 <= bits <= 16:
+        raise ValueError(f"quantize: bits must be an integer between 1 and 16, got {bits!r}")
+    top = 2**int(bits) - 1
+    return jnp.round(jnp.clip(jnp.asarray(x), 0.0, 1.0) * top) / top
 
 
 # --------------------------------------------------------------------------- sRGB

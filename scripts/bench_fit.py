@@ -28,6 +28,7 @@ import jax.numpy as jnp
 
 from jaxnm import fit as F
 from jaxnm import procedural
+from jaxnm.procedural import default_problem
 from jaxnm.render import render
 
 
@@ -46,7 +47,7 @@ def run_solver(problem, gt, prep, solver: str, budget: float, lsmr: int) -> dict
 
 def step_cost(render_size: int, repeats: int = 10) -> dict:
     """Forward+backward w.r.t. the map (1 view, 1 light) vs. a full render, 20k triangles."""
-    problem, gt, scene = F.default_problem(render_size=render_size, map_size=256, n_lights=1,
+    problem, gt, scene = default_problem(render_size=render_size, map_size=256, n_lights=1,
                                            views=1)
     mesh = procedural.torus(1.0, 0.42, 160, 64, uv_scale=(3.0, 1.0))  # 20480 triangles
     problem = dataclasses.replace(problem, mesh=mesh)
@@ -64,13 +65,13 @@ def step_cost(render_size: int, repeats: int = 10) -> dict:
 
     full = med(lambda: render(scene, outputs=("color",))["color"])
     prep = F.prepare(problem)
-    args = (prep, None, jnp.asarray(1.0), jnp.ones(problem.map_size + (1,)))
+    args = F.ModelArgs.create(prep)
     z = jnp.zeros(problem.map_size + (2,))
-    lf = jax.jit(F._loss)
+    lf = jax.jit(F.loss)
     fw = med(lambda: lf(z, args))
-    vg = jax.jit(jax.value_and_grad(F._loss))
+    vg = jax.jit(jax.value_and_grad(F.loss))
     fb = med(lambda: vg(z, args))
-    _, lin = jax.linearize(lambda y: F._residuals(y, args), z)
+    _, lin = jax.linearize(lambda y: F.residuals(y, args), z)
     lin = jax.jit(lin)
     lt = jax.jit(jax.linear_transpose(lin, z))
     r = lin(z)
@@ -99,7 +100,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     t = time.perf_counter()
-    problem, gt, _ = F.default_problem(render_size=args.render, map_size=args.map,
+    problem, gt, _ = default_problem(render_size=args.render, map_size=args.map,
                                        n_lights=args.lights, views=args.views)
     t_targets = time.perf_counter() - t
     t = time.perf_counter()

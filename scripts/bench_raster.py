@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 
 import jaxnm
-from jaxnm import procedural, raster
+from jaxnm import procedural
 
 MESHES = {"4k": (64, 32), "20k": (160, 64), "200k": (500, 200)}
 
@@ -47,11 +47,9 @@ def bench_case(tris: str, size: int, repeats: int) -> dict:
     faces = mesh.faces
     kw = dict(width=size, height=size)
 
-    _, _, rkw = raster._prepare_args(clip, faces, size, size, False, raster.SUBPIXEL_BITS, 4,
-                                     None)
     t0 = time.perf_counter()
-    chunk = raster._max_triangles_per_chunk(size, size, 4)
-    compiled = raster._rasterize.lower(clip, faces, chunk=chunk, **rkw).compile()
+    compiled = jax.jit(lambda c, f: jaxnm.rasterize(c, f, **kw).triangle_id).lower(
+        clip, faces).compile()
     compile_s = time.perf_counter() - t0
     mem = compiled.memory_analysis()
     temp_mb = getattr(mem, "temp_size_in_bytes", 0) / 2**20 if mem is not None else None

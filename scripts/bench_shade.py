@@ -3,10 +3,10 @@
     python scripts/bench_shade.py [--size 512] [--repeats 5] [--derivatives fine [analytic]]
                                   [--frames cotangent exact ...] [--no-positions]
 
-On the built-in default scene (`jaxnm.scene.default_scene`: the rivet-mapped
+On the built-in default scene (`jaxnm.procedural.default_scene`: the rivet-mapped
 torus, 16384 triangles, 256 x 256 trilinear normal map, one directional and one
 point light, Blinn-Phong) at ``--size`` x ``--size``, for each frame method in
-`jaxnm.scene.FRAMES` and each ``--derivatives`` mode it measures
+`jaxnm.frames.FRAMES` and each ``--derivatives`` mode it measures
 
 - ``forward_ms``: the full render of ``color`` (`build_gbuffer` + `shade_gbuffer`
   jitted together into one program);
@@ -77,7 +77,9 @@ from jaxnm import frames as _frames
 from jaxnm.geometry import Mesh
 from jaxnm.numerics import angle_between
 from jaxnm.render import RenderOptions, build_gbuffer, perturbed_normal, shade_gbuffer
-from jaxnm.scene import DERIVATIVES, FRAMES, default_scene
+from jaxnm.frames import FRAMES
+from jaxnm.interpolate import DERIVATIVE_MODES as DERIVATIVES
+from jaxnm.procedural import default_scene
 
 #: The default torus's parametrisation (`jaxnm.procedural.default_torus`); checked at start-up.
 MAJOR, MINOR, U_SCALE, V_SCALE = 1.0, 0.42, 3.0, 1.0

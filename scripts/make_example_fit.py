@@ -14,15 +14,17 @@ stored in the repository; edit them as a template for your own data.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 
-from jaxnm import fit as F
+from jaxnm.camera import eye_to_world
+from jaxnm.fit import view_key
 from jaxnm.io import save_png
+from jaxnm.procedural import HELD_OUT_LIGHT, default_problem
 from jaxnm.render import render
+from jaxnm.shading import directional_light
 from jaxnm.textures import linear_to_srgb
 
 
@@ -53,8 +55,8 @@ def write_example(outdir: Path, render_size: int = 256, map_size: int = 128,
     """Write the example into ``outdir``; returns the path of ``fit.json``."""
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
-    problem, _, scene = F.default_problem(render_size=render_size, map_size=map_size,
-                                          noise=noise)
+    problem, _, scene = default_problem(render_size=render_size, map_size=map_size,
+                                        noise=noise)
     m, nm = scene.material, scene.normal_map_options
     (outdir / "scene.json").write_text(_dumps({
         "mesh": "builtin:torus",
@@ -72,7 +74,7 @@ def write_example(outdir: Path, render_size: int = 256, map_size: int = 128,
     views, targets = [], []
     keys = {}
     for i, t in enumerate(problem.targets):
-        key = F._view_key(t)
+        key = view_key(t)
         if key not in keys:
             keys[key] = len(views)
             views.append({"camera": _camera(t.camera), "width": t.width, "height": t.height})
@@ -83,9 +85,8 @@ def write_example(outdir: Path, render_size: int = 256, map_size: int = 128,
                         "lights": [{"type": "directional", "direction": _list(d)}]})
 
     cam = problem.targets[0].camera
-    held_dir = F.view_relative(cam, [0.45, 0.35, 0.82])
-    held = render(dataclasses.replace(scene, camera=cam, lights=F.directional_light(held_dir)),
-                  outputs=("color",))["color"]
+    held_dir = eye_to_world(cam, HELD_OUT_LIGHT)
+    held = render(scene.replace(camera=cam, lights=directional_light(held_dir)))["color"]
     _srgb_png(outdir / "held_out.png", np.asarray(held))
 
     fit = {

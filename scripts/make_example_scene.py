@@ -31,7 +31,7 @@ def main() -> None:
     HERE.mkdir(parents=True, exist_ok=True)
     mesh = procedural.torus(1.0, 0.42, 48, 24, uv_scale=(3.0, 1.0))
     write_obj(HERE / "torus.obj", mesh)
-    nm = procedural.encode_unsigned(procedural.default_normal_map(128))
+    nm = procedural.default_normal_map_texels(128)
     save_png(HERE / "rivets.png", nm)
     scene = {
         "mesh": "torus.obj",

@@ -1,8 +1,18 @@
-"""API conventions: options are keyword-only, the public surface imports and is documented."""
+"""API conventions: options are keyword-only, the public surface imports and is documented,
+and no module reaches into another's private names."""
 
+import ast
+import importlib
 import inspect
+import pkgutil
+import re
+from pathlib import Path
+
+import pytest
 
 import jaxnm
+
+ROOT = Path(__file__).resolve().parents[1]
 
 # Positional defaults that are data rather than options (like gluLookAt's `up`).
 ALLOWED_POSITIONAL_DEFAULTS = {
@@ -20,6 +30,13 @@ def _public_functions():
             yield name, obj
 
 
+def _modules():
+    """Every module of the package, imported."""
+    yield jaxnm
+    for info in pkgutil.walk_packages(jaxnm.__path__, "jaxnm."):
+        yield importlib.import_module(info.name)
+
+
 def test_options_are_keyword_only():
     bad = []
     for name, fn in _public_functions():
@@ -31,12 +48,105 @@ def test_options_are_keyword_only():
     assert not bad, f"optional arguments should be keyword-only: {bad}"
 
 
+def _has_own_doc(obj) -> bool:
+    doc = (obj.__doc__ or "").strip()
+    if inspect.isclass(obj):
+        # a class without a docstring inherits one, and @dataclass writes "Name(fields...)"
+        return "__doc__" in vars(obj) and bool(doc) and not doc.startswith(obj.__name__ + "(")
+    return bool(doc)
+
+
 def test_every_public_name_is_documented():
-    missing = [n for n in jaxnm.__all__ if not (getattr(jaxnm, n).__doc__ or "").strip()]
+    missing = []
+    for mod in _modules():
+        assert (mod.__doc__ or "").strip(), f"module {mod.__name__} has no docstring"
+        for n in getattr(mod, "__all__", ()):
+            obj = getattr(mod, n)
+            if (inspect.isclass(obj) or inspect.isfunction(obj)) and not _has_own_doc(obj):
+                missing.append(f"{mod.__name__}.{n}")
     assert not missing, missing
 
 
+def test_the_docstring_check_can_fail():
+    import dataclasses
+
+    @dataclasses.dataclass
+    class Undocumented:
+        x: int
+
+    def bare():
+        pass
+
+    assert not _has_own_doc(Undocumented) and not _has_own_doc(bare)
+    assert _has_own_doc(jaxnm.Scene) and _has_own_doc(jaxnm.render)
+
+
 def test_all_is_complete_and_importable():
-    assert len(set(jaxnm.__all__)) == len(jaxnm.__all__)
-    for n in jaxnm.__all__:
-        assert getattr(jaxnm, n) is not None
+    for mod in _modules():
+        names = getattr(mod, "__all__", None)
+        if names is None:
+            continue
+        assert len(set(names)) == len(names), mod.__name__
+        for n in names:
+            assert hasattr(mod, n), f"{mod.__name__}.{n}"
+
+
+def _private_imports(path: Path) -> list[str]:
+    """`from .x import _name` and `x._name` uses of another jaxnm module's private names."""
+    tree = ast.parse(path.read_text())
+    aliases = {}  # local name -> imported jaxnm module
+    bad = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            is_jaxnm = node.level > 0 or (node.module or "").startswith("jaxnm")
+            for a in node.names:
+                if is_jaxnm and a.name.startswith("_") and a.name != "__version__":
+                    bad.append(f"{path.name}:{node.lineno} imports {a.name}")
+                if is_jaxnm:
+                    aliases[a.asname or a.name] = True
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.startswith("jaxnm"):
+                    aliases[(a.asname or a.name).split(".")[0]] = True
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Attribute) and node.attr.startswith("_")
+                and not node.attr.startswith("__") and isinstance(node.value, ast.Name)
+                and node.value.id in aliases):
+            bad.append(f"{path.name}:{node.lineno} uses {node.value.id}.{node.attr}")
+    return bad
+
+
+def test_no_module_uses_another_modules_private_names():
+    files = sorted((ROOT / "jaxnm").rglob("*.py")) + sorted((ROOT / "scripts").glob("*.py"))
+    bad = [b for f in files for b in _private_imports(f)]
+    assert not bad, bad
+
+
+def test_the_private_name_check_can_fail(tmp_path):
+    f = tmp_path / "x.py"
+    f.write_text("from .scene import _camera\nfrom jaxnm import fit as F\nF._loss(1)\n")
+    assert len(_private_imports(f)) == 2
+
+
+def test_one_version_string():
+    import importlib.metadata
+    import tomllib
+
+    meta = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert "version" not in meta["project"] and "version" in meta["project"]["dynamic"]
+    assert meta["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "jaxnm.__version__"}
+    assert re.fullmatch(r"\d+\.\d+\.\d+", jaxnm.__version__)
+    assert importlib.metadata.version("jaxnm") == jaxnm.__version__
+
+
+@pytest.mark.parametrize("vocab,owner", [
+    ("FRAMES", "jaxnm.frames"), ("DERIVATIVE_MODES", "jaxnm.interpolate"),
+    ("SHADING_MODELS", "jaxnm.shading"), ("FILTERS", "jaxnm.textures"),
+    ("WRAPS", "jaxnm.textures"), ("ENCODINGS", "jaxnm.textures"), ("SOLVERS", "jaxnm.fit"),
+])
+def test_each_vocabulary_is_defined_once(vocab, owner):
+    """One list per vocabulary, in the module of the stage that owns it."""
+    defined = [m.__name__ for m in _modules()
+               if re.search(rf"^{vocab}\s*=", inspect.getsource(m), re.M)]
+    owner_mod = importlib.import_module(owner)
+    assert defined in ([owner], [owner_mod.__name__ + ".problem"]), defined

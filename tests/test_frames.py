@@ -21,10 +21,12 @@ import jaxnm
 from jaxnm import frames as F
 from jaxnm.camera import Camera, look_at, orthographic, perspective, to_clip
 from jaxnm.geometry import vertex_normals
+from jaxnm.interpolate import triangle_corners
 from jaxnm.numerics import safe_normalize
 
 SIZE = 48
-METHODS = F.FRAME_METHODS
+# the five constructions; the other names in F.FRAMES are variants of them (and "none")
+METHODS = ("cotangent", "nonperspective", "exact", "vertex", "axis")
 MIRROR = np.array([-1.0, 1.0, 1.0])
 
 
@@ -87,13 +89,14 @@ def pipeline(frags, pos, uv, nrm, eye, noise, *, mode="fine"):
         attrs["t"] = F.vertex_tangents(pos, nrm, uv, frags.faces)
     at = jaxnm.interpolate(attrs, frags, derivatives=mode)
     m = procedural_map(at["uv"].value) + noise
-    kw = dict(N=at["n"], p_attr=at["p"], uv_attr=at["uv"], tri_p=F.triangle_corners(pos, frags),
-              tri_uv=F.triangle_corners(uv, frags), tangent=at.get("t"),
+    kw = dict(N=at["n"], p_attr=at["p"], uv_attr=at["uv"], tri_p=triangle_corners(pos, frags),
+              tri_uv=triangle_corners(uv, frags), tangent=at.get("t"),
               front_facing=frags.front_facing)
     variants = {name: dict(frame=name) for name in ("cotangent", "nonperspective", "exact")}
     variants["cotangent_cam"] = dict(frame="cotangent", p_attr=at["pc"])  # Schueler's -V
-    variants["exact_face"] = dict(frame="exact", use_face_normal=True)
+    variants["exact_face"] = dict(frame="exact_face")
     variants["cotangent_none"] = dict(frame="cotangent", normalize="none")
+    variants["cotangent_unnormalized"] = dict(frame="cotangent_unnormalized")
     if mode == "fine":
         variants.update({name: dict(frame=name) for name in ("vertex", "axis")})
         variants.update({name + "_ds": dict(frame=name, double_sided=True) for name in METHODS})
@@ -712,8 +715,8 @@ def _shade_all(frags, cam, nrm, pos, uv, m):
     fr = dataclasses.replace(frags, clip=to_clip(pos, cam))
     tangent = F.vertex_tangents(pos, nrm, uv, fr.faces)
     at = jaxnm.interpolate({"p": pos, "uv": uv, "n": nrm, "t": tangent}, fr)
-    kw = dict(N=at["n"], p_attr=at["p"], uv_attr=at["uv"], tri_p=F.triangle_corners(pos, fr),
-              tri_uv=F.triangle_corners(uv, fr), tangent=at["t"], front_facing=fr.front_facing)
+    kw = dict(N=at["n"], p_attr=at["p"], uv_attr=at["uv"], tri_p=triangle_corners(pos, fr),
+              tri_uv=triangle_corners(uv, fr), tangent=at["t"], front_facing=fr.front_facing)
     outs = [F.perturb_normal(F.compute_frame(name, **kw), m) for name in METHODS]
     outs.append(F.perturb_normal(F.compute_frame("cotangent", normalize="none", **kw), m))
     return jnp.stack(outs)

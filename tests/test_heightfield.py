@@ -73,10 +73,10 @@ import jaxnm
 from jaxnm import frames as F
 from jaxnm.geometry import Mesh
 from jaxnm.maps import height_to_normal_map
-from jaxnm.procedural import encode_unsigned
 from jaxnm.render import RenderOptions, build_gbuffer, render, shade_gbuffer
-from jaxnm.scene import NormalMapOptions, Scene
+from jaxnm.scene import Scene
 from jaxnm.shading import DirectionalLight, Lights, Material, stack_lights
+from jaxnm.textures import NormalMapOptions, encode_normal_map, quantize
 
 SIZE = 96  # render resolution
 PLANE = 2.4  # side of both meshes (the camera sees about 1.8 x 1.8 of it)
@@ -162,7 +162,7 @@ def converted_map(uv_deg: float) -> np.ndarray:
     # scale = height units per texel step: the map's texels are UV_SPAN / MAP world units apart
     n = np.asarray(height_to_normal_map(jnp.asarray(h, jnp.float32), scale=MAP / UV_SPAN,
                                         wrap="clamp"))
-    return encode_unsigned(n)
+    return np.asarray(quantize(encode_normal_map(jnp.asarray(n)), 8))
 
 
 def camera(kind: str = "perspective") -> jaxnm.Camera:

@@ -173,7 +173,7 @@ def test_fine_equals_analytic_times_w_ratio():
     fr = jaxnm.rasterize(clip, faces, width=24, height=24)
     b_f = jaxnm.barycentrics(fr, derivatives="fine")
     b_a = jaxnm.barycentrics(fr, derivatives="analytic")
-    w = jaxnm.interpolate(clip[:, 3:], fr, derivatives="none").value[..., 0]
+    w = jaxnm.interpolate(clip[:, 3:], fr, derivatives=None).value[..., 0]
     # w at the horizontal partner: evaluate interpolant there via the fine difference of w
     wf = jaxnm.interpolate(clip[:, 3:], fr, derivatives="fine")
     x_even = (np.arange(24) % 2 == 0)[None, :]

@@ -122,7 +122,7 @@ def test_camera_inside_box_sees_every_pixel_once():
     amb = _ambiguous(ref, 2e-3)  # clipped triangles are not snapped (see raster docs)
     assert np.array_equal(np.asarray(fr.triangle_id)[~amb], ref["triangle_id"][~amb])
     # interpolated positions lie on the box surface and on each pixel's view ray
-    p = np.asarray(jaxnm.interpolate(pos.astype(np.float32), fr, derivatives="none").value)
+    p = np.asarray(jaxnm.interpolate(pos.astype(np.float32), fr, derivatives=None).value)
     # (a pixel next to an edge may be covered only thanks to the 1/256 px vertex snapping; its
     # unsnapped interpolant then extrapolates slightly past the face, as on a GPU)
     assert np.allclose(np.abs(p).max(-1), 1.0, atol=2e-4)
@@ -149,7 +149,7 @@ def test_triangle_crossing_near_plane():
     cov = np.asarray(fr.mask) & (ref["triangle_id"] >= 0)
     np.testing.assert_allclose(np.asarray(fr.depth)[cov],
                                _unsnapped_depth(ref, clip, [[0, 1, 2]])[cov], atol=2e-6)
-    p = np.asarray(jaxnm.interpolate(pos.astype(np.float32), fr, derivatives="none").value)
+    p = np.asarray(jaxnm.interpolate(pos.astype(np.float32), fr, derivatives=None).value)
     # every visible point is in front of the near plane (eye z = 1, looking down -z)
     assert np.all(p[np.asarray(fr.mask)][:, 2] <= 0.5 + 1e-5)
 

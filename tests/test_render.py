@@ -10,8 +10,11 @@ import pytest
 import jaxnm
 from jaxnm import procedural
 from jaxnm.cli import main
+from jaxnm.config import load_scene, scene_from_dict
+from jaxnm.maps import height_to_normal_map
+from jaxnm.procedural import default_scene
 from jaxnm.render import render
-from jaxnm.scene import Scene, default_scene, load_scene, scene_from_dict
+from jaxnm.scene import Scene
 from jaxnm.shading import DirectionalLight, Lights, Material, stack_lights
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "scripts" / "scenes" / "torus" / "scene.json"
@@ -167,7 +170,7 @@ def test_cli_normal_map_override_must_be_rgb(tmp_path, capsys):
 
 
 def test_lights_and_material_change_the_image(plane_scene):
-    nm = procedural.encode_unsigned(procedural.default_normal_map(64))
+    nm = procedural.default_normal_map_texels(64)
     base = plane_scene.replace(normal_map=nm)
     a = render(base)["color"]
     left = Lights(directional=stack_lights([DirectionalLight(jnp.array([-1.0, 0, 0.5]),
@@ -201,7 +204,7 @@ def test_height_map_bumps_toward_the_light(tmp_path):
     assert lum[32, 40:46].mean() > lum[32, 18:24].mean() + 0.2
     assert np.isfinite(c["perturbed_normal"]).all()
     # the same bump as a tangent-space normal map (builtin:plane spans 2 x 2 world units)
-    hn = procedural.height_to_normals(h * 0.1 / 2.0 * n, strength=1.0)
+    hn = np.asarray(height_to_normal_map(h * 0.1 / 2.0 * n, scale=1.0))
     q = tmp_path / "s2.json"
     save_png(tmp_path / "n.png", (hn + 1) / 2, bits=16)
     q.write_text(json.dumps({**base, "normal_map": {"path": "n.png"}}))
@@ -215,7 +218,7 @@ def test_height_map_bumps_toward_the_light(tmp_path):
 def test_hlsl_ddy_turns_bumps_into_dents(plane_scene):
     """HLSL's ddy points down: fed to the GLSL cotangent frame it negates T and B (not the
     handedness), i.e. the map's tangential part is rotated by 180 degrees about N."""
-    nm = procedural.encode_unsigned(procedural.default_normal_map(64))
+    nm = procedural.default_normal_map_texels(64)
     sc = plane_scene.replace(normal_map=nm)
     up = render(sc, outputs=("tangent", "bitangent", "perturbed_normal", "normal", "mask"))
     down = render(sc.replace(ddy="down"), outputs=("tangent", "bitangent", "perturbed_normal"))

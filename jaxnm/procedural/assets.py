@@ -7,13 +7,15 @@ rounded rivets and grooves derived analytically from a height field.
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import numpy as np
 
-from .geometry import Mesh
+from ..geometry import Mesh
+from ..maps import height_to_normal_map
+from ..textures import encode_normal_map, quantize
 
-__all__ = ["torus", "default_torus", "plane", "uv_sphere", "rivet_height", "height_to_normals",
-           "encode_unsigned",
-           "default_normal_map"]
+__all__ = ["torus", "default_torus", "plane", "uv_sphere", "rivet_height", "default_normal_map",
+           "default_normal_map_texels", "RIVET_STRENGTH", "BUILTIN_MESHES", "builtin_mesh"]
 
 
 def torus(major_radius: float = 1.0, minor_radius: float = 0.4, major_segments: int = 96,
@@ -87,8 +89,6 @@ def uv_sphere(radius: float = 1.0, segments: int = 64, rings: int = 32) -> Mesh:
 
 
 def _mesh(pos, faces, uv, nrm) -> Mesh:
-    import jax.numpy as jnp
-
     return Mesh(jnp.asarray(pos, jnp.float32), jnp.asarray(faces, jnp.int32),
                 jnp.asarray(uv, jnp.float32), jnp.asarray(nrm, jnp.float32))
 
@@ -111,29 +111,34 @@ def rivet_height(size: int = 256, *, cells: int = 8, groove: float = 0.08) -> np
     return (0.35 * grooves + 0.65 * rivet * grooves).astype(np.float32)
 
 
-def height_to_normals(height: np.ndarray, *, strength: float = 4.0) -> np.ndarray:
-    """Tangent-space unit normals (H, W, 3) of a periodic height field (image layout).
-
-    Central differences with wrap-around; +x = +u (right), +y = +v (up the
-    image, i.e. towards row 0), z out of the surface:
-    ``n = normalize(-strength dh/dc, -strength dh/dr, 1)`` with the slopes per
-    *texel* (``dh/dc`` along a row, ``dh/dr`` upwards along a column).
-    """
-    h = np.asarray(height, np.float64)
-    rows, cols = h.shape
-    dhdu = (np.roll(h, -1, 1) - np.roll(h, 1, 1)) * (cols / 2)
-    dhdv = (np.roll(h, 1, 0) - np.roll(h, -1, 0)) * (rows / 2)  # row above minus row below
-    n = np.stack([-strength * dhdu / cols, -strength * dhdv / rows, np.ones_like(h)], -1)
-    return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
-
-
-def encode_unsigned(n: np.ndarray, bits: int = 8) -> np.ndarray:
-    """Store unit vectors as an unsigned ``bits``-bit map: ``round((n + 1) / 2 * (2^b - 1))``,
-    returned as floats in [0, 1] (exactly the values a PNG of that depth holds)."""
-    top = 2**bits - 1
-    return (np.round((np.asarray(n, np.float64) + 1.0) * 0.5 * top) / top).astype(np.float32)
+#: Bumpiness of the built-in rivet map (height units per texel, see `height_to_normal_map`).
+RIVET_STRENGTH = 24.0
 
 
 def default_normal_map(size: int = 256) -> np.ndarray:
-    """The built-in scene's tangent-space normal map: decoded unit vectors (size, size, 3)."""
-    return height_to_normals(rivet_height(size), strength=24.0)
+    """The built-in scene's tangent-space normal map: decoded unit vectors (size, size, 3)
+    ("green up", image layout), from `rivet_height` by `jaxnm.maps.height_to_normal_map`."""
+    return np.asarray(height_to_normal_map(rivet_height(size), scale=RIVET_STRENGTH))
+
+
+def default_normal_map_texels(size: int = 256, bits: int = 8) -> np.ndarray:
+    """`default_normal_map` as a ``bits``-bit unsigned image stores it: floats in [0, 1] on the
+    ``2^bits`` codes (what ``builtin:rivets`` in a scene file loads)."""
+    n = jnp.asarray(default_normal_map(size))
+    return np.asarray(quantize(encode_normal_map(n, encoding="unsigned", bits=bits), bits))
+
+
+#: The meshes a scene file can name as ``"builtin:<name>"``.
+BUILTIN_MESHES = {
+    "torus": lambda: default_torus(),
+    "plane": lambda: plane(2.0, 8),
+    "sphere": lambda: uv_sphere(1.0, 96, 48),
+}
+
+
+def builtin_mesh(name: str) -> Mesh:
+    """The mesh named ``name`` in `BUILTIN_MESHES`."""
+    if name not in BUILTIN_MESHES:
+        raise ValueError(f"unknown built-in mesh {name!r}; expected one of "
+                         f"{', '.join(BUILTIN_MESHES)}")
+    return BUILTIN_MESHES[name]()

@@ -1,0 +1,521 @@
+"""Configuration at the edge: scene files and fit files (JSON) to `Scene` and `FitJob`.
+
+Every field is checked here, before anything is rendered or compiled; an error
+is one line, ``"<file>: <field>: <problem>"``, a `ValueError`. Files named by
+a configuration (meshes, maps, images) are read through `jaxnm.io`. Paths are
+relative to the JSON file.
+
+A **scene file**::
+
+    {
+      "mesh": "torus.obj",   // or "builtin:torus", "builtin:plane", "builtin:sphere"
+      "model": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]],   // optional, row-major, column vectors
+      "camera": {"eye": [0,-2.4,1.7], "target": [0,0,0], "up": [0,0,1],
+                 "fov_y_deg": 45, "near": 0.1, "far": 100},
+                // or {"view": 4x4, "projection": 4x4} (OpenGL clip space, camera looks down -z)
+      "width": 512, "height": 512,
+      "normal_map": {"path": "rivets.png", "encoding": "unsigned", "channels": 3,
+                     "green": "up", "strength": 1.0, "uv_origin": "bottom_left",
+                     "wrap": "repeat", "filter": "trilinear", "space": "tangent"},
+                // or a path string, or "builtin:rivets", or null
+      "height_map": {"path": "bumps.png", "scale": 0.02},   // instead of a normal map
+      "albedo": [0.8, 0.55, 0.35],          // or {"path": "albedo.png", "srgb": true}
+      "lights": [{"type": "directional", "direction": [1,-1,2], "color": [1,1,1], "intensity": 1},
+                 {"type": "point", "position": [2,-2,3], "color": [1,1,1], "intensity": 8,
+                  "falloff": "inverse_square"}],
+      "material": {"model": "blinn_phong", "diffuse": [1,1,1], "specular": [0.4,0.4,0.4],
+                   "shininess": 48, "ambient": [0.03,0.03,0.03]},
+      "frame": "cotangent", "derivatives": "fine", "double_sided": true, "cull_back": false,
+      "ddy": "up"             // "down": emulate HLSL's ddy (y down) in the screen-space frames
+    }
+
+Every key but ``mesh`` and ``camera`` is optional (defaults: 512 x 512, no
+normal map, a grey albedo, one directional light from the camera's upper left,
+Blinn-Phong). Lights and the camera are in world space.
+
+A **fit file**::
+
+    {
+      "scene": "scene.json",                  // mesh, material, albedo, map sampling options
+      "views": [{"camera": {"eye": [0,-2.4,1.7], "target": [0,0,0], "up": [0,0,1]},
+                 "width": 512, "height": 512}],   // optional: default = the scene's camera
+      "targets": [{"view": 0, "image": "t0.png", "color_space": "srgb",
+                   "lights": [{"type": "directional", "direction": [0.3,-0.2,1]}],
+                   "mask": "mask0.png"}],      // mask optional (white = use)
+      "map": {"size": [256, 256], "encoding": "unsigned", "green": "up", "bits": 8},
+      "ground_truth": {"path": "gt.png", "encoding": "unsigned", "green": "up"},   // optional
+      "held_out": [{"view": 0, "image": "h0.png", "color_space": "srgb",
+                    "lights": [...]}],          // optional: scored, never fitted
+      "solver": {"method": "lm", "max_steps": 30, "lsmr_steps": 10, "smoothness": 0,
+                 "coarse_to_fine": 0, "seed": 0, "time_limit": null}
+    }
+
+Target images: PNG (8 or 16 bit), EXR, or ``.npy``/``.npz`` float arrays;
+``color_space`` says whether their values are ``"srgb"``-encoded (default for
+PNG/JPEG) or ``"linear"`` (default for EXR/npy/npz).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from . import io
+from .camera import Camera, look_at, perspective
+from .fit import FitJob, FitOptions, FitTarget, problem_from_scene
+from .maps import height_to_derivative_map
+from .procedural import builtin_mesh, default_normal_map_texels
+from .scene import Scene, check_scene_options, default_material, validate_scene
+from .shading import DirectionalLight, Lights, Material, PointLight, stack_lights
+from .textures import NormalMapOptions, decode_normal_map, srgb_to_linear
+
+__all__ = ["load_scene", "scene_from_dict", "load_fit", "fit_from_dict", "parse_camera",
+           "parse_lights", "parse_material", "load_normal_map", "load_height_map",
+           "SCENE_KEYS", "FIT_KEYS"]
+
+SCENE_KEYS = ("mesh", "model", "camera", "width", "height", "normal_map", "height_map",
+              "albedo", "lights", "material", "frame", "derivatives", "double_sided",
+              "cull_back", "shading", "ddy")
+FIT_KEYS = ("scene", "views", "targets", "map", "ground_truth", "held_out", "solver")
+_SOLVER_KEYS = {"method": "solver", "max_steps": "max_steps", "lsmr_steps": "lsmr_steps",
+                "smoothness": "smoothness", "coarse_to_fine": "coarse_to_fine", "seed": "seed",
+                "rtol": "rtol", "atol": "atol", "init_noise": "init_noise"}
+_KINDS = {
+    int: "an integer",
+    float: "a number",
+    bool: "true or false",
+    str: "a string",
+    list: "a list",
+    dict: "an object",
+}
+
+
+# --------------------------------------------------------------------------------------
+# typed fields
+# --------------------------------------------------------------------------------------
+
+
+def _field(data: dict, key: str, kind, default, where: str):
+    """``data[key]`` (or ``default``) checked to be of ``kind`` (JSON's types: an int is a
+    valid float, a bool is not a number)."""
+    v = data.get(key, default)
+    if v is None and default is None:
+        return None
+    ok = isinstance(v, kind) and not (kind in (int, float) and isinstance(v, bool))
+    if kind is float and isinstance(v, int) and not isinstance(v, bool):
+        v, ok = float(v), True
+    if kind is float and ok and not math.isfinite(v):
+        ok = False
+    if not ok:
+        raise ValueError(f"{where}'{key}' must be {_KINDS[kind]}, got {v!r}")
+    return v
+
+
+def _keys(data: dict, known, where: str) -> None:
+    unknown = sorted(set(data) - set(known))
+    if unknown:
+        raise ValueError(f"{where}unknown keys {unknown}; known keys are {sorted(known)}")
+
+
+def _vector(v: Any, n: int, key: str, where: str) -> np.ndarray:
+    try:
+        a = np.asarray(v, np.float64)
+    except (TypeError, ValueError):
+        a = np.zeros(0)
+    if a.shape != (n,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{where}'{key}' must be a list of {n} finite numbers, got {v!r}")
+    return a
+
+
+def _matrix(v: Any, key: str, where: str) -> np.ndarray:
+    try:
+        a = np.asarray(v, np.float64)
+    except (TypeError, ValueError):
+        a = np.zeros(0)
+    if a.shape != (4, 4) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{where}'{key}' must be a 4x4 matrix of finite numbers (row-major "
+                         f"nested lists), got {v!r}")
+    return a
+
+
+def _object(v: Any, key: str, where: str) -> dict:
+    if isinstance(v, str):
+        return {"path": v}
+    if not isinstance(v, dict) or "path" not in v:
+        raise ValueError(f"{where}'{key}' must be a path or an object with 'path'")
+    if not isinstance(v["path"], str):
+        raise ValueError(f"{where}'{key}.path' must be a string, got {v['path']!r}")
+    return dict(v)
+
+
+def _rewrap(e: ValueError, where: str) -> ValueError:
+    return ValueError(f"{where}{e}")
+
+
+# --------------------------------------------------------------------------------------
+# parts shared by scene and fit files
+# --------------------------------------------------------------------------------------
+
+
+def parse_camera(spec: Any, *, aspect: float, where: str = "") -> Camera:
+    """A camera from ``{"eye", "target", "up", "fov_y_deg", "near", "far"}`` or
+    ``{"view", "projection"}``; ``where`` prefixes error messages (e.g. ``"fit.json: "``)."""
+    w = f"{where}camera: "
+    if not isinstance(spec, dict):
+        raise ValueError(f"{where}missing or invalid 'camera' (an object with eye/target or "
+                         "view/projection)")
+    if "view" in spec or "projection" in spec:
+        _keys(spec, ("view", "projection"), w)
+        if "view" not in spec or "projection" not in spec:
+            raise ValueError(f"{w}an explicit camera needs both 'view' and 'projection'")
+        view, proj = _matrix(spec["view"], "view", w), _matrix(spec["projection"], "projection",
+                                                                  w)
+        make = lambda: Camera.from_matrices(view, proj)  # noqa: E731
+    else:
+        _keys(spec, ("eye", "target", "up", "fov_y_deg", "near", "far"), w)
+        if "eye" not in spec or "target" not in spec:
+            raise ValueError(f"{w}needs 'eye' and 'target' (or 'view' and 'projection')")
+        eye = _vector(spec["eye"], 3, "eye", w)
+        target = _vector(spec["target"], 3, "target", w)
+        up = _vector(spec.get("up", [0, 1, 0]), 3, "up", w)
+        fov = _field(spec, "fov_y_deg", float, 45.0, w)
+        near = _field(spec, "near", float, 0.1, w)
+        far = _field(spec, "far", float, 100.0, w)
+        make = lambda: Camera.from_matrices(look_at(eye, target, up),  # noqa: E731
+                                            perspective(fov, aspect, near, far))
+    try:
+        return make()
+    except ValueError as e:
+        raise ValueError(f"{w}{str(e).removeprefix('camera: ')}") from None
+
+
+def parse_lights(spec: Any, *, where: str = "") -> Lights:
+    """`Lights` from a non-empty list of ``{"type": "directional"|"point", ...}`` objects."""
+    if not isinstance(spec, list) or not spec:
+        raise ValueError(f"{where}'lights' must be a non-empty list of light objects")
+    directional, point = [], []
+    for i, light in enumerate(spec):
+        w = f"{where}lights[{i}]: "
+        if not isinstance(light, dict) or light.get("type") not in ("directional", "point"):
+            raise ValueError(f"{w}must be an object with type 'directional' or 'point'")
+        color = jnp.asarray(_vector(light.get("color", [1, 1, 1]), 3, "color", w), jnp.float32)
+        intensity = jnp.asarray(_field(light, "intensity", float, 1.0, w), jnp.float32)
+        if light["type"] == "directional":
+            _keys(light, ("type", "direction", "color", "intensity"), w)
+            d = _vector(light.get("direction"), 3, "direction", w)
+            if np.linalg.norm(d) == 0:
+                raise ValueError(f"{w}'direction' must not be zero")
+            directional.append(DirectionalLight(jnp.asarray(d, jnp.float32), color, intensity))
+        else:
+            _keys(light, ("type", "position", "color", "intensity", "falloff"), w)
+            pos = _vector(light.get("position"), 3, "position", w)
+            falloff = _field(light, "falloff", str, "inverse_square", w)
+            try:
+                point.append(PointLight(jnp.asarray(pos, jnp.float32), color, intensity,
+                                        falloff=falloff))
+            except ValueError as e:
+                raise _rewrap(e, w) from None
+    try:
+        return Lights(directional=stack_lights(directional) if directional else None,
+                      point=stack_lights(point) if point else None)
+    except ValueError as e:
+        raise ValueError(f"{where}'lights': {e}") from None
+
+
+def parse_material(spec: Any, *, where: str = "") -> tuple[Material, str]:
+    """``(material, shading model)`` from ``{"model", "diffuse", "specular", "shininess",
+    "ambient"}`` (defaults: `jaxnm.scene.default_material`, Blinn-Phong)."""
+    w = f"{where}material: "
+    if not isinstance(spec, dict):
+        raise ValueError(f"{where}'material' must be an object")
+    _keys(spec, ("model", "diffuse", "specular", "shininess", "ambient"), w)
+    base = default_material()
+    vals = {k: (jnp.asarray(_vector(spec[k], 3, k, w), jnp.float32) if k in spec
+                else getattr(base, k)) for k in ("diffuse", "specular", "ambient")}
+    shin = _field(spec, "shininess", float, float(base.shininess), w)
+    if shin < 0:
+        raise ValueError(f"{w}'shininess' must be >= 0, got {shin!r}")
+    model = _field(spec, "model", str, "blinn_phong", w)
+    return Material(shininess=jnp.asarray(shin, jnp.float32), **vals), model
+
+
+def _map_options(spec: dict, known, where: str, **fixed) -> NormalMapOptions:
+    fields = {f.name for f in dataclasses.fields(NormalMapOptions)}
+    kinds = {f.name: (int if f.type == "int" else float if f.type == "float" else str)
+             for f in dataclasses.fields(NormalMapOptions)}
+    _keys(spec, known, where)
+    values = {k: _field(spec, k, kinds[k], None, where) for k in spec if k in fields}
+    try:
+        return NormalMapOptions(**{**values, **fixed})
+    except ValueError as e:
+        raise ValueError(f"{where}{str(e).removeprefix('NormalMapOptions: ')}") from None
+
+
+def load_normal_map(spec: Any, *, base_dir=".", where: str = ""):
+    """``(stored texels, NormalMapOptions)`` from a scene's ``normal_map`` entry (a path,
+    ``"builtin:rivets"``, or an object with ``path`` and the `NormalMapOptions` fields)."""
+    spec = _object(spec, "normal_map", where)
+    w = f"{where}normal_map: "
+    ref = spec.pop("path")
+    fields = [f.name for f in dataclasses.fields(NormalMapOptions) if f.name != "bits"]
+    opts = _map_options(spec, fields, w)
+    if ref == "builtin:rivets":
+        if opts.encoding != "unsigned" or opts.channels != 3:
+            raise ValueError(f"{w}'builtin:rivets' is stored as a 3-channel unsigned map")
+        return default_normal_map_texels(256), dataclasses.replace(opts, bits=8)
+    raw, bits = io.load_texture(Path(base_dir) / ref, channels=opts.channels)
+    if opts.encoding == "signed" and bits in (8, 16):
+        raise ValueError(f"{w}{ref!r}: encoding 'signed' needs float data (.npy/.npz); an "
+                         "8/16-bit image stores unsigned values")
+    return raw.astype(np.float32), dataclasses.replace(opts, bits=bits if bits in (8, 16)
+                                                       else opts.bits)
+
+
+def load_height_map(spec: Any, *, base_dir=".", where: str = ""):
+    """``(derivative map, NormalMapOptions)`` from a ``height_map`` entry (a path or an
+    object with ``path``, ``scale`` in world units, ``uv_origin``, ``wrap``, ``filter``):
+    the height map is rendered by surface-gradient bump mapping through its derivative map."""
+    spec = _object(spec, "height_map", where)
+    w = f"{where}height_map: "
+    path = spec.pop("path")
+    scale = _field(spec, "scale", float, 0.02, w)
+    spec.pop("scale", None)
+    opts = _map_options(spec, ("uv_origin", "wrap", "filter"), w, encoding="signed",
+                        channels=2, space="derivative")
+    if opts.wrap == "mirror":
+        raise ValueError(f"{w}'wrap' must be 'repeat' or 'clamp'")
+    raw, _ = io.load_texture(Path(base_dir) / path, channels=1)
+    d = np.array(height_to_derivative_map(raw[..., 0], scale=scale, wrap=opts.wrap))
+    if opts.uv_origin == "top_left":  # v grows down the image: dh/dv changes sign
+        d[..., 1] = -d[..., 1]
+    return d.astype(np.float32), opts
+
+
+def _albedo(spec: Any, base: Path, where: str) -> np.ndarray:
+    if isinstance(spec, (list, tuple)):
+        return _vector(spec, 3, "albedo", where).astype(np.float32)
+    if not isinstance(spec, (str, dict)):
+        raise ValueError(f"{where}'albedo' must be an RGB list, a path or {{'path', 'srgb'}}")
+    spec = _object(spec, "albedo", where)
+    w = f"{where}albedo: "
+    _keys(spec, ("path", "srgb"), w)
+    srgb = _field(spec, "srgb", bool, True, w)
+    tex, _ = io.load_texture(base / spec["path"], channels=3)
+    return np.asarray(srgb_to_linear(tex) if srgb else tex, np.float32)
+
+
+# --------------------------------------------------------------------------------------
+# scene files
+# --------------------------------------------------------------------------------------
+
+
+def load_scene(path) -> Scene:
+    """Read a scene JSON file (see the module docstring); errors name the file and the key."""
+    path = Path(path)
+    return scene_from_dict(io.load_json(path), base_dir=path.parent, source=str(path))
+
+
+def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scene:
+    """Build a `Scene` from a parsed scene JSON object; errors start with ``source``."""
+    where = f"{source}: "
+    if not isinstance(data, dict):
+        raise ValueError(f"{where}a scene must be a JSON object, got {type(data).__name__}")
+    _keys(data, SCENE_KEYS, where)
+    base = Path(base_dir)
+    # the cheap fields first: a typo costs no mesh loading
+    width = _field(data, "width", int, 512, where)
+    height = _field(data, "height", int, 512, where)
+    if width <= 0 or height <= 0:
+        raise ValueError(f"{where}'width' and 'height' must be positive, got {width}x{height}")
+    options = dict(frame=_field(data, "frame", str, "cotangent", where),
+                   derivatives=_field(data, "derivatives", str, "fine", where),
+                   double_sided=_field(data, "double_sided", bool, True, where),
+                   cull_back=_field(data, "cull_back", bool, False, where),
+                   ddy=_field(data, "ddy", str, "up", where))
+    camera = parse_camera(data.get("camera"), aspect=width / height, where=where)
+    lights = parse_lights(data["lights"], where=where) if "lights" in data else None
+    material, shading = parse_material(data.get("material", {}), where=where)
+    if "shading" in data:
+        if "model" in data.get("material", {}):
+            raise ValueError(f"{where}give the shading model as 'material.model' or 'shading', "
+                             "not both")
+        shading = _field(data, "shading", str, "blinn_phong", where)
+    model = _matrix(data["model"], "model", where) if "model" in data else None
+    if data.get("normal_map") is not None and data.get("height_map") is not None:
+        raise ValueError(f"{where}give either 'normal_map' or 'height_map', not both")
+    check_scene_options(width=width, height=height, shading=shading, source=source,
+                        **options)  # before loading anything big
+
+    if "mesh" not in data:
+        raise ValueError(f"{where}missing required key 'mesh'")
+    mesh_ref = data["mesh"]
+    if not isinstance(mesh_ref, str):
+        raise ValueError(f"{where}'mesh' must be a file path or 'builtin:<name>'")
+    if mesh_ref.startswith("builtin:"):
+        try:
+            mesh = builtin_mesh(mesh_ref.split(":", 1)[1])
+        except ValueError as e:
+            raise _rewrap(e, f"{where}'mesh': ") from None
+    else:
+        mesh = io.load_mesh(base / mesh_ref)
+    if model is not None:
+        try:
+            mesh = mesh.transformed(model)
+        except ValueError as e:
+            raise _rewrap(e, f"{where}'model': ") from None
+    nm, nm_opts = None, NormalMapOptions()
+    if data.get("normal_map") is not None:
+        nm, nm_opts = load_normal_map(data["normal_map"], base_dir=base, where=where)
+    if data.get("height_map") is not None:
+        nm, nm_opts = load_height_map(data["height_map"], base_dir=base, where=where)
+    albedo = _albedo(data.get("albedo", [0.8, 0.8, 0.8]), base, where)
+    return validate_scene(Scene(
+        mesh=mesh, camera=camera, width=width, height=height, normal_map=nm,
+        normal_map_options=nm_opts, albedo=albedo, lights=lights, material=material,
+        shading=shading, source=source, **options))
+
+
+# --------------------------------------------------------------------------------------
+# fit files
+# --------------------------------------------------------------------------------------
+
+
+def _image(path: Path, color_space: str | None, where: str) -> np.ndarray:
+    img, bits = io.load_image_float(path)
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., :3]
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"{path}: a target must be an RGB image, got shape {img.shape}")
+    if color_space is None:
+        color_space = "srgb" if bits in (8, 16) else "linear"
+    if not np.all(np.isfinite(img)):
+        raise ValueError(f"{path}: the target has NaN or infinite values")
+    return np.asarray(srgb_to_linear(img)) if color_space == "srgb" else img
+
+
+def _solver_options(spec: Any, where: str) -> tuple[FitOptions, float | None]:
+    w = f"{where}solver: "
+    if not isinstance(spec, dict):
+        raise ValueError(f"{where}'solver' must be an object")
+    _keys(spec, list(_SOLVER_KEYS) + ["time_limit"], w)
+    kinds = {"method": str, "max_steps": int, "lsmr_steps": int, "coarse_to_fine": int,
+             "seed": int}
+    values = {_SOLVER_KEYS[k]: _field(spec, k, kinds.get(k, float), None, w)
+              for k in spec if k in _SOLVER_KEYS}
+    time_limit = _field(spec, "time_limit", float, None, w)
+    try:
+        return FitOptions(**values), time_limit
+    except ValueError as e:
+        raise ValueError(f"{w}{str(e).removeprefix('FitOptions: ')}") from None
+
+
+def _output_map(spec: Any, where: str) -> tuple[tuple[int, int], NormalMapOptions]:
+    w = f"{where}map: "
+    if not isinstance(spec, dict):
+        raise ValueError(f"{where}'map' must be an object")
+    _keys(spec, ("size", "encoding", "green", "bits"), w)
+    size = spec.get("size", [256, 256])
+    if isinstance(size, int) and not isinstance(size, bool):
+        size = [size, size]
+    if (not isinstance(size, list) or len(size) != 2
+            or any(isinstance(s, bool) or not isinstance(s, int) or s < 2 for s in size)):
+        raise ValueError(f"{w}'size' must be an integer or two integers >= 2 (height, width), "
+                         f"got {spec.get('size')!r}")
+    opts = _map_options({k: spec[k] for k in ("encoding", "green", "bits") if k in spec},
+                        ("encoding", "green", "bits"), w)
+    if opts.bits not in (8, 16):
+        raise ValueError(f"{w}'bits' must be 8 or 16, got {opts.bits!r}")
+    if opts.encoding == "signed":
+        raise ValueError(f"{w}'encoding' must be 'unsigned' or 'unsigned_exact' (a PNG stores "
+                         "unsigned values)")
+    return (size[0], size[1]), opts
+
+
+def load_fit(path) -> FitJob:
+    """Read a fit file (see the module docstring) into a `FitJob`; every field is checked
+    before anything is rendered or compiled."""
+    path = Path(path)
+    return fit_from_dict(io.load_json(path), base_dir=path.parent, source=str(path))
+
+
+def fit_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> FitJob:
+    """Build a `FitJob` from a parsed fit JSON object; errors start with ``source``."""
+    where = f"{source}: "
+    base = Path(base_dir)
+    if not isinstance(data, dict):
+        raise ValueError(f"{where}a fit file must be a JSON object")
+    _keys(data, FIT_KEYS, where)
+    # the fields that need no file first
+    options, time_limit = _solver_options(data.get("solver", {}), where)
+    map_size, output = _output_map(data.get("map", {}), where)
+    for key in ("targets", "held_out", "views"):
+        if key in data and not isinstance(data[key], list):
+            raise ValueError(f"{where}'{key}' must be a list")
+    if not data.get("targets"):
+        raise ValueError(f"{where}'targets' must be a non-empty list")
+    gt_spec = None
+    if "ground_truth" in data:
+        gt_spec = _object(data["ground_truth"], "ground_truth", where)
+        _keys(gt_spec, ("path", "encoding", "green"), f"{where}ground_truth: ")
+        gt_opts = _map_options({k: v for k, v in gt_spec.items() if k != "path"},
+                               ("encoding", "green"), f"{where}ground_truth: ")
+    if "scene" not in data or not isinstance(data["scene"], str):
+        raise ValueError(f"{where}'scene' must name a scene JSON file (the mesh and material)")
+
+    scene = load_scene(base / data["scene"])
+    views = []
+    for i, v in enumerate(data.get("views", [])):
+        w = f"{where}views[{i}]: "
+        if not isinstance(v, dict):
+            raise ValueError(f"{w}must be an object with 'camera', 'width', 'height'")
+        _keys(v, ("camera", "width", "height"), w)
+        width = _field(v, "width", int, scene.width, w)
+        height = _field(v, "height", int, scene.height, w)
+        if width <= 0 or height <= 0:
+            raise ValueError(f"{w}'width' and 'height' must be positive")
+        views.append((parse_camera(v.get("camera"), aspect=width / height, where=w), width,
+                      height))
+    if not views:
+        views = [(scene.camera, scene.width, scene.height)]
+
+    def target(t, i, key):
+        w = f"{where}{key}[{i}]: "
+        if not isinstance(t, dict) or "image" not in t or "lights" not in t:
+            raise ValueError(f"{w}needs 'image' and 'lights'")
+        _keys(t, ("view", "image", "lights", "mask", "color_space"), w)
+        vi = _field(t, "view", int, 0, w)
+        if not 0 <= vi < len(views):
+            raise ValueError(f"{w}'view' = {vi} but there are {len(views)} views")
+        color_space = _field(t, "color_space", str, None, w)
+        if color_space not in (None, "srgb", "linear"):
+            raise ValueError(f"{w}'color_space' must be 'srgb' or 'linear', got {color_space!r}")
+        image_ref = _field(t, "image", str, None, w)
+        lights = parse_lights(t["lights"], where=w)
+        cam, width, height = views[vi]
+        img = _image(base / image_ref, color_space, w)
+        mask = None
+        if "mask" in t:
+            m, _ = io.load_texture(base / _field(t, "mask", str, None, w))
+            mask = m[..., 0] > 0.5
+        return FitTarget(cam, width, height, lights, img, mask, name=f"{key}[{i}] ({image_ref})")
+
+    targets = tuple(target(t, i, "targets") for i, t in enumerate(data["targets"]))
+    held = tuple(target(t, i, "held_out") for i, t in enumerate(data.get("held_out", [])))
+    problem = problem_from_scene(scene, targets, map_size, source=source)
+    gt = None
+    if gt_spec is not None:
+        raw, bits = io.load_texture(base / gt_spec["path"], channels=3)
+        gt = np.asarray(decode_normal_map(
+            jnp.asarray(raw), encoding=gt_opts.encoding, green=gt_opts.green,
+            bits=bits if bits in (8, 16) else 8), np.float64)
+        gt = (gt / np.linalg.norm(gt, axis=-1, keepdims=True)).astype(np.float32)
+    try:
+        return FitJob(problem=problem, options=options, ground_truth=gt, held_out=held,
+                      output=output, time_limit=time_limit)
+    except ValueError as e:
+        raise ValueError(str(e)) from None

@@ -1,0 +1,119 @@
+"""Diagnostics of a fit: which texels the views see, how strongly, whether the lights can
+determine a normal (identifiability), and the error measures."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from .. import textures as _tex
+from .prepare import Prepared
+from .problem import FitWarning
+
+__all__ = ["seen_texels", "texel_influence", "angular_error", "check_identifiability",
+           "error_report", "psnr"]
+
+
+def seen_texels(prep: Prepared, map_size: tuple[int, int], *,
+                min_weight: float = 0.25) -> np.ndarray:
+    """(h, w) bool: texels that some view samples at the finest mip level with total filter
+    weight >= ``min_weight`` (i.e. that directly influence at least part of a pixel)."""
+    h, w = map_size
+    acc = jnp.zeros(h * w, jnp.float32)
+    for b in prep.batches:
+        wmask = (b.weights.max(1)[..., 0] > 0)[..., None]  # (V, K, 1): used pixels
+        idx, wt = b.gbuffer.plan.index, b.gbuffer.plan.weight
+        wt = jnp.where((idx < h * w) & wmask, wt, 0.0)  # level 0 texels come first
+        acc = acc.at[jnp.minimum(idx, h * w - 1).reshape(-1)].add(wt.reshape(-1))
+    return np.asarray(acc.reshape(h, w) >= min_weight)
+
+
+def texel_influence(prep: Prepared) -> Array:
+    """(h, w): each texel's total filter weight over all used pixels, views and targets.
+
+    The column sums of the (fixed) texel-to-pixel sampling operator, mip
+    levels included; used to precondition the solve (see `fit_normal_map`).
+    """
+    h, w = prep.options[0].normal_map_shape
+
+    def sampled(t):
+        mips = _tex.build_mipmaps(t, levels=prep.options[0].levels)
+        return [_tex.apply_plan(b.gbuffer.plan, mips)[..., 0] * b.weights.sum(1)[..., 0]
+                for b in prep.batches]
+
+    zeros = jnp.zeros((h, w, 1), jnp.float32)
+    _, vjp = jax.vjp(sampled, zeros)
+    ones = [jnp.ones(b.pixels.shape, jnp.float32) for b in prep.batches]  # (V, K)
+    return vjp(ones)[0][..., 0]
+
+
+def angular_error(a, b) -> np.ndarray:
+    """Per-texel angle in degrees between two normal maps (..., 3), computed in float64 as
+    ``atan2(|a x b|, a . b)`` (accurate for small angles, unlike ``arccos``)."""
+    a = np.asarray(a, np.float64)
+    b = np.asarray(b, np.float64)
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, -1)))
+
+
+def check_identifiability(prep: Prepared, *, warn: bool = True) -> dict:
+    """How well the targets can determine a normal map; warns when they cannot.
+
+    Counts, per view, the lights and the rank of their directions as seen from
+    the object (a point light's direction is taken towards the centroid of the
+    visible surface). Returns a dict with the counts and the verdict.
+    """
+    report = {"views": []}
+    ok_any = False
+    for v in range(prep.num_views):
+        view = prep.view(v)
+        centre = np.asarray(view.gbuffer.position).mean(0)
+        dirs = []
+        lt = view.lights
+        if lt.directional is not None:
+            d = np.asarray(lt.directional.direction).reshape(-1, 3)
+            dirs += list(d / np.linalg.norm(d, axis=-1, keepdims=True))
+        if lt.point is not None:
+            p = np.asarray(lt.point.position).reshape(-1, 3) - centre
+            dirs += list(p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), 1e-12))
+        dirs = np.asarray(dirs)
+        unique = np.unique(np.round(dirs, 6), axis=0) if len(dirs) else dirs
+        rank = int(np.linalg.matrix_rank(unique, tol=1e-3)) if len(unique) else 0
+        report["views"].append({"targets": int(view.images.shape[0]),
+                                "distinct_light_directions": int(len(unique)),
+                                "direction_rank": rank})
+        ok_any |= rank >= 3
+    report["identifiable"] = bool(ok_any)
+    if warn and not ok_any:
+        warnings.warn(
+            "fit: no view has at least three lights with non-coplanar directions; one light "
+            "cannot determine a normal (it only fixes the angle to the light) and two leave a "
+            "two-fold ambiguity: the fitted map is not determined by these targets",
+            FitWarning, stacklevel=2)
+    return report
+
+
+def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, peak: float | None = None
+         ) -> float:
+    """Peak signal-to-noise ratio in dB (peak = max of ``b`` by default) over ``mask``."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if mask is not None:
+        a, b = a[mask], b[mask]
+    peak = float(b.max()) if peak is None else peak
+    mse = float(np.mean((a - b) ** 2))
+    return math.inf if mse == 0 else 10 * math.log10(peak * peak / mse)
+
+
+def error_report(fitted: np.ndarray, gt: np.ndarray, seen: np.ndarray) -> dict:
+    """Mean / median / 95th percentile angular error (degrees) over the seen texels."""
+    err = angular_error(fitted, gt)
+    e = err[seen]
+    return {"seen_texels": int(seen.sum()), "total_texels": int(seen.size),
+            "mean_deg": float(e.mean()), "median_deg": float(np.median(e)),
+            "p95_deg": float(np.percentile(e, 95)), "max_deg": float(e.max())}
+
+

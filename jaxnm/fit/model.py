@@ -1,0 +1,184 @@
+r"""The per-step model of a fit: slopes -> map -> sampled texels -> shading -> residuals.
+
+**Parameterisation.** Each texel holds two slopes ``(s_x, s_y)``; its normal is
+``normalize(s_x, s_y, 1)``: always a unit vector with positive z, with no
+constraint to enforce and no singular point. The solver works on
+preconditioned variables ``z = slopes / scale`` (`ModelArgs.scale`).
+
+**A step** runs only the texel-dependent stages on the covered pixels of a
+`Prepared` problem: build the mip chain of the current map (once, for all
+views), one gather and weighted sum per pixel (4 taps where the fixed level of
+detail reads a single mip level, 8 elsewhere), perturb, shade, subtract the
+target. Views and their lights are batched with ``vmap``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from .. import textures as _tex
+from ..frames import perturb_normal
+from ..numerics import materialize, safe_normalize
+from ..render import GBuffer, RenderOptions
+from ..shading import Lights, Material, shade
+from .prepare import Prepared, ViewBatch
+
+__all__ = ["ModelArgs", "slopes_to_normals", "normals_to_slopes", "residuals", "loss",
+           "render_with_map", "sample_split"]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ModelArgs:
+    """Everything `residuals` and `loss` need besides the variables.
+
+    **Fields** (a pytree; arrays may be traced):
+    - `prepared`: the `Prepared` problem.
+    - `smoothness`: () weight of the first-difference penalty on the slopes, or
+      None for no penalty.
+    - `strength`: () scale of the map's x and y (1 for the map as fitted).
+    - `scale`: (h, w, 1) per-texel preconditioner: the slopes are ``z * scale``.
+    """
+
+    prepared: Prepared
+    smoothness: Array | None
+    strength: Array
+    scale: Array
+
+    @staticmethod
+    def create(prepared: Prepared, *, smoothness: float = 0.0, strength: float = 1.0,
+               scale: Array | None = None) -> ModelArgs:
+        """Arguments for ``prepared`` (no preconditioning unless ``scale`` is given)."""
+        h, w = prepared.options[0].normal_map_shape
+        return ModelArgs(prepared,
+                         None if smoothness <= 0 else jnp.asarray(smoothness, jnp.float32),
+                         jnp.asarray(strength, jnp.float32),
+                         jnp.ones((h, w, 1), jnp.float32) if scale is None else scale)
+
+
+def slopes_to_normals(slopes: Array) -> Array:
+    """``normalize(s_x, s_y, 1)`` per texel: (h, w, 2) -> (h, w, 3) unit, z > 0."""
+    one = jnp.ones(slopes.shape[:-1] + (1,), slopes.dtype)
+    return safe_normalize(jnp.concatenate([slopes, one], -1))
+
+
+def normals_to_slopes(normals: Array, max_slope: float = 1e3) -> Array:
+    """Inverse of `slopes_to_normals` for normals with z > 0 (clamped to ``max_slope``)."""
+    n = jnp.asarray(normals)
+    z = jnp.maximum(n[..., 2:3], 1.0 / max_slope)
+    return jnp.clip(n[..., :2] / z, -max_slope, max_slope)
+
+
+def _mips(normals: Array, opts: RenderOptions) -> tuple[Array, ...]:
+    return _tex.build_mipmaps(normals, levels=opts.levels)
+
+
+def _pixel_colors(m: Array, gb: GBuffer, lights: Lights, material: Material, shading: str,
+                  strength) -> Array:
+    """(T, K, 3): each stacked light's shading of the per-pixel map vectors ``m`` (K, 3)."""
+    m = m * jnp.stack([strength, strength, jnp.ones_like(strength)]).astype(m.dtype)[None]
+    n = perturb_normal(gb.frame, m)
+    return jax.vmap(lambda lt: shade(shading, n, gb.position, gb.eye, lt, material,
+                                     albedo=gb.albedo))(lights)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
+def _pixel_model(m, gb, lights, material, shading, strength):
+    """`_pixel_colors` whose JVP in ``m`` is an explicit per-pixel (T, 3, 3) Jacobian.
+
+    Every pixel's colours depend only on that pixel's sampled map vector, so the
+    Jacobian w.r.t. ``m`` is block diagonal. Computing the blocks once per
+    linearisation (three forward-mode passes) makes every later Jacobian
+    product in the iterative solver a tiny einsum instead of a replay of the
+    whole shading graph.
+    """
+    return _pixel_colors(m, gb, lights, material, shading, strength)
+
+
+@_pixel_model.defjvp
+def _pixel_model_jvp(shading, primals, tangents):
+    m, gb, lights, material, strength = primals
+    dm, dgb, dlights, dmaterial, dstrength = tangents
+    f = lambda m_: _pixel_colors(m_, gb, lights, material, shading, strength)  # noqa: E731
+    y = f(m)
+    basis = jnp.eye(3, dtype=m.dtype)
+    blocks = jax.vmap(lambda e: jax.jvp(f, (m,), (jnp.broadcast_to(e, m.shape),))[1])(basis)
+    # blocks: (3, T, K, 3) = d colour / d m_k
+    out = jnp.einsum("kt...c,...k->t...c", blocks, dm)
+    rest = jax.jvp(lambda g, lt, mt, s: _pixel_colors(m, g, lt, mt, shading, s),
+                   (gb, lights, material, strength), (dgb, dlights, dmaterial, dstrength))[1]
+    return y, out + rest
+
+
+def sample_split(plan: _tex.SamplePlan, mips, split: int) -> Array:
+    """`jaxnm.textures.apply_plan` of the texels of ``mips``, with the first ``split`` pixels
+    gathered from their 4 non-zero taps (see `ViewBatch.split`)."""
+    if split == 0:
+        return _tex.apply_plan(plan, mips)
+    head = dataclasses.replace(plan, index=plan.index[:split, :4], weight=plan.weight[:split, :4])
+    tail = dataclasses.replace(plan, index=plan.index[split:], weight=plan.weight[split:])
+    return jnp.concatenate([_tex.apply_plan(head, mips), _tex.apply_plan(tail, mips)], 0)
+
+
+def _shade_view(gb: GBuffer, mips, lights: Lights, material: Material, opts: RenderOptions,
+                strength, split: int = 0) -> Array:
+    """(T, K, 3): the pixels of ``gb`` under each stacked light, with the map's mip chain
+    ``mips``."""
+    # materialised: fused into the shading, the 8-tap gather would be recomputed per use
+    m = materialize(sample_split(gb.plan, mips, split))
+    return _pixel_model(m, gb, lights, material, opts.shading, jnp.asarray(strength, m.dtype))
+
+
+def _shade_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions,
+                 strength) -> Array:
+    """(V, T, K, 3): every view of ``batch`` under each of its lights (``vmap`` over views)."""
+    return jax.vmap(lambda gb, lt: _shade_view(gb, mips, lt, material, opts, strength,
+                                               batch.split))(batch.gbuffer, batch.lights)
+
+
+def render_with_map(prep: Prepared, normals: Array, *, strength: float = 1.0,
+                    lights: Sequence[Lights] | None = None) -> list[Array]:
+    """Render every view of ``prep`` with the map ``normals`` (h, w, 3); one (T, H, W, 3) per view.
+
+    ``lights`` (one stacked `Lights` per view, leaves (T, ...)) replaces the
+    prepared lights, e.g. to render from held-out light directions.
+    """
+    opts = prep.options[0]
+    mips = _mips(jnp.asarray(normals), opts)
+    out = []
+    for v in range(prep.num_views):
+        view = prep.view(v)
+        lt = view.lights if lights is None else lights[v]
+        img = _shade_view(view.gbuffer, mips, lt, prep.material, opts, strength)
+        out.append(prep.to_image(v, img))
+    return out
+
+
+def residuals(z: Array, args: ModelArgs) -> tuple[Array, ...]:
+    """The weighted differences between the renders and the targets, one flat array per
+    `ViewBatch`, and the smoothness residuals (if any); ``z`` (h, w, 2) are the
+    preconditioned slopes (``slopes = z * args.scale``)."""
+    prep, smooth, strength = args.prepared, args.smoothness, args.strength
+    slopes = z * args.scale
+    opts = prep.options[0]
+    mips = _mips(slopes_to_normals(slopes), opts)  # shared by every view
+    res = []
+    for batch in prep.batches:
+        img = _shade_batch(batch, mips, prep.material, opts, strength)
+        res.append(((img - batch.images) * batch.weights).reshape(-1))
+    if smooth is not None:
+        dx = slopes[:, 1:] - slopes[:, :-1]
+        dy = slopes[1:] - slopes[:-1]
+        res.append(jnp.sqrt(smooth) * jnp.concatenate([dx.reshape(-1), dy.reshape(-1)]))
+    return tuple(res)
+
+
+def loss(z: Array, args: ModelArgs) -> Array:
+    """``0.5 * sum(residuals(z, args)^2)``, the objective every solver minimises."""
+    return 0.5 * sum(jnp.sum(r * r) for r in residuals(z, args))

@@ -1,0 +1,271 @@
+"""Preparation, once per fit: rasterize every view, keep the covered pixels, batch the views.
+
+The geometry is fixed during a fit, so each view's G-buffer — visibility, the
+perspective-correct position, uv, normal, their screen derivatives, the frame
+and the normal map's sample plan (texel indices, filter weights, mip level of
+detail) — is computed **once**, and kept only for the pixels the mesh covers,
+as a flat list. Views whose lights have the same kinds and counts are stacked
+into `ViewBatch`es, so one ``vmap`` shades them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from .. import textures as _tex
+from ..render import GBuffer, RenderOptions, build_gbuffer, check_mesh
+from ..shading import Lights, Material
+from .problem import FitProblem, FitTarget, validate_problem
+
+__all__ = ["ViewBatch", "Prepared", "View", "prepare", "with_map_size", "view_key"]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ViewBatch:
+    """Views whose lights have the same kinds and counts, stacked so one ``vmap`` shades them.
+
+    Only the pixels a view's mesh covers take part, as a flat list; views with
+    fewer pixels or targets are padded (copies of a real pixel or target with
+    weight 0, so padding is NaN-free and changes nothing); views are batched
+    only when padding at most doubles a view's pixels. ``V`` views, ``T``
+    targets, ``K`` pixels each:
+
+    - `gbuffer`: the G-buffer of those pixels, every field (V, K, ...) (the
+      eye (V, 3)).
+    - `pixels`: (V, K) int32 row-major pixel indices into the view's image,
+      -1 for padding.
+    - `images`: (V, T, K, 3) linear targets; `weights`: (V, T, K, 1), 0
+      outside a target's mask and for padding.
+    - `lights`: `Lights` with leaves (V, T, ...): one (stacked) light per target.
+    - `views` (static): the view indices (into `Prepared.options`) of the rows;
+      `targets` (static): each view's real number of targets.
+    - `split` (static): the first ``split`` pixels of every view read a single
+      mip level (4 non-zero filter taps: magnified texels, or the coarsest
+      level), the rest two (8 taps); the step gathers each group with only the
+      taps it needs.
+    """
+
+    gbuffer: GBuffer
+    pixels: Array
+    images: Array
+    weights: Array
+    lights: Lights
+    views: tuple[int, ...] = dataclasses.field(metadata=dict(static=True))
+    targets: tuple[int, ...] = dataclasses.field(metadata=dict(static=True))
+    split: int = dataclasses.field(metadata=dict(static=True), default=0)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Prepared:
+    """Everything a fit step needs, computed once (see `prepare`).
+
+    A view is one camera (with its image size); each of its targets is one
+    image under one (stacked) light. ``batches`` group the views into
+    `ViewBatch` stacks; ``options[v]`` are view ``v``'s render options (they
+    differ only in image size). `target_images`, `target_mask` and `view`
+    give per-view, image-layout access.
+    """
+
+    batches: tuple[ViewBatch, ...]
+    material: Material
+    options: tuple[RenderOptions, ...] = dataclasses.field(metadata=dict(static=True))
+
+    @property
+    def num_views(self) -> int:
+        return len(self.options)
+
+    def view(self, v: int) -> View:
+        """View ``v`` unpadded: its G-buffer (K_v, ...), pixels, targets and lights."""
+        for b in self.batches:
+            if v in b.views:
+                i = b.views.index(v)
+                keep = np.flatnonzero(np.asarray(b.pixels[i]) >= 0)
+                t = b.targets[i]
+                gb = _map_pixels(jax.tree_util.tree_map(lambda x: x[i], b.gbuffer),
+                                 lambda x: x[keep])
+                return View(gb, b.pixels[i][keep], b.images[i, :t][:, keep],
+                             b.weights[i, :t][:, keep],
+                             jax.tree_util.tree_map(lambda x: x[i, :t], b.lights))
+        raise IndexError(f"fit: no view {v} (the problem has {self.num_views})")
+
+    def to_image(self, v: int, values: Array) -> Array:
+        """Per-pixel ``values`` (..., K_v, C) of `view` ``v`` in image layout (..., H, W, C),
+        0 off the mesh."""
+        o = self.options[v]
+        pix = self.view(v).pixels
+        values = jnp.asarray(values)
+        out = jnp.zeros(values.shape[:-2] + (o.height * o.width, values.shape[-1]), values.dtype)
+        out = out.at[..., pix, :].set(values)
+        return out.reshape(values.shape[:-2] + (o.height, o.width, values.shape[-1]))
+
+    def target_images(self, v: int) -> np.ndarray:
+        """(T_v, H, W, 3) linear targets of view ``v`` (0 where the mesh is not)."""
+        return np.asarray(self.to_image(v, self.view(v).images))
+
+    def target_mask(self, v: int, t: int = 0) -> np.ndarray:
+        """(H, W) bool: the pixels that count for target ``t`` of view ``v``."""
+        return np.asarray(self.to_image(v, self.view(v).weights[t]))[..., 0] > 0
+
+
+@dataclasses.dataclass(frozen=True)
+class View:
+    """One view of a `Prepared` problem, unpadded: ``gbuffer`` (K, ...), ``pixels`` (K,),
+    ``images`` (T, K, 3), ``weights`` (T, K, 1), ``lights`` (leaves (T, ...))."""
+
+    gbuffer: GBuffer
+    pixels: Array
+    images: Array
+    weights: Array
+    lights: Lights
+
+
+def _stack_lights(lights: Sequence[Lights]) -> Lights:
+    structs = {jax.tree_util.tree_structure(light) for light in lights}
+    shapes = {tuple(x.shape for x in jax.tree_util.tree_leaves(light)) for light in lights}
+    if len(structs) != 1 or len(shapes) != 1:
+        raise ValueError("fit: all targets of one view must have lights of the same kinds and "
+                         "counts (e.g. each one directional light), so they can be batched")
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *lights)
+
+
+def view_key(t: FitTarget) -> tuple:
+    """What identifies a target's view: its image size and camera matrices (targets with equal
+    keys share one G-buffer)."""
+    return (t.width, t.height, np.asarray(t.camera.view).tobytes(),
+            np.asarray(t.camera.projection).tobytes())
+
+
+def prepare(problem: FitProblem) -> Prepared:
+    """Rasterize every view once and stack its targets (see `Prepared`)."""
+    validate_problem(problem)
+    groups: dict = {}
+    for t in problem.targets:
+        groups.setdefault(view_key(t), []).append(t)
+    views, opts_all = [], []
+    nm = dataclasses.replace(problem.sampling, encoding="signed", channels=3)
+    for ts in groups.values():
+        t0 = ts[0]
+        opts = RenderOptions(width=t0.width, height=t0.height, derivatives=problem.derivatives,
+                             frame=problem.frame, shading=problem.shading,
+                             double_sided=problem.double_sided, normal_map=nm,
+                             normal_map_shape=tuple(problem.map_size),
+                             albedo_shape=(tuple(jnp.shape(problem.albedo)[:2])
+                                           if jnp.ndim(problem.albedo) == 3 else None),
+                             outputs=("color",))
+        check_mesh(problem.mesh, opts, problem.source)
+        gb = build_gbuffer(problem.mesh, t0.camera, jnp.asarray(problem.albedo), opts=opts)
+        cover = np.asarray(gb.mask)
+        ws = []
+        for i, t in enumerate(ts):
+            m = cover if t.mask is None else (cover & np.asarray(t.mask, bool))
+            if not m.any():
+                raise ValueError(f"{problem.source}: {t.name or 'a target'}: the mask and the "
+                                 "mesh's silhouette do not overlap")
+            ws.append(m[..., None].astype(np.float32))
+        pix = np.flatnonzero(cover).astype(np.int32)
+        flat = lambda x: x.reshape((-1,) + x.shape[2:])[pix]  # noqa: E731
+        views.append(View(_map_pixels(gb, flat), jnp.asarray(pix),
+                           jnp.asarray(np.stack([flat(np.asarray(t.image, np.float32))
+                                                 for t in ts])),
+                           jnp.asarray(np.stack([flat(w) for w in ws])),
+                           _stack_lights([t.lights for t in ts])))
+        opts_all.append(opts)
+    return _assemble(views, tuple(opts_all), problem.material)
+
+
+def _map_pixels(gb: GBuffer, fn) -> GBuffer:
+    """Apply ``fn`` to every per-pixel field of ``gb`` (all but the eye position)."""
+    out = jax.tree_util.tree_map(fn, dataclasses.replace(gb, eye=None))
+    return dataclasses.replace(out, eye=gb.eye)
+
+
+def _light_key(lights: Lights):
+    leaves, tree = jax.tree_util.tree_flatten(lights)
+    return tree, tuple(x.shape[1:] for x in leaves)
+
+
+def _assemble(views: Sequence[View], options: tuple[RenderOptions, ...],
+              material: Material) -> Prepared:
+    """Order each view's pixels by the taps they need, pad, and stack views into batches.
+
+    A trilinear plan always has 8 taps, but where the level of detail is
+    clamped (magnification, or the coarsest level) or integral, the second
+    level's 4 weights are exactly 0. The geometry is fixed, so this is known
+    once; gathering those pixels with 4 taps halves their gather and its
+    transpose (the scatter-add that dominates the backward pass). Views whose
+    lights have the same structure share one batch (see `ViewBatch`), unless
+    padding a view to the batch's largest would more than double its pixels.
+    """
+    by_lights: dict = {}
+    for v, view in enumerate(views):
+        by_lights.setdefault(_light_key(view.lights), []).append(v)
+    size = [view.pixels.shape[0] for view in views]
+    groups = []  # by decreasing pixel count; a new batch where padding would double the work
+    for members in by_lights.values():
+        members = sorted(members, key=lambda v: -size[v])
+        batch = [members[0]]
+        for v in members[1:]:
+            if 2 * size[v] >= size[batch[0]]:
+                batch.append(v)
+            else:
+                groups.append(batch)
+                batch = [v]
+        groups.append(batch)
+    batches = []
+    for members in groups:
+        eight = views[members[0]].gbuffer.plan.num_taps == 8
+        parts = []  # per view: (indices of its one-level pixels, of the others)
+        for v in members:
+            w = np.asarray(views[v].gbuffer.plan.weight)
+            one = np.all(w[:, 4:] == 0, axis=-1) if eight else np.zeros(len(w), bool)
+            parts.append((np.flatnonzero(one), np.flatnonzero(~one)))
+        ka = max(len(a) for a, _ in parts)
+        kb = max(len(b) for _, b in parts)
+        t_max = max(views[v].images.shape[0] for v in members)
+        rows = []
+        for v, (a, b) in zip(members, parts):
+            view = views[v]
+            fill = int(a[0] if len(a) else b[0])  # a real pixel, copied into the padding
+            order = np.concatenate([a, np.full(ka - len(a), fill), b, np.full(kb - len(b), fill)])
+            real = np.concatenate([np.ones(len(a), bool), np.zeros(ka - len(a), bool),
+                                   np.ones(len(b), bool), np.zeros(kb - len(b), bool)])
+            t = view.images.shape[0]
+            tsel = np.minimum(np.arange(t_max), t - 1)  # padded targets repeat the last one
+            weights = view.weights[tsel][:, order] * jnp.asarray(
+                real[None, :, None] & (np.arange(t_max) < t)[:, None, None], jnp.float32)
+            rows.append(dict(
+                gbuffer=_map_pixels(view.gbuffer, lambda x: x[order]),
+                pixels=jnp.where(jnp.asarray(real), view.pixels[order], -1),
+                images=view.images[tsel][:, order], weights=weights,
+                lights=jax.tree_util.tree_map(lambda x: x[tsel], view.lights)))
+        stacked = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *rows)
+        batches.append(ViewBatch(**stacked, views=tuple(members),
+                                 targets=tuple(views[v].images.shape[0] for v in members),
+                                 split=ka if eight else 0))
+    return Prepared(tuple(batches), material, options)
+
+
+def with_map_size(prep: Prepared, size) -> Prepared:
+    """``prep`` re-planned for a map of ``size`` (h, w) (same G-buffers, new sample plans):
+    the levels of a coarse-to-fine fit."""
+    views, opts_all = [], []
+    for v, opts in enumerate(prep.options):
+        view = prep.view(v)
+        o = dataclasses.replace(opts, normal_map_shape=tuple(size))
+        nm = o.normal_map
+        plan = _tex.plan_sample(view.gbuffer.uv, size_hw=tuple(size), levels=o.levels,
+                                filter=nm.filter, wrap=nm.wrap, uv_origin=nm.uv_origin)
+        views.append(dataclasses.replace(view, gbuffer=dataclasses.replace(view.gbuffer,
+                                                                           plan=plan)))
+        opts_all.append(o)
+    return _assemble(views, tuple(opts_all), prep.material)
+
+

@@ -1,0 +1,244 @@
+"""What a fit is asked to do: the problem (scene side and targets), the options, the result."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..camera import Camera
+from ..frames import check_frame
+from ..geometry import Mesh
+from ..interpolate import check_derivatives
+from ..shading import Lights, Material, check_shading_model
+from ..textures import NormalMapOptions
+
+__all__ = ["SOLVERS", "FitWarning", "FitTarget", "FitProblem", "FitOptions", "FitResult",
+           "FitJob", "validate_problem", "problem_from_scene"]
+
+#: ``"lm"`` Levenberg-Marquardt, ``"gn"`` Gauss-Newton (both matrix-free, LSMR inner
+#: solves), ``"lbfgs"`` the first-order baseline.
+SOLVERS = ("lm", "gn", "lbfgs")
+
+
+class FitWarning(UserWarning):
+    """The fit input is suspicious (e.g. cannot determine the map)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FitTarget:
+    """One target image: a view (camera + size), its lights, the image and an optional mask.
+
+    ``image`` is **linear** RGB (H, W, 3), row 0 = top; ``mask`` (H, W) bool
+    selects the pixels that count (default: all the mesh covers).
+    """
+
+    camera: Camera
+    width: int
+    height: int
+    lights: Lights
+    image: np.ndarray
+    mask: np.ndarray | None = None
+    name: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class FitProblem:
+    """The scene side of a fit: mesh, material, albedo, render options, targets, map size.
+
+    ``sampling`` gives how the fitted map is sampled (uv origin, wrap, filter);
+    its encoding is irrelevant (the fit works on unit normals).
+    """
+
+    mesh: Mesh
+    material: Material
+    targets: tuple[FitTarget, ...]
+    map_size: tuple[int, int] = (256, 256)
+    albedo: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.array([0.8, 0.8, 0.8], np.float32))
+    shading: str = "blinn_phong"
+    frame: str = "cotangent"
+    derivatives: str = "fine"
+    double_sided: bool = True
+    sampling: NormalMapOptions = NormalMapOptions(encoding="signed")
+    source: str = "<fit problem>"
+
+
+def problem_from_scene(scene, targets, map_size, *, source: str | None = None) -> FitProblem:
+    """The `FitProblem` of fitting ``scene``'s normal map (its mesh, material, albedo, frame,
+    derivative mode and map sampling options) to ``targets``."""
+    return FitProblem(mesh=scene.mesh, material=scene.material, targets=tuple(targets),
+                      map_size=tuple(int(s) for s in map_size), albedo=scene.albedo,
+                      shading=scene.shading, frame=scene.frame, derivatives=scene.derivatives,
+                      double_sided=scene.double_sided,
+                      sampling=dataclasses.replace(scene.normal_map_options, encoding="signed",
+                                                   channels=3),
+                      source=scene.source if source is None else source)
+
+
+def _check_int(name: str, v, lo: int) -> None:
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+        raise ValueError(f"FitOptions: {name} must be an integer >= {lo}, got {v!r}")
+
+
+def _check_number(name: str, v, lo: float, *, strict: bool = False) -> None:
+    ok = (not isinstance(v, bool) and isinstance(v, (int, float, np.floating))
+          and math.isfinite(v) and (v > lo if strict else v >= lo))
+    if not ok:
+        raise ValueError(f"FitOptions: {name} must be a finite number {'>' if strict else '>='} "
+                         f"{lo}, got {v!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class FitOptions:
+    """How to fit (validated when constructed).
+
+    - `solver`: one of `SOLVERS`.
+    - `max_steps`: outer iterations (per coarse-to-fine level).
+    - `smoothness`: weight of the first-difference penalty on the slopes
+      (residuals ``sqrt(w) * (s[i+1] - s[i])``), 0 to disable.
+    - `coarse_to_fine`: number of extra coarser levels solved first (each half
+      the resolution), then upsampled as the next level's start.
+    - `lsmr_steps`: inner LSMR iterations per (Gauss-Newton/LM) step.
+    - `rtol`, `atol`: convergence tolerances of the outer solver.
+    - `seed`: initial-guess jitter seed (0 jitter by default: a flat start).
+    - `init_noise`: standard deviation of the initial slopes.
+    """
+
+    solver: str = "lm"
+    max_steps: int = 30
+    smoothness: float = 0.0
+    coarse_to_fine: int = 0
+    lsmr_steps: int = 40
+    rtol: float = 1e-6
+    atol: float = 1e-8
+    seed: int = 0
+    init_noise: float = 0.0
+
+    def __post_init__(self):
+        if self.solver not in SOLVERS:
+            raise ValueError(f"FitOptions: unknown solver {self.solver!r}; expected one of "
+                             f"{', '.join(SOLVERS)}")
+        _check_int("max_steps", self.max_steps, 1)
+        _check_int("lsmr_steps", self.lsmr_steps, 1)
+        _check_int("coarse_to_fine", self.coarse_to_fine, 0)
+        _check_int("seed", self.seed, 0)
+        _check_number("smoothness", self.smoothness, 0.0)
+        _check_number("init_noise", self.init_noise, 0.0)
+        _check_number("rtol", self.rtol, 0.0)
+        _check_number("atol", self.atol, 0.0)
+
+
+@dataclasses.dataclass
+class FitResult:
+    """The fitted map and how the fit went.
+
+    ``normals``: (h, w, 3) unit tangent-space normals (image layout, x along
+    +u, y along +v, the decoded convention); ``slopes``: (h, w, 2);
+    ``history``: one dict per step (step, loss, seconds, and the angular
+    error when a ground truth was given); ``stopped``: why it ended;
+    ``identifiability``: the `check_identifiability` report.
+    """
+
+    normals: np.ndarray
+    slopes: np.ndarray
+    history: list
+    seconds: float
+    stopped: str
+    best_loss: float
+    identifiability: dict = dataclasses.field(default_factory=dict)
+
+
+def validate_problem(problem: FitProblem) -> None:
+    """Raise a clear `ValueError` (naming ``problem.source``) for unusable input, before
+    anything is compiled."""
+    src = problem.source
+    if problem.mesh.uv is None:
+        raise ValueError(f"{src}: the mesh has no texture coordinates (uv); a normal map cannot "
+                         "be fitted")
+    if problem.mesh.normals is None:
+        raise ValueError(f"{src}: the mesh has no vertex normals")
+    try:
+        check_frame(problem.frame)
+        check_derivatives(problem.derivatives, allow_none=False)
+        check_shading_model(problem.shading)
+    except ValueError as e:
+        raise ValueError(f"{src}: {e}") from None
+    if problem.frame == "none":
+        raise ValueError(f"{src}: frame 'none' ignores the normal map; nothing to fit")
+    if problem.sampling.space != "tangent":
+        raise ValueError(f"{src}: only tangent-space maps can be fitted, not "
+                         f"{problem.sampling.space!r}")
+    if not problem.targets:
+        raise ValueError(f"{src}: no target images")
+    size = problem.map_size
+    if (len(size) != 2 or any(isinstance(s, bool) or not isinstance(s, (int, np.integer))
+                              or s < 2 for s in size)):
+        raise ValueError(f"{src}: the map size must be two integers >= 2, got {size}")
+    a_shape = jnp.shape(problem.albedo)
+    if a_shape != (3,) and not (len(a_shape) == 3 and a_shape[2] == 3):
+        raise ValueError(f"{src}: the albedo must be (3,) or (H, W, 3), got {a_shape}")
+    for i, t in enumerate(problem.targets):
+        name = t.name or f"target {i}"
+        img = np.asarray(t.image)
+        if img.ndim != 3 or img.shape[2] != 3:
+            raise ValueError(f"{src}: {name}: the target must be an RGB image (H, W, 3), got "
+                             f"shape {img.shape}")
+        if img.shape[:2] != (t.height, t.width):
+            raise ValueError(f"{src}: {name}: the target is {img.shape[1]}x{img.shape[0]} but "
+                             f"its camera renders {t.width}x{t.height}")
+        if not np.all(np.isfinite(img)):
+            raise ValueError(f"{src}: {name}: the target has NaN or infinite values")
+        if t.lights is None or (t.lights.directional is None and t.lights.point is None):
+            raise ValueError(f"{src}: {name}: no lights")
+        if t.mask is not None:
+            m = np.asarray(t.mask)
+            if m.shape != (t.height, t.width):
+                raise ValueError(f"{src}: {name}: the mask is {m.shape[1]}x{m.shape[0]}, "
+                                 f"expected {t.width}x{t.height}")
+            if not m.any():
+                raise ValueError(f"{src}: {name}: the mask covers nothing")
+
+
+@dataclasses.dataclass(frozen=True)
+class FitJob:
+    """A whole fit as ``jaxnm fit`` runs it: the problem and options, plus what is only
+    scored (a ground-truth map, held-out targets), how to store the fitted map, and a
+    time limit. Read from a fit file by `jaxnm.config.load_fit`; the built-in one is
+    `jaxnm.procedural.default_fit_job`.
+
+    - `ground_truth`: (h, w, 3) decoded unit normals, or None.
+    - `held_out`: targets rendered with the fitted map and scored (PSNR), never fitted.
+    - `output`: the encoding of ``normal_map.png`` (`encoding`, `green`, `bits` 8 or 16).
+    - `time_limit`: seconds, or None.
+    """
+
+    problem: FitProblem
+    options: FitOptions = FitOptions()
+    ground_truth: np.ndarray | None = None
+    held_out: tuple[FitTarget, ...] = ()
+    output: NormalMapOptions = NormalMapOptions()
+    time_limit: float | None = None
+
+    def __post_init__(self):
+        if self.output.bits not in (8, 16):
+            raise ValueError(f"{self.problem.source}: map.bits must be 8 or 16 (PNG), got "
+                             f"{self.output.bits!r}")
+        if self.output.channels != 3:
+            raise ValueError(f"{self.problem.source}: map.channels must be 3 (an RGB PNG)")
+        if self.output.encoding not in ("unsigned", "unsigned_exact"):
+            raise ValueError(f"{self.problem.source}: map.encoding must be 'unsigned' or "
+                             f"'unsigned_exact' (a PNG stores unsigned values), got "
+                             f"{self.output.encoding!r}")
+        if self.ground_truth is not None:
+            shape = np.shape(self.ground_truth)
+            if shape != tuple(self.problem.map_size) + (3,):
+                raise ValueError(f"{self.problem.source}: the ground truth is "
+                                 f"{shape[:2]} but the map size is {self.problem.map_size}")
+        tl = self.time_limit
+        if tl is not None and (isinstance(tl, bool) or not isinstance(tl, (int, float))
+                               or not math.isfinite(tl) or tl <= 0):
+            raise ValueError(f"{self.problem.source}: the time limit must be a positive number "
+                             f"of seconds, got {tl!r}")

@@ -1,0 +1,97 @@
+"""What ``jaxnm fit`` reports: the fitted map encoded for saving, re-renders beside the
+targets, the error map, held-out scores and a JSON-ready summary. Writing them to files is
+`jaxnm.io.write_fit_outputs`."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..textures import encode_normal_map, linear_to_srgb, quantize
+from .diagnostics import angular_error, error_report, psnr, seen_texels
+from .model import render_with_map
+from .prepare import Prepared, prepare
+from .problem import FitJob, FitResult
+
+__all__ = ["FitOutputs", "fit_outputs", "score_held_out", "ERROR_MAP_RANGE_DEG"]
+
+#: The error map shows 0 to this many degrees as black to white (unseen texels dark grey).
+ERROR_MAP_RANGE_DEG = 10.0
+
+
+@dataclasses.dataclass
+class FitOutputs:
+    """Everything ``jaxnm fit`` writes, as arrays and dicts.
+
+    - `map_texels`: (h, w, 3) the fitted map encoded as ``job.output`` says, in
+      [0, 1] on the codes of a `bits`-bit PNG (``normal_map.png``).
+    - `normals`, `slopes`: float unit normals and slopes (``normal_map.npz``).
+    - `renders`: per target, ``target | re-render | 4 x |difference|`` as sRGB
+      rows (``render_NN.png``).
+    - `history`: the loss (and error) per step (``loss.json``, ``loss.png``).
+    - `error_map`: (h, w) grey levels of the per-texel angular error, or None
+      without a ground truth (``error_map.png``).
+    - `report`: the summary (``report.json``).
+    """
+
+    map_texels: np.ndarray
+    bits: int
+    normals: np.ndarray
+    slopes: np.ndarray
+    renders: list
+    history: list
+    error_map: np.ndarray | None
+    report: dict
+
+
+def score_held_out(job: FitJob, normals: np.ndarray) -> list[dict]:
+    """PSNR of each held-out target rendered with ``normals`` (and, with a ground truth, of
+    the ground truth's render) over the pixels that count."""
+    out = []
+    for t in job.held_out:
+        prep = prepare(dataclasses.replace(job.problem, targets=(t,)))
+        fitted = np.asarray(render_with_map(prep, jnp.asarray(normals))[0][0])
+        m = prep.target_mask(0)
+        rec = {"name": t.name, "psnr_db_vs_target": round(psnr(fitted, t.image, m), 2)}
+        if job.ground_truth is not None:
+            truth = np.asarray(render_with_map(prep, jnp.asarray(job.ground_truth))[0][0])
+            rec["psnr_db_vs_ground_truth_render"] = round(psnr(fitted, truth, m), 2)
+        out.append(rec)
+    return out
+
+
+def fit_outputs(job: FitJob, prep: Prepared, result: FitResult, *,
+                prepare_seconds: float = 0.0) -> FitOutputs:
+    """The outputs of a finished fit (see `FitOutputs`)."""
+    problem, enc = job.problem, job.output
+    n = result.normals
+    texels = np.asarray(quantize(encode_normal_map(jnp.asarray(n), encoding=enc.encoding,
+                                                   green=enc.green, bits=enc.bits), enc.bits))
+    rows = []
+    for v, imgs in enumerate(render_with_map(prep, jnp.asarray(n))):
+        imgs = np.asarray(imgs)
+        targets = prep.target_images(v)
+        for t in range(imgs.shape[0]):
+            row = np.concatenate([targets[t], imgs[t], np.abs(imgs[t] - targets[t]) * 4], 1)
+            rows.append(np.asarray(linear_to_srgb(np.clip(row, 0, 1))))
+    report = {"stopped": result.stopped, "steps": len(result.history) - 1,
+              "fit_seconds": round(result.seconds, 2), "prepare_seconds": round(prepare_seconds, 2),
+              "final_loss": result.best_loss, "identifiability": result.identifiability,
+              "solver": dataclasses.asdict(job.options), "map_size": list(problem.map_size),
+              "frame": problem.frame, "derivatives": problem.derivatives,
+              "map_encoding": {"encoding": enc.encoding, "green": enc.green, "bits": enc.bits,
+                               "uv_origin": problem.sampling.uv_origin}}
+    error_map = None
+    if job.ground_truth is not None:
+        seen = seen_texels(prep, problem.map_size)
+        report["error"] = error_report(n, job.ground_truth, seen)
+        err = angular_error(n, job.ground_truth)
+        error_map = np.where(seen, np.clip(err / ERROR_MAP_RANGE_DEG, 0, 1), 0.25)
+        error_map = error_map.astype(np.float32)
+    if job.held_out:
+        report["held_out"] = score_held_out(job, n)
+    return FitOutputs(map_texels=texels, bits=enc.bits, normals=n.astype(np.float32),
+                      slopes=result.slopes.astype(np.float32), renders=rows,
+                      history=result.history, error_map=error_map, report=report)

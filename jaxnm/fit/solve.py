@@ -1,0 +1,248 @@
+"""The solver loop: optimistix solvers driven one step at a time, compiled once per shape.
+
+**Solvers** (optimistix): ``"lm"`` Levenberg–Marquardt and ``"gn"``
+Gauss–Newton, both matrix-free: the Jacobian is a linearised function
+(forward-mode JVP, transposed for the VJP) and each step is solved by
+lineax's iterative LSMR — no dense Jacobian is ever formed; ``"lbfgs"``:
+the first-order baseline, L-BFGS on the sum of squares.
+
+**One compilation per shape.** The step is a module-level function jitted
+with the solver, the model and the problem as arguments, so every call of
+`fit_normal_map` — and every restart on a problem of the same shapes — reuses
+the compiled step. The loss reported per step is the solver's own evaluation
+(no second compiled program). Coarse-to-fine levels have different map sizes,
+so each level compiles once.
+
+**Driving the loop in Python** keeps what a user needs between steps: a
+progress bar, Ctrl-C (finish the current step, keep the best map), a time
+limit, and a history with the angular error against a ground truth.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import sys
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+from jax import Array
+
+from .diagnostics import angular_error, check_identifiability, seen_texels, texel_influence
+from .model import ModelArgs, loss, residuals, slopes_to_normals
+from .prepare import Prepared, prepare, with_map_size
+from .problem import FitOptions, FitProblem, FitResult
+
+__all__ = ["fit_normal_map", "make_solver", "preconditioner", "level_sizes"]
+
+
+def make_solver(options: FitOptions):
+    """The optimistix solver named by ``options.solver``."""
+    lsmr = lx.LSMR(rtol=1e-4, atol=1e-6, max_steps=options.lsmr_steps)
+    if options.solver == "lm":
+        return optx.LevenbergMarquardt(rtol=options.rtol, atol=options.atol, linear_solver=lsmr)
+    if options.solver == "gn":
+        return optx.GaussNewton(rtol=options.rtol, atol=options.atol, linear_solver=lsmr)
+    return optx.LBFGS(rtol=options.rtol, atol=options.atol)
+
+
+def _residual_fn(z, args):
+    return residuals(z, args), None
+
+
+def _loss_fn(z, args):
+    return loss(z, args), None
+
+
+def _objective(solver):
+    """The function the solver sees: residuals for least squares, the loss otherwise."""
+    return _residual_fn if isinstance(solver, optx.AbstractLeastSquaresSolver) else _loss_fn
+
+
+@eqx.filter_jit
+def _init(solver, z, args: ModelArgs):
+    fn = _objective(solver)
+    f_struct, aux_struct = jax.eval_shape(fn, z, args)
+    return solver.init(fn, z, args, {}, f_struct, aux_struct, frozenset())
+
+
+@eqx.filter_jit
+def _step(solver, z, state, args: ModelArgs):
+    """One solver step; returns the accepted point, the state, whether to stop, the solver's
+    result code, and the loss at the accepted point (from the solver's own evaluation)."""
+    fn = _objective(solver)
+    z, state, _ = solver.step(fn, z, args, {}, state, frozenset())
+    done, result = solver.terminate(fn, z, args, {}, state, frozenset())
+    return z, state, done, result, state.f_info.as_min()
+
+
+def preconditioner(prep: Prepared) -> Array:
+    """(h, w, 1) Jacobi-like texel scales: the solver works on ``z = slopes / scale``, where
+    ``scale = sqrt(c_ref / (c + 0.01 c_ref))`` evens out how strongly each texel is observed
+    (``c`` its `texel_influence`, ``c_ref`` the median over observed texels)."""
+    c = np.asarray(texel_influence(prep))
+    seen = c[c > 0]
+    c_ref = float(np.median(seen)) if seen.size else 1.0
+    return jnp.asarray(np.sqrt(c_ref / (c + 0.01 * c_ref))[..., None], jnp.float32)
+
+
+def level_sizes(map_size: tuple[int, int], coarse_to_fine: int) -> list[tuple[int, int]]:
+    """The map sizes solved in turn: each coarser level halves the previous one (at least 2)."""
+    h, w = map_size
+    return [(max(2, h >> k), max(2, w >> k)) for k in range(coarse_to_fine, -1, -1)]
+
+
+def _upsample(slopes: Array, size: tuple[int, int]) -> Array:
+    return jax.image.resize(slopes, size + (slopes.shape[-1],), "linear")
+
+
+class _Interrupt:
+    """Turns Ctrl-C into a flag checked between steps (in the main thread only)."""
+
+    def __init__(self):
+        self.flag = False
+        self.old = None
+
+    def __enter__(self):
+        try:
+            self.old = signal.signal(signal.SIGINT, self._handler)
+        except ValueError:  # not in the main thread
+            self.old = None
+        return self
+
+    def _handler(self, signum, frame):
+        self.flag = True
+
+    def __exit__(self, *exc):
+        if self.old is not None:
+            signal.signal(signal.SIGINT, self.old)
+
+
+class _Progress:
+    """Per-step progress on stderr: a tqdm bar (loss, error, ETA), or a line per step where
+    tqdm is not installed; nothing when disabled."""
+
+    def __init__(self, total: int, enabled: bool):
+        self.bar = None
+        self.enabled = enabled
+        self.total = total
+        self.count = 0
+        if enabled:
+            try:
+                from tqdm import tqdm
+            except ImportError:
+                return
+            self.bar = tqdm(total=total, desc="fit", unit="step", dynamic_ncols=True)
+
+    def update(self, rec: dict) -> None:
+        if not self.enabled:
+            return
+        post = {"loss": f"{rec['loss']:.4g}"}
+        if "mean_angular_error_deg" in rec:
+            post["err"] = f"{rec['mean_angular_error_deg']:.2f}deg"
+        self.count += 1
+        if self.bar is None:
+            print(f"fit step {self.count}/{self.total} ({rec['seconds']:.1f} s): "
+                  + ", ".join(f"{k} {v}" for k, v in post.items()), file=sys.stderr, flush=True)
+            return
+        self.bar.set_postfix(post, refresh=False)
+        self.bar.update(1)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
+                   ground_truth: np.ndarray | None = None, progress: bool = True,
+                   prepared: Prepared | None = None, strength: float = 1.0,
+                   time_limit: float | None = None) -> FitResult:
+    """Fit the normal map of ``problem`` (see `jaxnm.fit`).
+
+    **Arguments:**
+    - `problem`, `options`: what to fit and how.
+    - `ground_truth`: optional (h, w, 3) decoded unit normals: the history then
+      records the mean angular error over `seen_texels` at every step.
+    - `progress`: show a progress bar (loss, step, elapsed, ETA).
+    - `prepared`: reuse a `prepare(problem)` result.
+    - `strength`: the map's x/y scale used when rendering (1: as fitted).
+    - `time_limit`: stop (keeping the best map) after this many seconds.
+
+    Warns (`FitWarning`) when no view has three lights with non-coplanar
+    directions (`check_identifiability`; the report is in the result). Ctrl-C
+    stops cleanly after the current step and returns the best map so far.
+    Deterministic for a given `options.seed`. History step 0 is the start; the
+    loss of each record is that of the map the solver holds after the step.
+    """
+    t_start = time.perf_counter()
+    prep = prepared if prepared is not None else prepare(problem)
+    identifiability = check_identifiability(prep)  # warns when the lights cannot determine it
+    h, w = problem.map_size
+    if prep.options[0].normal_map_shape != (h, w):
+        raise ValueError(f"{problem.source}: `prepared` was made for a "
+                         f"{prep.options[0].normal_map_shape} map, not {(h, w)}")
+    sizes = level_sizes((h, w), options.coarse_to_fine)
+    key = jax.random.PRNGKey(options.seed)
+    slopes = options.init_noise * jax.random.normal(key, sizes[0] + (2,), jnp.float32)
+    seen = gt = None
+    if ground_truth is not None:
+        gt = np.asarray(ground_truth, np.float64)
+        seen = seen_texels(prep, (h, w))
+    solver = make_solver(options)
+    history: list = []
+    stopped = "max_steps"
+    best = (math.inf, slopes)
+    bar = _Progress(options.max_steps * len(sizes), progress)
+    with _Interrupt() as interrupt:
+        try:
+            for level, size in enumerate(sizes):
+                if level > 0:
+                    slopes = _upsample(best[1], size)
+                    best = (math.inf, slopes)
+                lp = prep if size == (h, w) else with_map_size(prep, size)
+                scale = preconditioner(lp)
+                args = ModelArgs.create(lp, smoothness=options.smoothness, strength=strength,
+                                        scale=scale)
+                z = slopes / scale
+                state = _init(solver, z, args)
+                # optimistix's first step evaluates the start and proposes the first move,
+                # so the start's loss arrives with it: record it as step 0
+                for k in range(options.max_steps + 1):
+                    z, state, done, result, loss_value = _step(solver, z, state, args)
+                    slopes = z * scale
+                    rec = {"level": level, "size": list(size), "step": k,
+                           "loss": float(loss_value), "seconds": time.perf_counter() - t_start}
+                    if np.isfinite(rec["loss"]) and rec["loss"] < best[0]:
+                        best = (rec["loss"], slopes)
+                    if gt is not None and size == (h, w):
+                        err = angular_error(slopes_to_normals(best[1]), gt)[seen]
+                        rec["mean_angular_error_deg"] = float(err.mean())
+                    history.append(rec)
+                    if k > 0:
+                        bar.update(rec)
+                    if interrupt.flag:
+                        stopped = "interrupted"
+                        break
+                    if time_limit is not None and rec["seconds"] > time_limit:
+                        stopped = "time_limit"
+                        break
+                    if k > 0 and bool(done):
+                        stopped = ("converged" if result == optx.RESULTS.successful
+                                   else str(result))
+                        break
+                if stopped in ("interrupted", "time_limit"):
+                    break
+        finally:
+            bar.close()
+    final = best[1]
+    if final.shape[:2] != (h, w):  # stopped during a coarse level
+        final = _upsample(final, (h, w))
+    return FitResult(normals=np.asarray(slopes_to_normals(final)), slopes=np.asarray(final),
+                     history=history, seconds=time.perf_counter() - t_start, stopped=stopped,
+                     best_loss=float(best[0]), identifiability=identifiability)
+
