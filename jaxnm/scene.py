@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .camera import Camera, to_clip
+from .camera import Camera
 from .frames import check_frame
 from .geometry import Mesh, validate_arrays
 from .interpolate import check_derivatives
@@ -176,7 +176,11 @@ def _check_near_plane(scene: Scene) -> None:
     leaves = jax.tree_util.tree_leaves((scene.mesh.positions, scene.camera))
     if not all(_is_concrete(x) for x in leaves):
         return
-    clip = np.asarray(to_clip(scene.mesh.positions, scene.camera))
+    cam = scene.camera  # float64 NumPy, as `jaxnm.camera.to_clip` (no traced op inside jit)
+    eye_space = ((np.asarray(scene.mesh.positions, np.float64) - np.asarray(cam.eye, np.float64))
+                 @ np.asarray(cam.view, np.float64)[:3, :3].T)
+    proj = np.asarray(cam.projection, np.float64)
+    clip = eye_space @ proj[:, :3].T + proj[None, :, 3]
     if not np.any(clip[:, 2] >= -clip[:, 3]):
         raise ValueError(f"{scene.source}: every vertex of the mesh is behind the camera's near "
                          "plane (is the camera inside the object, or looking away from it?)")
