@@ -1,5 +1,6 @@
 """Normal-map fitting: recovery of a known map, held-out lights, solvers, bad input, the CLI."""
 
+import contextlib
 import dataclasses
 import json
 import warnings
@@ -332,3 +333,111 @@ def test_ctrl_c_stops_after_the_current_step_and_keeps_the_best(small):
     assert res.stopped == "interrupted"
     assert np.isfinite(res.best_loss) and res.best_loss <= min(h["loss"] for h in res.history)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+
+@contextlib.contextmanager
+def _backend_compiles():
+    """Collect the durations of XLA backend compilations that happen inside the block."""
+    events = []
+
+    def listener(name, seconds, **kwargs):
+        if name == "/jax/core/compile/backend_compile_duration":
+            events.append(seconds)
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        yield events
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+
+
+def test_the_solver_step_compiles_once_per_problem_shape(small):
+    """A second fit of a problem of the same shapes (another step count, another start, a
+    coarse-to-fine schedule already seen) compiles nothing; the first one did compile."""
+    problem, gt, _, prep, _ = small
+    with _backend_compiles() as first:
+        F.fit_normal_map(problem, F.FitOptions(max_steps=2, lsmr_steps=5, coarse_to_fine=1),
+                         ground_truth=gt, prepared=prep, progress=False)
+    assert len(first) > 0  # the check can fail: compilations are seen
+    with _backend_compiles() as again:
+        F.fit_normal_map(problem, F.FitOptions(max_steps=3, lsmr_steps=5, coarse_to_fine=1,
+                                               init_noise=0.01, seed=4),
+                         ground_truth=gt, prepared=prep, progress=False)
+    assert again == [], f"{len(again)} recompilations ({sum(again):.1f} s)"
+
+
+def _fit_folder(tmp_path, **changes):
+    """A small valid fit file (a plane, two 16x16 .npy targets) with top-level changes;
+    a change of None removes the key."""
+    (tmp_path / "scene.json").write_text(json.dumps({
+        "mesh": "builtin:plane", "width": 16, "height": 16,
+        "camera": {"eye": [0, 0, 3], "target": [0, 0, 0]}}))
+    for i in range(2):
+        np.save(tmp_path / f"t{i}.npy", np.full((16, 16, 3), 0.5, np.float32))
+    fit = {"scene": "scene.json",
+           "targets": [{"image": f"t{i}.npy", "lights": [
+               {"type": "directional", "direction": [0.3 * i, 0.2, 1]}]} for i in range(2)],
+           "map": {"size": 8}, "solver": {"method": "lm", "max_steps": 2}}
+    for k, v in changes.items():
+        if v is None:
+            fit.pop(k)
+        else:
+            fit[k] = v
+    path = tmp_path / "fit.json"
+    path.write_text(json.dumps(fit))
+    return path
+
+
+_TARGET = {"image": "t0.npy", "lights": [{"type": "directional", "direction": [0, 0, 1]}]}
+
+
+@pytest.mark.parametrize("changes,match", [
+    (dict(solver={"max_steps": "30"}), r"solver: 'max_steps' must be an integer, got '30'"),
+    (dict(solver={"method": "newton"}), r"solver: unknown solver 'newton'"),
+    (dict(solver={"max_steps": 0}), r"solver: max_steps must be an integer >= 1"),
+    (dict(solver={"smoothness": -1}), r"solver: smoothness must be a finite number >= 0"),
+    (dict(solver={"time_limit": "soon"}), r"solver: 'time_limit' must be a number"),
+    (dict(solver={"lsmr": 3}), r"solver: unknown keys \['lsmr'\]"),
+    (dict(map={"size": 8, "encoding": "bogus"}), r"map: unknown encoding='bogus'"),
+    (dict(map={"size": 8, "bits": 12}), r"map: 'bits' must be 8 or 16"),
+    (dict(map={"size": [1, 8]}), r"map: 'size' must be"),
+    (dict(map={"size": 8, "green": "left"}), r"map: unknown green='left'"),
+    (dict(extra=1), r"unknown keys \['extra'\]"),
+    (dict(scene=None), r"'scene' must name a scene JSON file"),
+    (dict(targets=[]), r"'targets' must be a non-empty list"),
+    (dict(targets=[{**_TARGET, "view": 3}]), r"targets\[0\]: 'view' = 3 but there are 1 views"),
+    (dict(targets=[{**_TARGET, "color_space": "xyz"}]), r"targets\[0\]: 'color_space' must be"),
+    (dict(targets=[{**_TARGET, "lights": [{"type": "spot"}]}]), r"targets\[0\]: lights\[0\]"),
+    (dict(targets=[{**_TARGET, "image": "missing.png"}]), r"missing.png"),
+    (dict(ground_truth={"path": "gt.png", "encoding": "weird"}),
+     r"ground_truth: unknown encoding='weird'"),
+    (dict(views=[{"camera": {"eye": [0, 0, 3]}, "width": 16, "height": 16}]),
+     r"views\[0\]: camera: needs 'eye' and 'target'"),
+    (dict(views=[{"camera": {"eye": [0, 0, 3], "target": [0, 0, 0]}, "width": "16"}]),
+     r"views\[0\]: 'width' must be an integer"),
+])
+def test_fit_file_errors_are_one_line_naming_file_and_field(tmp_path, capsys, changes, match):
+    path = _fit_folder(tmp_path, **changes)
+    with pytest.raises((ValueError, FileNotFoundError), match=match) as e:
+        load_fit(path)
+    assert str(path) in str(e.value) or "missing.png" in str(e.value)
+    assert main(["fit", str(path), "-o", str(tmp_path / "out"), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err and err.startswith("jaxnm fit")
+
+
+def test_fit_file_fields_are_checked_before_any_file_is_read(tmp_path):
+    """A bad solver field is reported although the scene file does not even exist."""
+    path = _fit_folder(tmp_path, scene="nowhere.json", solver={"max_steps": "30"})
+    with pytest.raises(ValueError, match="max_steps"):
+        load_fit(path)
+
+
+def test_fit_cli_option_errors_exit_2(tmp_path, capsys):
+    path = _fit_folder(tmp_path)
+    for args, match in ((["--max-steps", "0"], "max_steps"), (["--time-limit", "-1"], "time")):
+        assert main(["fit", str(path), "--no-progress", *args]) == 2
+        err = capsys.readouterr().err
+        assert match in err and len(err.strip().splitlines()) == 1
+    job = load_fit(path)  # the valid file loads
+    assert job.problem.map_size == (8, 8) and job.options.max_steps == 2

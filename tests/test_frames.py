@@ -790,3 +790,30 @@ def test_compute_frame_errors():
         F.compute_frame("axis", N=N, double_sided=True)
     with pytest.raises(ValueError, match="normalize"):
         F.compute_frame("axis", N=N, normalize="unit")
+
+
+def test_frame_names_are_the_documented_variants():
+    """`compute_frame` takes every name in `FRAMES`: the variants are their base method with
+    the documented option, and "none" leaves the normal unperturbed."""
+    rng = np.random.default_rng(3)
+    n = 16
+    tri_p = jnp.asarray(rng.normal(size=(n, 3, 3)), jnp.float32)
+    tri_uv = jnp.asarray(rng.uniform(size=(n, 3, 2)), jnp.float32)
+    N = safe_normalize(jnp.cross(tri_p[:, 1] - tri_p[:, 0], tri_p[:, 2] - tri_p[:, 0])
+                       + 0.2 * jnp.asarray(rng.normal(size=(n, 3)), jnp.float32))
+    dp1, dp2 = tri_p[:, 1] - tri_p[:, 0], tri_p[:, 2] - tri_p[:, 0]
+    duv1, duv2 = tri_uv[:, 1] - tri_uv[:, 0], tri_uv[:, 2] - tri_uv[:, 0]
+    kw = dict(N=N, p_attr=jaxnm.Attribute(tri_p[:, 0], dp1, dp2),
+              uv_attr=jaxnm.Attribute(tri_uv[:, 0], duv1, duv2), tri_p=tri_p, tri_uv=tri_uv)
+    assert set(F.FRAMES) >= set(METHODS) | {"cotangent_unnormalized", "exact_face", "none"}
+    pairs = [(F.compute_frame("cotangent_unnormalized", **kw),
+              F.cotangent_frame(N, dp1, dp2, duv1, duv2, normalize="none")),
+             (F.compute_frame("exact_face", **kw),
+              F.exact_frame(tri_p, tri_uv, N, use_face_normal=True))]
+    for a, b in pairs:
+        for x, y in zip((a.T, a.B, a.N), (b.T, b.B, b.N)):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-6, atol=1e-7)
+    none = F.compute_frame("none", **kw)
+    assert not np.any(np.asarray(none.T)) and not np.any(np.asarray(none.B))
+    m = jnp.asarray(rng.normal(size=(n, 3)), jnp.float32).at[:, 2].set(1.0)
+    np.testing.assert_allclose(np.asarray(F.perturb_normal(none, m)), np.asarray(N), atol=1e-6)

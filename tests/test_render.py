@@ -232,3 +232,52 @@ def test_hlsl_ddy_turns_bumps_into_dents(plane_scene):
     np.testing.assert_allclose(pd, refl, atol=2e-4)
     with pytest.raises(ValueError, match="ddy"):
         sc.replace(ddy="sideways")
+
+
+def test_scene_fields_are_checked_before_the_mesh_is_loaded(tmp_path):
+    p = tmp_path / "scene.json"
+    p.write_text(json.dumps(_scene_dict(mesh="not_there.obj", frame="diagonal")))
+    with pytest.raises(ValueError, match=r"scene.json: unknown frame 'diagonal'"):
+        load_scene(p)
+
+
+def test_options_are_validated_however_they_are_built(plane_scene):
+    """A bad option is refused when its object is made, not inside `render`."""
+    import dataclasses
+
+    from jaxnm.render import RenderOptions
+    from jaxnm.textures import NormalMapOptions
+
+    with pytest.raises(ValueError, match="wrap='bogus'"):
+        NormalMapOptions(wrap="bogus")
+    with pytest.raises(ValueError, match="filter"):
+        dataclasses.replace(NormalMapOptions(), filter="cubic")
+    with pytest.raises(ValueError, match="unknown frame"):
+        dataclasses.replace(plane_scene, frame="tangent")
+    with pytest.raises(ValueError, match="derivatives"):
+        Scene(mesh=plane_scene.mesh, camera=plane_scene.camera, derivatives="smooth")
+    with pytest.raises(ValueError, match="width"):
+        Scene(mesh=plane_scene.mesh, camera=plane_scene.camera, width=0)
+    with pytest.raises(ValueError, match="outputs"):
+        RenderOptions(width=8, height=8, outputs=("colour",))
+    with pytest.raises(ValueError, match="falloff"):
+        jaxnm.PointLight(jnp.zeros(3), jnp.ones(3), jnp.asarray(1.0), falloff="linear")
+
+
+def test_cli_normal_map_is_decoded_as_its_help_says(tmp_path, plane_scene):
+    """`--normal-map` overrides the scene's map options to unsigned, green up, tangent space."""
+    from jaxnm.io import save_png
+
+    texels = procedural.default_normal_map_texels(32)
+    save_png(tmp_path / "n.png", texels)
+    scene_file = tmp_path / "s.json"
+    scene_file.write_text(json.dumps({**_scene_dict(), "normal_map": {
+        "path": "n.png", "green": "down", "encoding": "unsigned_exact"}}))
+    out_cli = tmp_path / "cli.npz"
+    assert main(["render", str(scene_file), "--normal-map", str(tmp_path / "n.png"),
+                 "-o", str(tmp_path / "x.png"), "--aovs", str(out_cli),
+                 "--aov-list", "perturbed_normal"]) == 0
+    ref = render(load_scene(scene_file).replace(
+        normal_map=texels, normal_map_options=jaxnm.NormalMapOptions()),
+        outputs=("perturbed_normal",))["perturbed_normal"]
+    np.testing.assert_allclose(np.load(out_cli)["perturbed_normal"], ref, atol=1e-6)
