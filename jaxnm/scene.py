@@ -21,6 +21,7 @@ from .camera import Camera
 from .frames import check_frame
 from .geometry import Mesh, validate_arrays
 from .interpolate import check_derivatives
+from .numerics import safe_normalize
 from .shading import DirectionalLight, Lights, Material, check_shading_model, stack_lights
 from .textures import NormalMapOptions
 
@@ -197,4 +198,4 @@ def default_lights(camera: Camera) -> Lights:
     rot = jnp.asarray(camera.view)[:3, :3]  # world -> eye
     d = jnp.linalg.solve(rot, jnp.array([-0.5, 0.6, 1.0], rot.dtype))
     return Lights(directional=stack_lights([DirectionalLight(
-        (d / jnp.linalg.norm(d)).astype(jnp.float32), jnp.ones(3), jnp.asarray(1.0))]))
+        safe_normalize(d).astype(jnp.float32), jnp.ones(3), jnp.asarray(1.0))]))

@@ -74,12 +74,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnm import frames as _frames
-from jaxnm.geometry import Mesh
-from jaxnm.numerics import angle_between
-from jaxnm.render import RenderOptions, build_gbuffer, perturbed_normal, shade_gbuffer
 from jaxnm.frames import FRAMES
+from jaxnm.geometry import Mesh
 from jaxnm.interpolate import DERIVATIVE_MODES as DERIVATIVES
+from jaxnm.numerics import angle_between
 from jaxnm.procedural import default_scene
+from jaxnm.render import RenderOptions, build_gbuffer, perturbed_normal, shade_gbuffer
 
 #: The default torus's parametrisation (`jaxnm.procedural.default_torus`); checked at start-up.
 MAJOR, MINOR, U_SCALE, V_SCALE = 1.0, 0.42, 3.0, 1.0

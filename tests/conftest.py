@@ -8,8 +8,24 @@ import jax  # noqa: E402
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
+import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402
 
 # Deterministic property tests: the same examples on every run and in CI.
 settings.register_profile("jaxnm", derandomize=True, deadline=None, print_blob=True)
 settings.load_profile("jaxnm")
+
+
+def pytest_configure(config):
+    """With ``JAXNM_REQUIRE_GL=1`` (set by .ci/run) the GLSL comparison must run: a missing
+    OpenGL 4.5 context is an error instead of a skip."""
+    if os.environ.get("JAXNM_REQUIRE_GL") != "1":
+        return
+    import sys
+
+    sys.path.insert(0, os.path.dirname(__file__))
+    from glref import gl_available
+
+    ok, why = gl_available()
+    if not ok:
+        raise pytest.UsageError(f"JAXNM_REQUIRE_GL=1 but no OpenGL 4.5 context: {why}")

@@ -150,3 +150,17 @@ def test_each_vocabulary_is_defined_once(vocab, owner):
                if re.search(rf"^{vocab}\s*=", inspect.getsource(m), re.M)]
     owner_mod = importlib.import_module(owner)
     assert defined in ([owner], [owner_mod.__name__ + ".problem"]), defined
+
+
+def test_the_readme_module_table_matches_the_package():
+    """Every module (or subpackage) in jaxnm/ appears in the README's module table, and the
+    table names nothing that does not exist."""
+    readme = (ROOT / "README.md").read_text()
+    table = readme[readme.index("### Modules"):]
+    table = table[:table.index("\n## ")]
+    listed = set(re.findall(r"^\| `(jaxnm/[\w/.]+)` \|", table, re.M))
+    actual = {f"jaxnm/{p.name}" for p in (ROOT / "jaxnm").glob("*.py")
+              if p.name != "__init__.py"}
+    actual |= {f"jaxnm/{p.name}/" for p in (ROOT / "jaxnm").iterdir()
+               if p.is_dir() and (p / "__init__.py").exists()}
+    assert listed == actual, (sorted(listed - actual), sorted(actual - listed))

@@ -115,6 +115,7 @@ def test_prepared_keeps_only_covered_pixels_and_needed_taps(small):
             assert np.all(img[~cover] == 0)
 
 
+@pytest.mark.slow
 def test_views_with_different_sizes_targets_and_light_kinds(small):
     """Views of different image sizes and target counts share one vmapped batch (padded);
     views with other kinds of lights, or far fewer pixels, get their own batch. The model still
@@ -222,6 +223,7 @@ def test_bad_input_is_refused_before_compiling(small, change, match):
         F.prepare(change(small[0]))
 
 
+@pytest.mark.slow
 def test_fit_file_and_cli(tmp_path, small, capsys):
     """A fit JSON with PNG targets (sRGB) runs through `jaxnm fit` and writes every output."""
     problem, gt, scene, prep, _ = small
@@ -265,6 +267,7 @@ def test_fit_file_and_cli(tmp_path, small, capsys):
     assert "angular error" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_example_fit_script_writes_the_built_in_problem(tmp_path, small):
     """scripts/make_example_fit.py writes a fit file that loads back as the built-in problem."""
     import importlib.util
@@ -298,6 +301,7 @@ def test_fit_file_errors_name_the_file(tmp_path):
         load_fit(cfg)
 
 
+@pytest.mark.slow
 def test_coarse_to_fine_and_smoothness(small):
     """Coarse-to-fine solves 16x16 then 32x32 (upsampling the start); smoothness pulls
     towards flat slopes. Both still recover the map roughly and keep unit normals."""
@@ -441,3 +445,23 @@ def test_fit_cli_option_errors_exit_2(tmp_path, capsys):
         assert match in err and len(err.strip().splitlines()) == 1
     job = load_fit(path)  # the valid file loads
     assert job.problem.map_size == (8, 8) and job.options.max_steps == 2
+
+
+def test_fit_cli_runs_without_the_optional_extras(tmp_path, capsys, monkeypatch):
+    """Without tqdm and matplotlib (the `cli` extra) `jaxnm fit` prints a line per step and
+    skips loss.png; everything else is written."""
+    import sys
+
+    for name in ("tqdm", "matplotlib", "matplotlib.figure"):
+        monkeypatch.setitem(sys.modules, name, None)  # `import name` raises ImportError
+    path = _fit_folder(tmp_path)
+    out = tmp_path / "out"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", F.FitWarning)  # two lights: not identifiable
+        assert main(["fit", str(path), "-o", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert "fit step 1/2" in captured.err and "preparing" in captured.err
+    assert not (out / "loss.png").exists()
+    for name in ("normal_map.png", "normal_map.npz", "render_00.png", "loss.json",
+                 "report.json"):
+        assert (out / name).exists(), name
