@@ -339,20 +339,30 @@ def test_ctrl_c_stops_after_the_current_step_and_keeps_the_best(small):
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
 
 
+_COMPILES: list = []
+_COUNTING = [False]
+
+
+def _on_event(name, seconds, **kwargs):
+    if _COUNTING[0] and name == "/jax/core/compile/backend_compile_duration":
+        _COMPILES.append(seconds)
+
+
+# registered once for the session (jax 0.8.0, the floor, cannot unregister a listener)
+jax.monitoring.register_event_duration_secs_listener(_on_event)
+
+
 @contextlib.contextmanager
 def _backend_compiles():
     """Collect the durations of XLA backend compilations that happen inside the block."""
+    _COMPILES.clear()
+    _COUNTING[0] = True
     events = []
-
-    def listener(name, seconds, **kwargs):
-        if name == "/jax/core/compile/backend_compile_duration":
-            events.append(seconds)
-
-    jax.monitoring.register_event_duration_secs_listener(listener)
     try:
         yield events
     finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
+        _COUNTING[0] = False
+        events.extend(_COMPILES)
 
 
 def test_the_solver_step_compiles_once_per_problem_shape(small):
@@ -465,3 +475,18 @@ def test_fit_cli_runs_without_the_optional_extras(tmp_path, capsys, monkeypatch)
     for name in ("normal_map.png", "normal_map.npz", "render_00.png", "loss.json",
                  "report.json"):
         assert (out / name).exists(), name
+
+
+def test_sample_split_when_every_pixel_reads_one_level(small):
+    """A view where no pixel blends two mip levels (split == pixel count): the 4-tap gather
+    alone, equal to the full plan (regression: an empty 8-tap group broke on jax 0.8)."""
+    from jaxnm import textures as T
+
+    _, gt, _, prep, _ = small
+    b = prep.batches[0]
+    plan = jax.tree_util.tree_map(lambda x: x[0], b.gbuffer.plan)
+    k = b.split
+    head = jax.tree_util.tree_map(lambda x: x[:k], plan)
+    mips = T.build_mipmaps(jnp.asarray(gt), levels=prep.options[0].levels)
+    np.testing.assert_allclose(np.asarray(F.sample_split(head, mips, k)),
+                               np.asarray(T.apply_plan(head, mips)), atol=1e-6)

@@ -122,6 +122,8 @@ def sample_split(plan: _tex.SamplePlan, mips, split: int) -> Array:
     if split == 0:
         return _tex.apply_plan(plan, mips)
     head = dataclasses.replace(plan, index=plan.index[:split, :4], weight=plan.weight[:split, :4])
+    if split == plan.index.shape[0]:  # every pixel reads one mip level
+        return _tex.apply_plan(head, mips)
     tail = dataclasses.replace(plan, index=plan.index[split:], weight=plan.weight[split:])
     return jnp.concatenate([_tex.apply_plan(head, mips), _tex.apply_plan(tail, mips)], 0)
 
