@@ -190,7 +190,15 @@ def main(argv=None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     _add_render(sub)
     _add_fit(sub)
+    for p in sub.choices.values():
+        p.add_argument("--no-compile-cache", action="store_true", dest="no_compile_cache",
+                       help="do not use the persistent compilation cache (default: "
+                       "$JAXNM_COMPILATION_CACHE or ~/.cache/jaxnm/xla)")
     args = parser.parse_args(argv)
+    if not args.no_compile_cache:
+        from .config import use_compilation_cache
+
+        use_compilation_cache()
     try:
         return _render(args) if args.command == "render" else _fit(args)
     except (ValueError, FileNotFoundError, ImportError) as e:

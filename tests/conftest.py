@@ -3,6 +3,8 @@
 import os
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+# hermetic: the CLI tests must not read or fill the user's persistent compilation cache
+os.environ["JAXNM_COMPILATION_CACHE"] = "off"
 
 import jax  # noqa: E402
 

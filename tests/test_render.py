@@ -281,3 +281,43 @@ def test_cli_normal_map_is_decoded_as_its_help_says(tmp_path, plane_scene):
         normal_map=texels, normal_map_options=jaxnm.NormalMapOptions()),
         outputs=("perturbed_normal",))["perturbed_normal"]
     np.testing.assert_allclose(np.load(out_cli)["perturbed_normal"], ref, atol=1e-6)
+
+
+_CACHE_PROBE = """
+import sys, jax, jax.monitoring as m
+events = {"hits": 0, "misses": 0}
+def on(name, **kw):
+    if name == "/jax/compilation_cache/cache_hits": events["hits"] += 1
+    if name == "/jax/compilation_cache/cache_misses": events["misses"] += 1
+m.register_event_listener(on)
+from jaxnm.cli import main
+rc = main(sys.argv[1:])
+print("EVENTS", rc, events["hits"], events["misses"])
+"""
+
+
+@pytest.mark.slow
+def test_cli_uses_the_persistent_compilation_cache(tmp_path):
+    """A second `jaxnm render` loads its programs from the cache the first one filled;
+    `--no-compile-cache` and JAXNM_COMPILATION_CACHE=off turn it off."""
+    import os
+    import subprocess
+    import sys
+
+    cache = tmp_path / "cache"
+    env = dict(os.environ, JAXNM_COMPILATION_CACHE=str(cache))
+    args = ["render", "--width", "24", "--height", "24", "-o", str(tmp_path / "x.png")]
+
+    def run(*extra, env=env):
+        out = subprocess.run([sys.executable, "-c", _CACHE_PROBE, *args, *extra], env=env,
+                             capture_output=True, text=True, timeout=300, check=True).stdout
+        rc, hits, misses = map(int, out.split("EVENTS")[1].split())
+        assert rc == 0
+        return hits, misses
+
+    hits, misses = run()
+    assert hits == 0 and misses > 0 and any(cache.iterdir())
+    hits, misses = run()
+    assert hits > 0 and misses == 0
+    assert run("--no-compile-cache") == (0, 0)
+    assert run(env=dict(env, JAXNM_COMPILATION_CACHE="off")) == (0, 0)
