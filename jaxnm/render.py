@@ -300,11 +300,19 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     scene = validate_scene(scene)
     opts = RenderOptions.of(scene, outputs=outputs, derivatives=derivatives, frame=frame)
     check_mesh(scene.mesh, opts, scene.source)
-    gb = build_gbuffer(scene.mesh, scene.camera, jnp.asarray(scene.albedo), opts=opts)
+    nm = None if scene.normal_map is None else jnp.asarray(scene.normal_map)
+    return _render(scene.mesh, scene.camera, nm, jnp.asarray(scene.albedo), scene.lights,
+                   scene.material, opts=opts)
+
+
+@functools.partial(jax.jit, static_argnames=("opts",))
+def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, *,
+            opts: RenderOptions) -> dict[str, Array]:
+    """`render` as one XLA program (one compilation per scene shape and options)."""
+    gb = build_gbuffer(mesh, camera, albedo, opts=opts)
     res = {}
     if set(opts.outputs) & _NEEDS_FRAME:
-        nm = None if scene.normal_map is None else jnp.asarray(scene.normal_map)
-        res.update(shade_gbuffer(gb, nm, scene.lights, scene.material, opts=opts))
+        res.update(shade_gbuffer(gb, normal_map, lights, material, opts=opts))
     geo = {
         "mask": lambda: gb.mask,
         "triangle_id": lambda: gb.triangle_id,
@@ -321,7 +329,7 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     }
     result = {}
     for name in opts.outputs:
-        v = jnp.asarray(res[name] if name in res else geo[name]())
+        v = res[name] if name in res else geo[name]()
         if v.ndim == 2:
             v = v[..., None]
         result[name] = v.astype(jnp.float32)

@@ -24,13 +24,13 @@ def seen_texels(prep: Prepared, map_size: tuple[int, int], *,
     """(h, w) bool: texels that some view samples at the finest mip level with total filter
     weight >= ``min_weight`` (i.e. that directly influence at least part of a pixel)."""
     h, w = map_size
-    acc = jnp.zeros(h * w, jnp.float32)
+    acc = np.zeros(h * w)
     for b in prep.batches:
-        wmask = (b.weights.max(1)[..., 0] > 0)[..., None]  # (V, K, 1): used pixels
-        idx, wt = b.gbuffer.plan.index, b.gbuffer.plan.weight
-        wt = jnp.where((idx < h * w) & wmask, wt, 0.0)  # level 0 texels come first
-        acc = acc.at[jnp.minimum(idx, h * w - 1).reshape(-1)].add(wt.reshape(-1))
-    return np.asarray(acc.reshape(h, w) >= min_weight)
+        used = (np.asarray(b.weights).max(1)[..., 0] > 0)[..., None]  # (V, K, 1)
+        idx, wt = np.asarray(b.gbuffer.plan.index), np.asarray(b.gbuffer.plan.weight)
+        keep = (idx < h * w) & used  # level 0 texels come first in the flat index
+        acc += np.bincount(idx[keep], weights=wt[keep], minlength=h * w)
+    return acc.reshape(h, w) >= min_weight
 
 
 def texel_influence(prep: Prepared) -> Array:
@@ -39,6 +39,11 @@ def texel_influence(prep: Prepared) -> Array:
     The column sums of the (fixed) texel-to-pixel sampling operator, mip
     levels included; used to precondition the solve (see `fit_normal_map`).
     """
+    return _texel_influence(prep)
+
+
+@jax.jit
+def _texel_influence(prep: Prepared) -> Array:
     h, w = prep.options[0].normal_map_shape
 
     def sampled(t):

@@ -20,7 +20,9 @@ from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
+from jax.custom_derivatives import SymbolicZero
 
 from .. import textures as _tex
 from ..frames import perturb_normal
@@ -101,19 +103,37 @@ def _pixel_model(m, gb, lights, material, shading, strength):
     return _pixel_colors(m, gb, lights, material, shading, strength)
 
 
-@_pixel_model.defjvp
+def _is_zero(t) -> bool:
+    return isinstance(t, SymbolicZero)
+
+
 def _pixel_model_jvp(shading, primals, tangents):
     m, gb, lights, material, strength = primals
-    dm, dgb, dlights, dmaterial, dstrength = tangents
+    dm, *rest_t = tangents
     f = lambda m_: _pixel_colors(m_, gb, lights, material, shading, strength)  # noqa: E731
-    y = f(m)
-    basis = jnp.eye(3, dtype=m.dtype)
-    blocks = jax.vmap(lambda e: jax.jvp(f, (m,), (jnp.broadcast_to(e, m.shape),))[1])(basis)
-    # blocks: (3, T, K, 3) = d colour / d m_k
-    out = jnp.einsum("kt...c,...k->t...c", blocks, dm)
-    rest = jax.jvp(lambda g, lt, mt, s: _pixel_colors(m, g, lt, mt, shading, s),
-                   (gb, lights, material, strength), (dgb, dlights, dmaterial, dstrength))[1]
-    return y, out + rest
+    if _is_zero(dm):
+        out = None
+        y = f(m)
+    else:
+        y = f(m)
+        basis = jnp.eye(3, dtype=m.dtype)
+        blocks = jax.vmap(lambda e: jax.jvp(f, (m,), (jnp.broadcast_to(e, m.shape),))[1])(basis)
+        # blocks: (3, T, K, 3) = d colour / d m_k
+        out = jnp.einsum("kt...c,...k->t...c", blocks, dm)
+    # the other inputs (G-buffer, lights, material, strength) are constants in a fit: their
+    # tangents are symbolic zeros, and the JVP through them is skipped, not run on zeros
+    if not all(_is_zero(t) for t in jax.tree_util.tree_leaves(rest_t, is_leaf=_is_zero)):
+        rest_p = (gb, lights, material, strength)
+        rest_t = jax.tree_util.tree_map(
+            lambda t, p: jnp.zeros_like(p) if _is_zero(t) else t, tuple(rest_t), rest_p,
+            is_leaf=_is_zero)
+        rest = jax.jvp(lambda g, lt, mt, s: _pixel_colors(m, g, lt, mt, shading, s),
+                       rest_p, rest_t)[1]
+        out = rest if out is None else out + rest
+    return y, jnp.zeros_like(y) if out is None else out
+
+
+_pixel_model.defjvp(_pixel_model_jvp, symbolic_zeros=True)
 
 
 def sample_split(plan: _tex.SamplePlan, mips, split: int) -> Array:
@@ -145,21 +165,27 @@ def _shade_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions
 
 
 def render_with_map(prep: Prepared, normals: Array, *, strength: float = 1.0,
-                    lights: Sequence[Lights] | None = None) -> list[Array]:
-    """Render every view of ``prep`` with the map ``normals`` (h, w, 3); one (T, H, W, 3) per view.
+                    lights: Sequence[Lights] | None = None) -> list[np.ndarray]:
+    """Render every view of ``prep`` with the map ``normals`` (h, w, 3); one (T, H, W, 3) NumPy
+    array per view.
 
     ``lights`` (one stacked `Lights` per view, leaves (T, ...)) replaces the
     prepared lights, e.g. to render from held-out light directions.
     """
     opts = prep.options[0]
-    mips = _mips(jnp.asarray(normals), opts)
     out = []
     for v in range(prep.num_views):
         view = prep.view(v)
         lt = view.lights if lights is None else lights[v]
-        img = _shade_view(view.gbuffer, mips, lt, prep.material, opts, strength)
+        img = _render_view(view.gbuffer, jnp.asarray(normals), lt, prep.material,
+                           jnp.asarray(strength, jnp.float32), opts=opts)
         out.append(prep.to_image(v, img))
     return out
+
+
+@functools.partial(jax.jit, static_argnames=("opts",))
+def _render_view(gb, normals, lights, material, strength, *, opts):
+    return _shade_view(gb, _mips(normals, opts), lights, material, opts, strength)
 
 
 def residuals(z: Array, args: ModelArgs) -> tuple[Array, ...]:

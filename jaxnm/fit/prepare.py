@@ -83,36 +83,37 @@ class Prepared:
         return len(self.options)
 
     def view(self, v: int) -> View:
-        """View ``v`` unpadded: its G-buffer (K_v, ...), pixels, targets and lights."""
+        """View ``v`` unpadded, as host (NumPy) arrays: its G-buffer (K_v, ...), pixels,
+        targets and lights."""
         for b in self.batches:
             if v in b.views:
                 i = b.views.index(v)
-                keep = np.flatnonzero(np.asarray(b.pixels[i]) >= 0)
+                pixels = np.asarray(b.pixels)[i]
+                keep = np.flatnonzero(pixels >= 0)
                 t = b.targets[i]
-                gb = _map_pixels(jax.tree_util.tree_map(lambda x: x[i], b.gbuffer),
-                                 lambda x: x[keep])
-                return View(gb, b.pixels[i][keep], b.images[i, :t][:, keep],
-                             b.weights[i, :t][:, keep],
-                             jax.tree_util.tree_map(lambda x: x[i, :t], b.lights))
+                gb = _map_pixels(_host(b.gbuffer), lambda x: x[i][keep], eye=lambda x: x[i])
+                return View(gb, pixels[keep], np.asarray(b.images)[i, :t][:, keep],
+                            np.asarray(b.weights)[i, :t][:, keep],
+                            jax.tree_util.tree_map(lambda x: np.asarray(x)[i, :t], b.lights))
         raise IndexError(f"fit: no view {v} (the problem has {self.num_views})")
 
-    def to_image(self, v: int, values: Array) -> Array:
+    def to_image(self, v: int, values) -> np.ndarray:
         """Per-pixel ``values`` (..., K_v, C) of `view` ``v`` in image layout (..., H, W, C),
-        0 off the mesh."""
+        0 off the mesh (NumPy)."""
         o = self.options[v]
-        pix = self.view(v).pixels
-        values = jnp.asarray(values)
-        out = jnp.zeros(values.shape[:-2] + (o.height * o.width, values.shape[-1]), values.dtype)
-        out = out.at[..., pix, :].set(values)
+        pixels = self.view(v).pixels
+        values = np.asarray(values)
+        out = np.zeros(values.shape[:-2] + (o.height * o.width, values.shape[-1]), values.dtype)
+        out[..., pixels, :] = values
         return out.reshape(values.shape[:-2] + (o.height, o.width, values.shape[-1]))
 
     def target_images(self, v: int) -> np.ndarray:
         """(T_v, H, W, 3) linear targets of view ``v`` (0 where the mesh is not)."""
-        return np.asarray(self.to_image(v, self.view(v).images))
+        return self.to_image(v, self.view(v).images)
 
     def target_mask(self, v: int, t: int = 0) -> np.ndarray:
         """(H, W) bool: the pixels that count for target ``t`` of view ``v``."""
-        return np.asarray(self.to_image(v, self.view(v).weights[t]))[..., 0] > 0
+        return self.to_image(v, self.view(v).weights[t])[..., 0] > 0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -161,8 +162,9 @@ def prepare(problem: FitProblem) -> Prepared:
                                            if jnp.ndim(problem.albedo) == 3 else None),
                              outputs=("color",))
         check_mesh(problem.mesh, opts, problem.source)
-        gb = build_gbuffer(problem.mesh, t0.camera, jnp.asarray(problem.albedo), opts=opts)
-        cover = np.asarray(gb.mask)
+        gb = _host(build_gbuffer(problem.mesh, t0.camera, jnp.asarray(problem.albedo),
+                                 opts=opts))  # the rest is host-side indexing, in NumPy
+        cover = gb.mask
         ws = []
         for i, t in enumerate(ts):
             m = cover if t.mask is None else (cover & np.asarray(t.mask, bool))
@@ -172,19 +174,23 @@ def prepare(problem: FitProblem) -> Prepared:
             ws.append(m[..., None].astype(np.float32))
         pix = np.flatnonzero(cover).astype(np.int32)
         flat = lambda x: x.reshape((-1,) + x.shape[2:])[pix]  # noqa: E731
-        views.append(View(_map_pixels(gb, flat), jnp.asarray(pix),
-                           jnp.asarray(np.stack([flat(np.asarray(t.image, np.float32))
-                                                 for t in ts])),
-                           jnp.asarray(np.stack([flat(w) for w in ws])),
-                           _stack_lights([t.lights for t in ts])))
+        views.append(View(_map_pixels(gb, flat), pix,
+                          np.stack([flat(np.asarray(t.image, np.float32)) for t in ts]),
+                          np.stack([flat(w) for w in ws]),
+                          _host(_stack_lights([t.lights for t in ts]))))
         opts_all.append(opts)
     return _assemble(views, tuple(opts_all), problem.material)
 
 
-def _map_pixels(gb: GBuffer, fn) -> GBuffer:
-    """Apply ``fn`` to every per-pixel field of ``gb`` (all but the eye position)."""
+def _host(tree):
+    """``tree`` with every leaf a NumPy array (a host copy, or a view on the CPU)."""
+    return jax.tree_util.tree_map(np.asarray, tree)
+
+
+def _map_pixels(gb: GBuffer, fn, eye=lambda x: x) -> GBuffer:
+    """Apply ``fn`` to every per-pixel field of ``gb`` and ``eye`` to the eye position."""
     out = jax.tree_util.tree_map(fn, dataclasses.replace(gb, eye=None))
-    return dataclasses.replace(out, eye=gb.eye)
+    return dataclasses.replace(out, eye=None if gb.eye is None else eye(gb.eye))
 
 
 def _light_key(lights: Lights):
@@ -239,14 +245,15 @@ def _assemble(views: Sequence[View], options: tuple[RenderOptions, ...],
                                    np.ones(len(b), bool), np.zeros(kb - len(b), bool)])
             t = view.images.shape[0]
             tsel = np.minimum(np.arange(t_max), t - 1)  # padded targets repeat the last one
-            weights = view.weights[tsel][:, order] * jnp.asarray(
-                real[None, :, None] & (np.arange(t_max) < t)[:, None, None], jnp.float32)
+            used = real[None, :, None] & (np.arange(t_max) < t)[:, None, None]
+            weights = view.weights[tsel][:, order] * used.astype(np.float32)
             rows.append(dict(
                 gbuffer=_map_pixels(view.gbuffer, lambda x: x[order]),
-                pixels=jnp.where(jnp.asarray(real), view.pixels[order], -1),
+                pixels=np.where(real, view.pixels[order], -1).astype(np.int32),
                 images=view.images[tsel][:, order], weights=weights,
                 lights=jax.tree_util.tree_map(lambda x: x[tsel], view.lights)))
-        stacked = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *rows)
+        # stacked on the host, moved to the device once
+        stacked = jax.device_put(jax.tree_util.tree_map(lambda *x: np.stack(x), *rows))
         batches.append(ViewBatch(**stacked, views=tuple(members),
                                  targets=tuple(views[v].images.shape[0] for v in members),
                                  split=ka if eight else 0))
@@ -261,8 +268,8 @@ def with_map_size(prep: Prepared, size) -> Prepared:
         view = prep.view(v)
         o = dataclasses.replace(opts, normal_map_shape=tuple(size))
         nm = o.normal_map
-        plan = _tex.plan_sample(view.gbuffer.uv, size_hw=tuple(size), levels=o.levels,
-                                filter=nm.filter, wrap=nm.wrap, uv_origin=nm.uv_origin)
+        plan = _host(_tex.plan_sample(view.gbuffer.uv, size_hw=tuple(size), levels=o.levels,
+                                      filter=nm.filter, wrap=nm.wrap, uv_origin=nm.uv_origin))
         views.append(dataclasses.replace(view, gbuffer=dataclasses.replace(view.gbuffer,
                                                                            plan=plan)))
         opts_all.append(o)
