@@ -161,13 +161,15 @@ class _Progress:
 def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                    ground_truth: np.ndarray | None = None, progress: bool = True,
                    prepared: Prepared | None = None, strength: float = 1.0,
-                   time_limit: float | None = None) -> FitResult:
+                   time_limit: float | None = None,
+                   error_texels: np.ndarray | None = None) -> FitResult:
     """Fit the normal map of ``problem`` (see `jaxnm.fit`).
 
     **Arguments:**
     - `problem`, `options`: what to fit and how.
     - `ground_truth`: optional (h, w, 3) decoded unit normals: the history then
-      records the mean angular error over `seen_texels` at every step.
+      records the mean angular error at every step, over `error_texels` ((h, w)
+      bool; default `seen_texels`).
     - `progress`: show a progress bar (loss, step, elapsed, ETA).
     - `prepared`: reuse a `prepare(problem)` result.
     - `strength`: the map's x/y scale used when rendering (1: as fitted).
@@ -192,7 +194,11 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     seen = gt = None
     if ground_truth is not None:
         gt = np.asarray(ground_truth, np.float64)
-        seen = seen_texels(prep, (h, w))
+        seen = seen_texels(prep, (h, w)) if error_texels is None else np.asarray(error_texels,
+                                                                                bool)
+        if gt.shape != (h, w, 3) or seen.shape != (h, w):
+            raise ValueError(f"{problem.source}: the ground truth {gt.shape} and error texels "
+                             f"{seen.shape} must match the map size {(h, w)}")
     solver = make_solver(options)
     history: list = []
     stopped = "max_steps"

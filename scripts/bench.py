@@ -1,0 +1,354 @@
+"""jaxnm beside Mitsuba 3 on the CPU, in one run: forward frames, gradients, the fit benchmark.
+
+    python scripts/bench.py [--out bench_out] [--quick] [--no-mitsuba] [--budget 30]
+                            [--repeats 10] [--no-cli]
+
+The problem is ``shared/benchmarks/fit_vs_mitsuba.md`` (`bench_problem.py`); Mitsuba's side
+is `bench_mitsuba.py` (``pip install 'jaxnm[bench]'`` and a system libLLVM; without them
+its columns say why). Every figure is a median of ``--repeats`` runs on this machine, and
+jaxnm's and Mitsuba's are measured in the same process run, so their ratios hold on a noisy
+machine. Compilation is reported separately *and* included:
+
+- ``forward``: one frame (512 x 512 and 1024 x 1024; the 4k sphere, the 20k torus and a
+  200k torus; one directional light, the 256 x 256 normal map, Lambert): `jaxnm.render`
+  against ``mi.render``, and forward + backward w.r.t. the map (an image loss).
+- ``fit``: each renderer fits the map to its own four renders of the true map, from the
+  flat map. jaxnm runs Levenberg-Marquardt in fresh processes: with an empty persistent
+  compilation cache (``cold``), again with the cache it filled (``warm``), and a second
+  fit in the warm process (``steady``: nothing left to compile). The clock starts when the
+  fit starts, the one-off G-buffer preparation included. Reported: time until the mean
+  error over the well-observed texels falls below 1 degree, the final errors over the
+  seen and the well-observed texels, and the held-out-light PSNR.
+- ``cli``: ``jaxnm fit`` (no arguments) as a user runs it: wall time and peak RSS, with an
+  empty and with a warm compilation cache.
+
+Writes ``bench.json`` and ``bench.md`` (the README's tables) into ``--out`` and prints the
+JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+import bench_problem as B  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import jaxnm  # noqa: E402
+from jaxnm import fit as F  # noqa: E402
+from jaxnm import procedural  # noqa: E402
+from jaxnm.textures import encode_normal_map  # noqa: E402
+
+GOALS = {
+    "time_to_1deg_cold_s": 5.0, "time_to_1deg_warm_s": 2.0, "cli_wall_s": 30.0,
+    "cli_peak_rss_mb": 1024.0, "scaling_200k_over_20k": 2.0, "scaling_1024_over_512": 4.5,
+}
+
+
+def _median_ms(fn, repeats: int) -> tuple[float, float]:
+    """(first call s, median ms of the next ``repeats``), each forced to completion."""
+    t = time.perf_counter()
+    jax.block_until_ready(fn())
+    first = time.perf_counter() - t
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t)
+    return first, statistics.median(times) * 1e3
+
+
+# --------------------------------------------------------------------------------------
+# forward frames
+# --------------------------------------------------------------------------------------
+
+
+def _meshes(quick: bool) -> dict:
+    if quick:
+        return {"4k sphere": procedural.uv_sphere(1.0, 64, 32),
+                "20k torus": procedural.torus(1.0, 0.4, 128, 80)}
+    return {"4k sphere": procedural.uv_sphere(1.0, 64, 32),
+            "20k torus": procedural.torus(1.0, 0.4, 128, 80),
+            "200k torus": procedural.torus(1.0, 0.4, 500, 200)}
+
+
+def _with_mesh(p: B.BenchProblem, mesh, size: int) -> B.BenchProblem:
+    return dataclasses.replace(
+        p, positions=np.asarray(mesh.positions, np.float64), faces=np.asarray(mesh.faces),
+        uv=np.asarray(mesh.uv, np.float64), normals=np.asarray(mesh.normals, np.float64),
+        width=size, height=size)
+
+
+def jaxnm_forward(p: B.BenchProblem, repeats: int) -> dict:
+    scene = B.jaxnm_scene(p, p.light_dirs[0])
+    first, fwd = _median_ms(lambda: jaxnm.render(scene)["color"], repeats)
+    target = jaxnm.render(scene)["color"]
+
+    @jax.jit
+    def loss_and_grad(texels):
+        def loss(t):
+            return jnp.mean((jaxnm.render(scene.replace(normal_map=t))["color"] - target) ** 2)
+        return jax.value_and_grad(loss)(texels)
+
+    flat = jnp.asarray(p.flat_texels)
+    first_b, fb = _median_ms(lambda: loss_and_grad(flat), repeats)
+    return {"forward_ms": round(fwd, 2), "forward_backward_ms": round(fb, 2),
+            "first_forward_s": round(first, 2), "first_backward_s": round(first_b, 2),
+            "triangles": int(p.faces.shape[0]), "size": f"{p.width}x{p.height}"}
+
+
+def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool) -> list[dict]:
+    rows = []
+    for name, mesh in _meshes(quick).items():
+        for size in sizes:
+            q = _with_mesh(p, mesh, size)
+            row = {"mesh": name, "jaxnm": jaxnm_forward(q, repeats)}
+            if mitsuba is not None:
+                row["mitsuba"] = mitsuba.forward_times(q, repeats=repeats)
+                row["forward_ratio"] = round(row["jaxnm"]["forward_ms"]
+                                             / row["mitsuba"]["forward_ms"], 2)
+                row["forward_backward_ratio"] = round(
+                    row["jaxnm"]["forward_backward_ms"] / row["mitsuba"]["forward_backward_ms"],
+                    2)
+            rows.append(row)
+            print(json.dumps(row), file=sys.stderr, flush=True)
+    return rows
+
+
+# --------------------------------------------------------------------------------------
+# the fit benchmark
+# --------------------------------------------------------------------------------------
+
+
+def _problem(quick: bool) -> B.BenchProblem:
+    return (B.make_problem(render_size=256, map_size=128, major=64, minor=40) if quick
+            else B.make_problem())
+
+
+def _error_summary(normals, p: B.BenchProblem, seen, well) -> dict:
+    err = B.angle_deg(normals, p.gt_normals)
+    return {"seen_mean_deg": round(float(err[seen].mean()), 4),
+            "well_mean_deg": round(float(err[well].mean()), 4),
+            "well_p95_deg": round(float(np.percentile(err[well], 95)), 4)}
+
+
+def _jaxnm_fit_once(p: B.BenchProblem, targets, well, budget: float) -> dict:
+    """One LM fit; the clock includes `prepare` (the G-buffer) and every compilation."""
+    compiles = []
+
+    def on(name, secs, **kw):
+        if name == "/jax/core/compile/backend_compile_duration":
+            compiles.append(secs)
+
+    jax.monitoring.register_event_duration_secs_listener(on)
+    scene = B.jaxnm_scene(p, p.light_dirs[0])
+    problem = F.problem_from_scene(scene, targets, p.gt_texels.shape[:2],
+                                   source="<benchmark>")
+    t0 = time.perf_counter()
+    prep = F.prepare(problem)
+    t_prep = time.perf_counter() - t0
+    res = F.fit_normal_map(problem, F.FitOptions(solver="lm", max_steps=40, lsmr_steps=10),
+                           ground_truth=p.gt_normals, prepared=prep, progress=False,
+                           time_limit=budget, error_texels=well)
+    below = [t_prep + h["seconds"] for h in res.history if h["mean_angular_error_deg"] < 1.0]
+    steps = [b - a for a, b in zip([h["seconds"] for h in res.history][1:-1],
+                                   [h["seconds"] for h in res.history][2:])]
+    return {"time_to_1deg_s": round(below[0], 2) if below else None,
+            "prepare_s": round(t_prep, 2),
+            "first_loss_s": round(t_prep + res.history[0]["seconds"], 2),
+            "s_per_step": round(statistics.median(steps), 3) if steps else None,
+            "steps": len(res.history) - 1, "backend_compile_s": round(sum(compiles), 2),
+            "normals": res.normals}
+
+
+def fit_worker(args) -> None:
+    """In a fresh process: the jaxnm fit (then again, steady), JSON on stdout."""
+    from jaxnm.config import use_compilation_cache
+
+    use_compilation_cache(args.cache)
+    p = _problem(args.quick)
+    seen, well = B.texel_masks(p)
+    targets = []
+    for d in p.light_dirs:
+        sc = B.jaxnm_scene(p, d)
+        targets.append(F.FitTarget(B.jaxnm_camera(p), p.width, p.height, sc.lights,
+                                   np.asarray(jaxnm.render(sc)["color"])))
+    out = {}
+    for run in ("first", "steady"):
+        r = _jaxnm_fit_once(p, targets, well, args.budget)
+        normals = r.pop("normals")
+        r.update(_error_summary(normals, p, seen, well))
+        held = B.jaxnm_scene(p, p.held_out_dir)
+        texels = encode_normal_map(jnp.asarray(normals))
+        r["held_out_psnr_db"] = round(B.psnr(jaxnm.render(held.replace(normal_map=texels))
+                                             ["color"], jaxnm.render(held)["color"]), 2)
+        out[run] = r
+    print("RESULT " + json.dumps(out))
+
+
+def _run_worker(cache: str | None, args) -> dict:
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--fit-worker", "--budget",
+           str(args.budget)] + (["--quick"] if args.quick else [])
+    env = dict(os.environ, JAXNM_COMPILATION_CACHE=cache or "off")
+    if cache:
+        cmd += ["--cache", cache]
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True).stdout
+    return json.loads(out.split("RESULT ", 1)[1])
+
+
+def bench_fit(args, mitsuba) -> dict:
+    result = {}
+    with tempfile.TemporaryDirectory() as cache:
+        cold = _run_worker(cache, args)
+        warm = _run_worker(cache, args)
+    result["jaxnm"] = {"cold": cold["first"], "warm": warm["first"], "steady": warm["steady"]}
+    if mitsuba is not None:
+        p = _problem(args.quick)
+        seen, well = B.texel_masks(p)
+        fit = mitsuba.fit(p, budget_s=args.budget, snapshot_every=5)
+        errs = [(s["seconds"], B.angle_deg(s["normals"], p.gt_normals)[well].mean())
+                for s in fit["snapshots"]]
+        below = [t for t, e in errs if e < 1.0]
+        final = fit["snapshots"][-1]["normals"]
+        texels = np.array(encode_normal_map(jnp.asarray(final)))  # writable, for Mitsuba
+        held = mitsuba.render(p, texels, p.held_out_dir)
+        truth = mitsuba.render(p, p.gt_texels, p.held_out_dir)
+        result["mitsuba"] = {
+            "time_to_1deg_s": round(below[0], 2) if below else None,
+            "first_step_s": round(fit["first_step_s"], 2), "s_per_step": fit["s_per_step"],
+            "steps": fit["history"][-1]["step"], **_error_summary(final, p, seen, well),
+            "held_out_psnr_db": round(B.psnr(held, truth), 2)}
+    return result
+
+
+# --------------------------------------------------------------------------------------
+# the command a user runs
+# --------------------------------------------------------------------------------------
+
+
+def _timed_child(cmd, env) -> dict:
+    """Run ``cmd``; its wall time, its own peak RSS (``wait4``) and its first output line."""
+    with tempfile.TemporaryFile() as out:
+        t = time.perf_counter()
+        proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.DEVNULL)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        text = out.read().decode().strip()
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} exited with {proc.returncode}")
+    return {"wall_s": round(wall, 1), "peak_rss_mb": round(usage.ru_maxrss / 1024),
+            "summary": text.splitlines()[0] if text else ""}
+
+
+def bench_cli(args) -> dict:
+    jaxnm_bin = str(Path(sys.executable).parent / "jaxnm")
+    with tempfile.TemporaryDirectory() as tmp:
+        env = dict(os.environ, JAXNM_COMPILATION_CACHE=str(Path(tmp) / "cache"))
+        cmd = [jaxnm_bin, "fit", "-o", str(Path(tmp) / "out"), "--no-progress"]
+        if args.quick:
+            cmd.append("--quick")
+        return {"cold": _timed_child(cmd, env), "warm": _timed_child(cmd, env)}
+
+
+# --------------------------------------------------------------------------------------
+# report
+# --------------------------------------------------------------------------------------
+
+
+def _r(x, nd: int = 2):
+    return "-" if x is None else (round(x, nd) if isinstance(x, float) else x)
+
+
+def markdown(res: dict) -> str:
+    lines = [f"Machine: {res['machine']}; JAX {res['jax']}; {res['mitsuba']}; {res['date']}.", ""]
+    lines += ["| frame | size | jaxnm forward ms | Mitsuba forward ms | ratio | jaxnm fwd+bwd ms "
+              "| Mitsuba fwd+bwd ms | ratio | jaxnm first call s (compile) |",
+              "|---|---|---|---|---|---|---|---|---|"]
+    for r in res["forward"]:
+        j, m = r["jaxnm"], r.get("mitsuba", {})
+        lines.append(f"| {r['mesh']} ({j['triangles']} tris) | {j['size']} | {j['forward_ms']} | "
+                     f"{_r(m.get('forward_ms'))} | {r.get('forward_ratio', '-')} | "
+                     f"{j['forward_backward_ms']} | {_r(m.get('forward_backward_ms'))} | "
+                     f"{r.get('forward_backward_ratio', '-')} | {j['first_forward_s']} |")
+    f = res.get("fit", {})
+    if f:
+        lines += ["", "| fit | time to well-observed < 1 deg (s) | first loss after (s) | "
+                  "s / step | XLA compile (s) | steps | final seen / well mean (deg) | "
+                  "held-out PSNR (dB) |", "|---|---|---|---|---|---|---|---|"]
+        for k in ("cold", "warm", "steady"):
+            j = f["jaxnm"][k]
+            lines.append(f"| jaxnm LM, {k} | {_r(j['time_to_1deg_s'])} | {j['first_loss_s']} | "
+                         f"{j['s_per_step']} | {j['backend_compile_s']} | {j['steps']} | "
+                         f"{j['seen_mean_deg']} / {j['well_mean_deg']} | "
+                         f"{j['held_out_psnr_db']} |")
+        if "mitsuba" in f:
+            m = f["mitsuba"]
+            lines.append(f"| Mitsuba 3 + Adam | {_r(m['time_to_1deg_s'])} | {m['first_step_s']} | "
+                         f"{_r(m['s_per_step'], 3)} | - | {m['steps']} | {m['seen_mean_deg']} / "
+                         f"{m['well_mean_deg']} | {m['held_out_psnr_db']} |")
+    c = res.get("cli")
+    if c:
+        lines += ["", "| `jaxnm fit` | wall s | peak RSS MB | result |", "|---|---|---|---|"]
+        for k in ("cold", "warm"):
+            lines.append(f"| {k} cache | {c[k]['wall_s']} | {c[k]['peak_rss_mb']} | "
+                         f"{c[k]['summary']} |")
+    lines += ["", "Goals: " + ", ".join(f"{k} <= {v}" for k, v in GOALS.items())]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="bench_out")
+    ap.add_argument("--quick", action="store_true", help="small sizes (a smoke test)")
+    ap.add_argument("--no-mitsuba", action="store_true")
+    ap.add_argument("--no-cli", action="store_true")
+    ap.add_argument("--budget", type=float, default=30.0, help="seconds per fit")
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--fit-worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--cache", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.fit_worker:
+        return fit_worker(args)
+    mitsuba, why = None, "Mitsuba not run (--no-mitsuba)"
+    if not args.no_mitsuba:
+        import bench_mitsuba
+
+        ok, why = bench_mitsuba.available()
+        mitsuba = bench_mitsuba if ok else None
+        if not ok:
+            print(f"Mitsuba 3 unavailable, its columns are empty: {why}", file=sys.stderr)
+    res = {"machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.system()}",
+           "jax": jax.__version__, "jaxnm": jaxnm.__version__, "mitsuba": why,
+           "date": time.strftime("%Y-%m-%d")}
+    p = _problem(args.quick)
+    sizes = (256,) if args.quick else (512, 1024)
+    res["forward"] = bench_forward(p, mitsuba, sizes, args.repeats, args.quick)
+    res["fit"] = bench_fit(args, mitsuba)
+    if not args.no_cli:
+        res["cli"] = bench_cli(args)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bench.json").write_text(json.dumps(res, indent=1) + "\n")
+    (out / "bench.md").write_text(markdown(res))
+    print(json.dumps(res))
+    print(markdown(res), file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
