@@ -162,9 +162,9 @@ def prepare(problem: FitProblem) -> Prepared:
                                            if jnp.ndim(problem.albedo) == 3 else None),
                              outputs=("color",))
         check_mesh(problem.mesh, opts, problem.source)
-        gb = _host(build_gbuffer(problem.mesh, t0.camera, jnp.asarray(problem.albedo),
-                                 opts=opts))  # the rest is host-side indexing, in NumPy
-        cover = gb.mask
+        gb = build_gbuffer(problem.mesh, t0.camera, jnp.asarray(problem.albedo), opts=opts)
+        cover = np.asarray(gb.mask)
+        gb = _host(_fit_fields(gb))  # the rest is host-side indexing, in NumPy
         ws = []
         for i, t in enumerate(ts):
             m = cover if t.mask is None else (cover & np.asarray(t.mask, bool))
@@ -180,6 +180,14 @@ def prepare(problem: FitProblem) -> Prepared:
                           _host(_stack_lights([t.lights for t in ts]))))
         opts_all.append(opts)
     return _assemble(views, tuple(opts_all), problem.material)
+
+
+def _fit_fields(gb: GBuffer) -> GBuffer:
+    """Only the G-buffer fields a fit step reads (the frame, the position and eye, the albedo,
+    the sample plan) and the uv it re-plans coarse-to-fine levels from."""
+    return GBuffer(mask=None, triangle_id=None, depth=None, front_facing=None,
+                   position=gb.position, uv=gb.uv, frame=gb.frame, plan=gb.plan,
+                   albedo=gb.albedo, eye=gb.eye)
 
 
 def _host(tree):
