@@ -490,3 +490,29 @@ def test_sample_split_when_every_pixel_reads_one_level(small):
     mips = T.build_mipmaps(jnp.asarray(gt), levels=prep.options[0].levels)
     np.testing.assert_allclose(np.asarray(F.sample_split(head, mips, k)),
                                np.asarray(T.apply_plan(head, mips)), atol=1e-6)
+
+
+def test_reduced_residuals_keep_the_loss_and_the_gauss_newton_model(small):
+    """The reduced residuals (4 per pixel) have the loss of the full ones (3 per target and
+    pixel), the same gradient J^T r and the same Gauss-Newton products J^T J v."""
+    _, gt, _, prep, _ = small
+    rng = np.random.default_rng(5)
+    z = jnp.asarray(rng.normal(0, 0.3, (32, 32, 2)), jnp.float32)
+    v = jnp.asarray(rng.normal(0, 1.0, (32, 32, 2)), jnp.float32)
+    full, red = F.ModelArgs.create(prep), F.ModelArgs.create(prep, reduce=True)
+    r_full, r_red = F.residuals(z, full), F.residuals(z, red)
+    assert sum(r.size for r in r_red) < 0.3 * sum(r.size for r in r_full)
+    np.testing.assert_allclose(float(F.loss(z, red)), float(F.loss(z, full)), rtol=1e-5)
+
+    def normal_products(args):
+        fn = lambda q: F.residuals(q, args)  # noqa: E731
+        r, lin = jax.linearize(fn, z)
+        transpose = jax.linear_transpose(lin, z)
+        return transpose(r)[0], transpose(lin(v))[0]  # J^T r, J^T J v
+
+    (g_full, h_full), (g_red, h_red) = normal_products(full), normal_products(red)
+    scale = lambda x: float(jnp.max(jnp.abs(x)))  # noqa: E731
+    np.testing.assert_allclose(np.asarray(g_red), np.asarray(g_full), atol=2e-4 * scale(g_full))
+    np.testing.assert_allclose(np.asarray(h_red), np.asarray(h_full), atol=2e-4 * scale(h_full))
+    g_loss = jax.grad(F.loss)(z, red)  # the loss gradient through the reduced form is exact
+    np.testing.assert_allclose(np.asarray(g_loss), np.asarray(g_full), atol=2e-4 * scale(g_full))

@@ -26,13 +26,13 @@ from jax.custom_derivatives import SymbolicZero
 
 from .. import textures as _tex
 from ..frames import perturb_normal
-from ..numerics import materialize, safe_normalize
+from ..numerics import materialize, safe_normalize, safe_sqrt, tiny
 from ..render import GBuffer, RenderOptions
 from ..shading import Lights, Material, shade
 from .prepare import Prepared, ViewBatch
 
 __all__ = ["ModelArgs", "slopes_to_normals", "normals_to_slopes", "residuals", "loss",
-           "render_with_map", "sample_split"]
+           "render_with_map", "sample_split", "reduced_pixel_residuals", "GRAM_REGULARISATION"]
 
 
 @jax.tree_util.register_dataclass
@@ -46,22 +46,28 @@ class ModelArgs:
       None for no penalty.
     - `strength`: () scale of the map's x and y (1 for the map as fitted).
     - `scale`: (h, w, 1) per-texel preconditioner: the slopes are ``z * scale``.
+    - `reduce` (static): return each pixel's residuals in the reduced form of
+      `reduced_pixel_residuals` (4 numbers per pixel instead of 3 per target);
+      the loss and the Gauss-Newton model are the same.
     """
 
     prepared: Prepared
     smoothness: Array | None
     strength: Array
     scale: Array
+    reduce: bool = dataclasses.field(default=False, metadata=dict(static=True))
 
     @staticmethod
     def create(prepared: Prepared, *, smoothness: float = 0.0, strength: float = 1.0,
-               scale: Array | None = None) -> ModelArgs:
-        """Arguments for ``prepared`` (no preconditioning unless ``scale`` is given)."""
+               scale: Array | None = None, reduce: bool = False) -> ModelArgs:
+        """Arguments for ``prepared`` (no preconditioning unless ``scale`` is given; see
+        `residuals` for ``reduce``)."""
         h, w = prepared.options[0].normal_map_shape
         return ModelArgs(prepared,
                          None if smoothness <= 0 else jnp.asarray(smoothness, jnp.float32),
                          jnp.asarray(strength, jnp.float32),
-                         jnp.ones((h, w, 1), jnp.float32) if scale is None else scale)
+                         jnp.ones((h, w, 1), jnp.float32) if scale is None else scale,
+                         reduce=bool(reduce))
 
 
 def slopes_to_normals(slopes: Array) -> Array:
@@ -136,6 +142,88 @@ def _pixel_model_jvp(shading, primals, tangents):
 _pixel_model.defjvp(_pixel_model_jvp, symbolic_zeros=True)
 
 
+#: Relative regularisation of the per-pixel Gram matrix in `reduced_pixel_residuals`.
+GRAM_REGULARISATION = 1e-6
+
+
+def _reduce(m, gb, lights, material, shading, strength, images, weights):
+    """(rho, e, L): see `reduced_pixel_residuals`; ``L`` as its six lower-triangle entries."""
+    def r_of(m_):  # (T, K, 3) weighted residuals of every target at every pixel
+        return (_pixel_colors(m_, gb, lights, material, shading, strength) - images) * weights
+
+    r = r_of(m)
+    basis = jnp.eye(3, dtype=m.dtype)
+    B = jax.vmap(lambda e: jax.jvp(r_of, (m,), (jnp.broadcast_to(e, m.shape),))[1])(basis)
+    # B: (3, T, K, 3), d r / d m_a. The Gram matrix G = B^T B and g = B^T r per pixel:
+    def gram(a, b):
+        return jnp.sum(B[a] * B[b], axis=(0, 2))  # sum over targets and colour channels
+
+    g00, g11, g22 = gram(0, 0), gram(1, 1), gram(2, 2)
+    g10, g20, g21 = gram(1, 0), gram(2, 0), gram(2, 1)
+    g = jnp.stack([jnp.sum(B[a] * r, axis=(0, 2)) for a in range(3)], -1)  # (K, 3)
+    # Cholesky of G + delta I, written out for 3 x 3 (delta keeps it positive definite
+    # where fewer than three independent directions are observed, e.g. in shadow)
+    tiny_ = tiny(m.dtype)
+    delta = GRAM_REGULARISATION * (g00 + g11 + g22) + tiny_
+    l00 = jnp.sqrt(g00 + delta)
+    l10, l20 = g10 / l00, g20 / l00
+    l11 = jnp.sqrt(jnp.maximum(g11 + delta - l10 * l10, delta))
+    l21 = (g21 - l20 * l10) / l11
+    l22 = jnp.sqrt(jnp.maximum(g22 + delta - l20 * l20 - l21 * l21, delta))
+    rho0 = g[:, 0] / l00
+    rho1 = (g[:, 1] - l10 * rho0) / l11
+    rho2 = (g[:, 2] - l20 * rho0 - l21 * rho1) / l22
+    rho = jnp.stack([rho0, rho1, rho2], -1)
+    e = safe_sqrt(jnp.maximum(jnp.sum(r * r, axis=(0, 2)) - jnp.sum(rho * rho, -1), 0.0))
+    return rho, e, jnp.stack([l00, l10, l20, l11, l21, l22], -1)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
+def reduced_pixel_residuals(m, gb, lights, material, shading, strength, images, weights):
+    r"""The residuals of one view's pixels in reduced form: 4 numbers per pixel, whatever the
+    number of targets, with the same sum of squares and the same Gauss-Newton model.
+
+    A pixel's weighted residuals ``r = (colour(m) - target) * weight`` over its ``T``
+    targets (``3T`` numbers) depend only on its sampled map vector ``m`` (3 numbers).
+    With the Jacobian ``B = dr/dm`` (``3T x 3``) and ``G = B^T B = L L^T`` (Cholesky of
+    ``G + delta I``, ``delta`` = `GRAM_REGULARISATION` times its trace), the reduced
+    residuals are
+
+    .. math:: ho = L^{-1} B^T r, \qquad e = \sqrt{|r|^2 - |ho|^2},
+
+    so ``|rho|^2 + e^2 = |r|^2`` (the loss is unchanged), and their Jacobian is
+    ``[L^T; 0]``, whose Gram matrix ``L L^T = G + delta I`` and gradient
+    ``L rho = B^T r`` are those of the full residuals: a Gauss-Newton or LM step on the
+    reduced residuals is the step on the full ones (up to ``delta``). Per iteration of the
+    inner solver, a pixel then costs a 3 x 3 triangular product instead of ``3T`` rows.
+
+    **Returns:** ``(rho, e)``, (K, 3) and (K,). Differentiable w.r.t. ``m`` only (the
+    JVP is the Gauss-Newton Jacobian above, which is also the exact gradient of the loss).
+    """
+    rho, e, _ = _reduce(m, gb, lights, material, shading, strength, images, weights)
+    return rho, e
+
+
+@reduced_pixel_residuals.defjvp
+def _reduced_jvp(shading, primals, tangents):
+    m = primals[0]
+    dm = tangents[0]
+    others = jax.tree_util.tree_leaves(tangents[1:], is_leaf=_is_zero)
+    if not all(_is_zero(t) for t in others):
+        raise NotImplementedError("reduced_pixel_residuals is differentiable w.r.t. the map "
+                                  "only; use ModelArgs(reduce=False) for other derivatives")
+    rho, e, L = _reduce(*primals[:4], shading, *primals[4:])
+    if _is_zero(dm):
+        return (rho, e), (jnp.zeros_like(rho), jnp.zeros_like(e))
+    l00, l10, l20, l11, l21, l22 = (L[:, i] for i in range(6))
+    d0, d1, d2 = dm[:, 0], dm[:, 1], dm[:, 2]
+    drho = jnp.stack([l00 * d0 + l10 * d1 + l20 * d2, l11 * d1 + l21 * d2, l22 * d2], -1)
+    return (rho, e), (drho, jnp.zeros_like(e))
+
+
+reduced_pixel_residuals.defjvp(_reduced_jvp, symbolic_zeros=True)
+
+
 def sample_split(plan: _tex.SamplePlan, mips, split: int) -> Array:
     """`jaxnm.textures.apply_plan` of the texels of ``mips``, with the first ``split`` pixels
     gathered from their 4 non-zero taps (see `ViewBatch.split`)."""
@@ -188,16 +276,33 @@ def _render_view(gb, normals, lights, material, strength, *, opts):
     return _shade_view(gb, _mips(normals, opts), lights, material, opts, strength)
 
 
+def _reduced_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions,
+                   strength) -> Array:
+    """Every view of ``batch`` as `reduced_pixel_residuals`, flat."""
+    def one(gb, lt, images, weights):
+        m = materialize(sample_split(gb.plan, mips, batch.split))
+        rho, e = reduced_pixel_residuals(m, gb, lt, material, opts.shading,
+                                         jnp.asarray(strength, m.dtype), images, weights)
+        return jnp.concatenate([rho, e[:, None]], -1)
+
+    return jax.vmap(one)(batch.gbuffer, batch.lights, batch.images, batch.weights).reshape(-1)
+
+
 def residuals(z: Array, args: ModelArgs) -> tuple[Array, ...]:
     """The weighted differences between the renders and the targets, one flat array per
     `ViewBatch`, and the smoothness residuals (if any); ``z`` (h, w, 2) are the
-    preconditioned slopes (``slopes = z * args.scale``)."""
+    preconditioned slopes (``slopes = z * args.scale``). With ``args.reduce``, a batch
+    whose views have more than one target returns `reduced_pixel_residuals` instead
+    (same sum of squares, same Gauss-Newton model, 4 numbers per pixel)."""
     prep, smooth, strength = args.prepared, args.smoothness, args.strength
     slopes = z * args.scale
     opts = prep.options[0]
     mips = _mips(slopes_to_normals(slopes), opts)  # shared by every view
     res = []
     for batch in prep.batches:
+        if args.reduce and 3 * batch.images.shape[1] > 4:
+            res.append(_reduced_batch(batch, mips, prep.material, opts, strength))
+            continue
         img = _shade_batch(batch, mips, prep.material, opts, strength)
         res.append(((img - batch.images) * batch.weights).reshape(-1))
     if smooth is not None:

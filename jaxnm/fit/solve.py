@@ -215,8 +215,10 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                     best = (math.inf, slopes)
                 lp = prep if size == (h, w) else with_map_size(prep, size)
                 scale = preconditioner(lp)
+                # least squares on reduced residuals (same loss and Gauss-Newton steps,
+                # fewer numbers per pixel); L-BFGS only needs the loss and its gradient
                 args = ModelArgs.create(lp, smoothness=options.smoothness, strength=strength,
-                                        scale=scale)
+                                        scale=scale, reduce=options.solver != "lbfgs")
                 z = slopes / scale
                 state = _init(solver, z, args)
                 # optimistix's first step evaluates the start and proposes the first move,
