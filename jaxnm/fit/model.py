@@ -189,7 +189,9 @@ def reduced_pixel_residuals(m, gb, lights, material, shading, strength, images, 
     ``G + delta I``, ``delta`` = `GRAM_REGULARISATION` times its trace), the reduced
     residuals are
 
-    .. math:: ho = L^{-1} B^T r, \qquad e = \sqrt{|r|^2 - |ho|^2},
+    .. math:: 
+ho = L^{-1} B^T r, \qquad e = \sqrt{|r|^2 - |
+ho|^2},
 
     so ``|rho|^2 + e^2 = |r|^2`` (the loss is unchanged), and their Jacobian is
     ``[L^T; 0]``, whose Gram matrix ``L L^T = G + delta I`` and gradient
@@ -204,9 +206,7 @@ def reduced_pixel_residuals(m, gb, lights, material, shading, strength, images, 
     return rho, e
 
 
-@reduced_pixel_residuals.defjvp
 def _reduced_jvp(shading, primals, tangents):
-    m = primals[0]
     dm = tangents[0]
     others = jax.tree_util.tree_leaves(tangents[1:], is_leaf=_is_zero)
     if not all(_is_zero(t) for t in others):
