@@ -111,6 +111,24 @@ def _render(args) -> int:
     return 0
 
 
+def _release_memory() -> None:
+    """Hand freed memory back to the system between the phases of a command: XLA's compiler
+    frees hundreds of megabytes that glibc's allocator would otherwise keep in its arenas,
+    and the next phase's peak would stack on them (no-op where glibc is not the allocator)."""
+    import ctypes
+    import ctypes.util
+    import gc
+
+    gc.collect()
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name) if name else None
+        if libc is not None and hasattr(libc, "malloc_trim"):
+            libc.malloc_trim(0)
+    except OSError:
+        pass
+
+
 def _add_fit(sub) -> None:
     from .fit import SOLVERS
 
@@ -125,6 +143,10 @@ def _add_fit(sub) -> None:
     p.add_argument("--smoothness", type=float, help="slope smoothness weight (default 0)")
     p.add_argument("--coarse-to-fine", type=int, dest="coarse_to_fine",
                    help="number of coarser levels solved first")
+    p.add_argument("--ftol", type=float,
+                   help="converged when the loss falls by less than this fraction over "
+                   "--patience steps (default 1e-3; 0: run all --max-steps)")
+    p.add_argument("--patience", type=int, help="steps the --ftol test spans (default 3)")
     p.add_argument("--seed", type=int)
     p.add_argument("--time-limit", type=float, dest="time_limit", metavar="SECONDS")
     p.add_argument("--quick", action="store_true",
@@ -141,7 +163,8 @@ def _fit(args) -> int:
     say = (lambda msg: None) if args.no_progress else (  # noqa: E731
         lambda msg: print(msg, file=sys.stderr, flush=True))
     overrides = {k: getattr(args, k) for k in ("solver", "max_steps", "smoothness", "seed",
-                                                "lsmr_steps", "coarse_to_fine")
+                                                "lsmr_steps", "coarse_to_fine", "ftol",
+                                                "patience")
                  if getattr(args, k) is not None}
     if args.time_limit is not None and not args.time_limit > 0:
         raise ValueError(f"--time-limit must be a positive number of seconds, got "
@@ -159,14 +182,17 @@ def _fit(args) -> int:
             raise ValueError(f"command line: {str(e).removeprefix('FitOptions: ')}") from None
     if args.time_limit is not None:
         job = dataclasses.replace(job, time_limit=args.time_limit)
+    _release_memory()
     say(f"preparing {len(job.problem.targets)} targets (rasterizing each view once) ...")
     t0 = time.perf_counter()
     prep = prepare(job.problem)
     t_prep = time.perf_counter() - t0
+    _release_memory()
     say("fitting (the first step includes compilation) ...")
     result = fit_normal_map(job.problem, job.options, ground_truth=job.ground_truth,
                             progress=not args.no_progress, prepared=prep,
                             time_limit=job.time_limit)
+    _release_memory()
     say("writing outputs ...")
     outputs = fit_outputs(job, prep, result, prepare_seconds=t_prep)
     written = io.write_fit_outputs(args.output, outputs)

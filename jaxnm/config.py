@@ -47,7 +47,8 @@ A **fit file**::
       "held_out": [{"view": 0, "image": "h0.png", "color_space": "srgb",
                     "lights": [...]}],          // optional: scored, never fitted
       "solver": {"method": "lm", "max_steps": 30, "lsmr_steps": 10, "smoothness": 0,
-                 "coarse_to_fine": 0, "seed": 0, "time_limit": null}
+                 "coarse_to_fine": 0, "seed": 0, "time_limit": null,
+                 "ftol": 0.001, "patience": 3}   // converged: < 0.1 % loss drop in 3 steps
     }
 
 Target images: PNG (8 or 16 bit), EXR, or ``.npy``/``.npz`` float arrays;
@@ -85,7 +86,8 @@ SCENE_KEYS = ("mesh", "model", "camera", "width", "height", "normal_map", "heigh
 FIT_KEYS = ("scene", "views", "targets", "map", "ground_truth", "held_out", "solver")
 _SOLVER_KEYS = {"method": "solver", "max_steps": "max_steps", "lsmr_steps": "lsmr_steps",
                 "smoothness": "smoothness", "coarse_to_fine": "coarse_to_fine", "seed": "seed",
-                "rtol": "rtol", "atol": "atol", "init_noise": "init_noise"}
+                "rtol": "rtol", "atol": "atol", "init_noise": "init_noise", "ftol": "ftol",
+                "patience": "patience"}
 _KINDS = {
     int: "an integer",
     float: "a number",
@@ -405,7 +407,7 @@ def _solver_options(spec: Any, where: str) -> tuple[FitOptions, float | None]:
         raise ValueError(f"{where}'solver' must be an object")
     _keys(spec, list(_SOLVER_KEYS) + ["time_limit"], w)
     kinds = {"method": str, "max_steps": int, "lsmr_steps": int, "coarse_to_fine": int,
-             "seed": int}
+             "seed": int, "patience": int}
     values = {_SOLVER_KEYS[k]: _field(spec, k, kinds.get(k, float), None, w)
               for k in spec if k in _SOLVER_KEYS}
     time_limit = _field(spec, "time_limit", float, None, w)

@@ -516,3 +516,17 @@ def test_reduced_residuals_keep_the_loss_and_the_gauss_newton_model(small):
     np.testing.assert_allclose(np.asarray(h_red), np.asarray(h_full), atol=2e-4 * scale(h_full))
     g_loss = jax.grad(F.loss)(z, red)  # the loss gradient through the reduced form is exact
     np.testing.assert_allclose(np.asarray(g_loss), np.asarray(g_full), atol=2e-4 * scale(g_full))
+
+
+def test_stops_when_the_loss_stops_falling(small):
+    """With a loose ftol the fit stops as converged before max_steps, and the rule holds on
+    the recorded history; ftol=0 runs every step."""
+    problem, _, _, prep, _ = small
+    opts = F.FitOptions(max_steps=40, ftol=0.3, patience=2)
+    res = F.fit_normal_map(problem, opts, prepared=prep, progress=False)
+    assert res.stopped == "converged" and len(res.history) - 1 < 40
+    loss = [h["loss"] for h in res.history]
+    assert loss[-3] - loss[-1] <= 0.3 * loss[-3] and loss[-4] - loss[-2] > 0.3 * loss[-4]
+    full = F.fit_normal_map(problem, F.FitOptions(max_steps=6, ftol=0.0, rtol=0.0, atol=0.0),
+                            prepared=prep, progress=False)
+    assert full.stopped == "max_steps" and len(full.history) == 7

@@ -105,6 +105,9 @@ class FitOptions:
     - `rtol`, `atol`: convergence tolerances of the outer solver.
     - `seed`: initial-guess jitter seed (0 jitter by default: a flat start).
     - `init_noise`: standard deviation of the initial slopes.
+    - `ftol`, `patience`: stop as converged when the loss fell by less than ``ftol``
+      (relative) over the last ``patience`` steps (0 disables the test). The
+      solver's own test (``rtol``/``atol`` on the steps) applies too.
     """
 
     solver: str = "lm"
@@ -116,6 +119,8 @@ class FitOptions:
     atol: float = 1e-8
     seed: int = 0
     init_noise: float = 0.0
+    ftol: float = 1e-3
+    patience: int = 3
 
     def __post_init__(self):
         if self.solver not in SOLVERS:
@@ -129,6 +134,8 @@ class FitOptions:
         _check_number("init_noise", self.init_noise, 0.0)
         _check_number("rtol", self.rtol, 0.0)
         _check_number("atol", self.atol, 0.0)
+        _check_number("ftol", self.ftol, 0.0)
+        _check_int("patience", self.patience, 1)
 
 
 @dataclasses.dataclass

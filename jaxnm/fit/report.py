@@ -76,7 +76,12 @@ def fit_outputs(job: FitJob, prep: Prepared, result: FitResult, *,
         for t in range(imgs.shape[0]):
             row = np.concatenate([targets[t], imgs[t], np.abs(imgs[t] - targets[t]) * 4], 1)
             rows.append(np.asarray(linear_to_srgb(np.clip(row, 0, 1))))
-    report = {"stopped": result.stopped, "steps": len(result.history) - 1,
+    o = job.options
+    rule = (f"the loss fell by less than {o.ftol:g} (relative) over {o.patience} steps, or "
+            f"the solver's step test (rtol {o.rtol:g}, atol {o.atol:g}) passed"
+            if o.ftol > 0 else f"the solver's step test (rtol {o.rtol:g}, atol {o.atol:g})")
+    report = {"stopped": result.stopped, "convergence_rule": rule,
+              "steps": len(result.history) - 1,
               "fit_seconds": round(result.seconds, 2), "prepare_seconds": round(prepare_seconds, 2),
               "final_loss": result.best_loss, "identifiability": result.identifiability,
               "solver": dataclasses.asdict(job.options), "map_size": list(problem.map_size),

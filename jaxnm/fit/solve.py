@@ -100,6 +100,16 @@ def level_sizes(map_size: tuple[int, int], coarse_to_fine: int) -> list[tuple[in
     return [(max(2, h >> k), max(2, w >> k)) for k in range(coarse_to_fine, -1, -1)]
 
 
+def _flat(history: list, level: int, options: FitOptions) -> bool:
+    """Whether this level's loss fell by less than ``options.ftol`` (relative) over the last
+    ``options.patience`` steps."""
+    losses = [h["loss"] for h in history if h["level"] == level]
+    if options.ftol <= 0 or len(losses) <= options.patience:
+        return False
+    before, now = losses[-1 - options.patience], losses[-1]
+    return bool(before - now <= options.ftol * abs(before))
+
+
 def _upsample(slopes: Array, size: tuple[int, int]) -> Array:
     return jax.image.resize(slopes, size + (slopes.shape[-1],), "linear")
 
@@ -245,6 +255,9 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                     if k > 0 and bool(done):
                         stopped = ("converged" if result == optx.RESULTS.successful
                                    else str(result))
+                        break
+                    if _flat(history, level, options):
+                        stopped = "converged"
                         break
                 if stopped in ("interrupted", "time_limit"):
                     break
