@@ -35,7 +35,7 @@ def test_problem_geometry_lights_and_map(B):
     decoded = p.gt_texels.astype(np.float64) * 2 - 1  # the truth decodes the filtered texels
     np.testing.assert_allclose(p.gt_normals, decoded / np.linalg.norm(decoded, axis=-1,
                                                                      keepdims=True), atol=1e-6)
-    assert (p.gt_normals[..., 2] > 0.5).all()
+    assert (p.gt_normals[..., 2] > 0).all()  # every texel faces out of the surface
 
 
 def test_texel_masks_and_metrics(B):
