@@ -33,7 +33,7 @@ from jaxnm.render import render
 
 
 def run_solver(problem, gt, prep, solver: str, budget: float, lsmr: int) -> dict:
-    opts = F.FitOptions(solver=solver, max_steps=100000, lsmr_steps=lsmr)
+    opts = F.FitOptions(solver=solver, max_steps=100000, lsmr_steps=lsmr, ftol=0.0)
     res = F.fit_normal_map(problem, opts, ground_truth=gt, prepared=prep, progress=False,
                            time_limit=budget)
     seen = F.seen_texels(prep, problem.map_size)

@@ -530,3 +530,16 @@ def test_stops_when_the_loss_stops_falling(small):
     full = F.fit_normal_map(problem, F.FitOptions(max_steps=6, ftol=0.0, rtol=0.0, atol=0.0),
                             prepared=prep, progress=False)
     assert full.stopped == "max_steps" and len(full.history) == 7
+
+
+def test_repeated_fits_on_one_prepared_problem_keep_it_alive(small):
+    """The solver state is donated to each step; the prepared problem the caller owns must
+    survive any number of fits with any solver (regression: a donated state that aliased
+    the problem's arrays freed them)."""
+    problem, _, _, prep, _ = small
+    for solver in ("lm", "gn", "lbfgs", "lm"):
+        res = F.fit_normal_map(problem, F.FitOptions(solver=solver, max_steps=2),
+                               prepared=prep, progress=False)
+        assert np.isfinite(res.best_loss)
+    leaves = jax.tree_util.tree_leaves(prep)
+    assert all(not x.is_deleted() for x in leaves if isinstance(x, jax.Array))

@@ -72,16 +72,37 @@ def _init(solver, z, args: ModelArgs):
 
 
 @eqx.filter_jit(donate="all-except-first")
-def _step(args: ModelArgs, solver, z, state):
-    """One solver step; returns the accepted point, the state, whether to stop, the solver's
-    result code, and the loss at the accepted point (from the solver's own evaluation).
+def _step(kept, z, state):
+    """One solver step; ``kept = (args, solver)``. Returns the accepted point, the state,
+    whether to stop, the solver's result code, and the loss at the accepted point (from the
+    solver's own evaluation).
 
-    ``z`` and ``state`` are donated: the new state (which holds the linearisation, hundreds
-    of megabytes on a 512 x 512 problem) reuses their buffers instead of doubling them."""
+    ``z`` and ``state`` are donated (the new state reuses their buffers instead of
+    doubling them); ``kept`` is not (the solver too may hold arrays, e.g. Gauss-Newton's
+    learning rate), and `_unaliased` makes sure no state array is one of ``args``."""
+    args, solver = kept
     fn = _objective(solver)
     z, state, _ = solver.step(fn, z, args, {}, state, frozenset())
     done, result = solver.terminate(fn, z, args, {}, state, frozenset())
     return z, state, done, result, state.f_info.as_min()
+
+
+def _buffers(x) -> tuple:
+    return tuple(shard.data.unsafe_buffer_pointer() for shard in x.addressable_shards)
+
+
+def _unaliased(state, args):
+    """``state`` with every array that shares its buffer with an array of ``args`` (the
+    model arguments and the solver) copied.
+
+    A jitted function returns an input it passes through unchanged as the same buffer; a
+    solver state built from ``args`` (its linearisation closes over them) can therefore
+    hold the caller's arrays, and donating the state to `_step` would free them."""
+    held = {b for x in jax.tree_util.tree_leaves(args) if isinstance(x, jax.Array)
+            for b in _buffers(x)}
+    return jax.tree_util.tree_map(
+        lambda x: jnp.copy(x) if isinstance(x, jax.Array) and set(_buffers(x)) & held else x,
+        state)
 
 
 def preconditioner(prep: Prepared) -> Array:
@@ -230,11 +251,16 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                 args = ModelArgs.create(lp, smoothness=options.smoothness, strength=strength,
                                         scale=scale, reduce=options.solver != "lbfgs")
                 z = slopes / scale
-                state = _init(solver, z, args)
+                # our own copy: the initial state can hold library-wide constant arrays
+                # (optimistix's result codes), which donating it to `_step` would free
+                state = jax.tree_util.tree_map(
+                    lambda x: jnp.copy(x) if isinstance(x, jax.Array) else x,
+                    _init(solver, z, args))
                 # optimistix's first step evaluates the start and proposes the first move,
                 # so the start's loss arrives with it: record it as step 0
                 for k in range(options.max_steps + 1):
-                    z, state, done, result, loss_value = _step(args, solver, z, state)
+                    z, state, done, result, loss_value = _step((args, solver), z,
+                                                               _unaliased(state, (args, solver)))
                     slopes = z * scale
                     rec = {"level": level, "size": list(size), "step": k,
                            "loss": float(loss_value), "seconds": time.perf_counter() - t_start}
