@@ -16,6 +16,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+#: Matrix products of geometry are computed in full float32 on every backend.
+HIGHEST = jax.lax.Precision.HIGHEST
+
 __all__ = ["Camera", "look_at", "perspective", "orthographic", "to_clip", "eye_to_world"]
 
 
@@ -63,7 +66,7 @@ class Camera:
     @property
     def view_projection(self) -> Array:
         """``projection @ view``."""
-        return self.projection @ self.view
+        return jnp.matmul(self.projection, self.view, precision=HIGHEST)
 
 
 def _as_matrix(m, name: str) -> np.ndarray:
@@ -139,9 +142,10 @@ def to_clip(positions: Array, camera: Camera) -> Array:
     precision.
     """
     p = jnp.asarray(positions)
-    eye_space = (p - camera.eye[None, :]) @ camera.view[:3, :3].T
+    # HIGHEST: a GPU's default matmul precision (TF32) would round positions to 1e-4
+    eye_space = jnp.matmul(p - camera.eye[None, :], camera.view[:3, :3].T, precision=HIGHEST)
     proj = camera.projection
-    return eye_space @ proj[:, :3].T + proj[None, :, 3]
+    return jnp.matmul(eye_space, proj[:, :3].T, precision=HIGHEST) + proj[None, :, 3]
 
 
 def eye_to_world(camera: Camera, direction) -> np.ndarray:

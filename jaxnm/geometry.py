@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from .camera import HIGHEST
 from .numerics import angle_between, safe_normalize
 from .numerics import cross as _cross
 
@@ -65,13 +66,15 @@ class Mesh:
         lin = m[:3, :3]
         if abs(np.linalg.det(lin)) < 1e-12:
             raise ValueError("model matrix is singular")
-        pos = jnp.asarray(self.positions) @ jnp.asarray(lin.T, jnp.float32) + jnp.asarray(
-            m[:3, 3], jnp.float32)
+        pos = jnp.matmul(jnp.asarray(self.positions), jnp.asarray(lin.T, jnp.float32),
+                         precision=HIGHEST) + jnp.asarray(m[:3, 3], jnp.float32)
         normals = self.normals
         faces = self.faces
         if normals is not None:
             nmat = np.linalg.inv(lin).T
-            normals = safe_normalize(jnp.asarray(normals) @ jnp.asarray(nmat.T, jnp.float32))
+            normals = safe_normalize(jnp.matmul(jnp.asarray(normals),
+                                                jnp.asarray(nmat.T, jnp.float32),
+                                                precision=HIGHEST))
         if np.linalg.det(lin) < 0:  # a mirror flips the winding; keep CCW = front
             faces = jnp.asarray(faces)[:, ::-1]
         return dataclasses.replace(self, positions=pos, normals=normals, faces=faces)

@@ -36,6 +36,7 @@ displaced surface ``p + s h N`` to first order (for locally flat surfaces).
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
@@ -147,7 +148,7 @@ def normal_matrix(model: ArrayLike) -> Array:
         raise ValueError(f"normal_matrix: `model` must be (3, 3) or (4, 4), got {m.shape}")
     a = m[:3, :3]
     cof = _cofactor(a)
-    det = jnp.dot(a[0], cof[0])
+    det = jnp.dot(a[0], cof[0], precision=jax.lax.Precision.HIGHEST)
     return safe_div(cof, det, fallback=cof)
 
 
@@ -178,7 +179,7 @@ def object_space_normal(m: ArrayLike, *, model_normal_matrix: ArrayLike | None =
         if nm.shape not in ((3, 3), (4, 4)):
             raise ValueError("object_space_normal: `model_normal_matrix` must be (3, 3) or "
                              f"(4, 4), got {nm.shape}")
-        m = jnp.einsum("ij,...j->...i", nm[:3, :3], m)
+        m = jnp.einsum("ij,...j->...i", nm[:3, :3], m, precision=jax.lax.Precision.HIGHEST)
     return safe_normalize(m, fallback=fallback)
 
 

@@ -517,9 +517,11 @@ def _gather_weighted_jvp(primals, tangents):
     out = _weighted_taps(weight, texels)
     dout = jnp.zeros_like(out)
     if not isinstance(dflat, SymbolicZero):
-        dout = dout + jnp.einsum("...t,...tc->...c", weight, _gather(dflat, index))
+        dout = dout + jnp.einsum("...t,...tc->...c", weight, _gather(dflat, index),
+                                 precision=jax.lax.Precision.HIGHEST)
     if not isinstance(dweight, SymbolicZero):
-        dout = dout + jnp.einsum("...t,...tc->...c", dweight, texels)
+        dout = dout + jnp.einsum("...t,...tc->...c", dweight, texels,
+                                 precision=jax.lax.Precision.HIGHEST)
     return out, dout
 
 

@@ -125,7 +125,7 @@ def _pixel_model_jvp(shading, primals, tangents):
         basis = jnp.eye(3, dtype=m.dtype)
         blocks = jax.vmap(lambda e: jax.jvp(f, (m,), (jnp.broadcast_to(e, m.shape),))[1])(basis)
         # blocks: (3, T, K, 3) = d colour / d m_k
-        out = jnp.einsum("kt...c,...k->t...c", blocks, dm)
+        out = jnp.einsum("kt...c,...k->t...c", blocks, dm, precision=jax.lax.Precision.HIGHEST)
     # the other inputs (G-buffer, lights, material, strength) are constants in a fit: their
     # tangents are symbolic zeros, and the JVP through them is skipped, not run on zeros
     if not all(_is_zero(t) for t in jax.tree_util.tree_leaves(rest_t, is_leaf=_is_zero)):

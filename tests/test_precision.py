@@ -1,0 +1,90 @@
+"""Backend-independent numerics: every matrix product in the renderer and the fit asks for
+full float32 precision, so a GPU's default (TF32 tensor cores, ~1e-3 relative) cannot change
+GPU-faithful results. Checked on the traced programs (jaxprs), which are the same on every
+backend."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxnm
+from jaxnm import fit as F
+from jaxnm.frames import FRAMES
+from jaxnm.procedural import default_problem, default_scene
+
+HIGHEST = jax.lax.Precision.HIGHEST
+
+
+def _dot_precisions(jaxpr) -> list:
+    """(precision, operand dtypes) of every dot_general in ``jaxpr`` and its sub-jaxprs."""
+    out = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "dot_general":
+            out.append((eqn.params.get("precision"),
+                        tuple(str(v.aval.dtype) for v in eqn.invars)))
+        for p in eqn.params.values():
+            subs = p if isinstance(p, (list, tuple)) else [p]
+            for sub in subs:
+                if isinstance(sub, jax.extend.core.ClosedJaxpr):
+                    out += _dot_precisions(sub.jaxpr)
+                elif isinstance(sub, jax.extend.core.Jaxpr):
+                    out += _dot_precisions(sub)
+    return out
+
+
+def _low_precision(jaxpr) -> list:
+    def full(prec):
+        if prec is None:
+            return False
+        precs = prec if isinstance(prec, tuple) else (prec,)
+        return all(p == HIGHEST for p in precs)
+
+    return [(p, d) for p, d in _dot_precisions(jaxpr)
+            if any(x.startswith("float") for x in d) and not full(p)]
+
+
+def test_the_check_sees_a_default_precision_product():
+    jaxpr = jax.make_jaxpr(lambda a, b: a @ b)(jnp.ones((3, 3)), jnp.ones((3, 3))).jaxpr
+    assert len(_low_precision(jaxpr)) == 1
+
+
+@pytest.mark.parametrize("frame", FRAMES)
+def test_render_products_are_full_precision(frame):
+    scene = default_scene(width=16, height=16)
+
+    def f(scene, nm):
+        out = jaxnm.render(scene.replace(normal_map=nm), outputs=("color", "perturbed_normal"),
+                           frame=frame)
+        return sum(jnp.sum(v) for v in out.values())
+
+    nm = jnp.asarray(scene.normal_map)
+    grad = jax.value_and_grad(f, argnums=(0, 1), allow_int=True)  # faces are integers
+    jaxpr = jax.make_jaxpr(grad)(scene, nm).jaxpr
+    assert len(_dot_precisions(jaxpr)) >= 2  # the camera transforms, forward and backward
+    assert not _low_precision(jaxpr)
+
+
+def test_fit_products_are_full_precision():
+    problem, _, _ = default_problem(render_size=16, map_size=8, n_lights=3, views=1)
+    prep = F.prepare(problem)
+    z = jnp.zeros((8, 8, 2))
+    for reduce in (False, True):
+        args = F.ModelArgs.create(prep, reduce=reduce)
+
+        def jtj(z, v):
+            r, lin = jax.linearize(lambda q: F.residuals(q, args), z)
+            return jax.linear_transpose(lin, z)(lin(v)), jax.grad(F.loss)(z, args)
+
+        jaxpr = jax.make_jaxpr(jtj)(z, z).jaxpr
+        assert _dot_precisions(jaxpr) and not _low_precision(jaxpr)
+
+
+def test_results_do_not_depend_on_the_default_matmul_precision():
+    """On this backend the default is already full float32; asking for bfloat16-speed
+    products globally must not change a render (every product names its precision)."""
+    scene = default_scene(width=24, height=24)
+    a = np.asarray(jaxnm.render(scene, outputs=("position", "color"))["color"])
+    with jax.default_matmul_precision("bfloat16"):
+        b = np.asarray(jaxnm.render(scene, outputs=("position", "color"))["color"])
+    np.testing.assert_array_equal(a, b)
