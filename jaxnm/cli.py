@@ -220,10 +220,15 @@ def main(argv=None) -> int:
         p.add_argument("--no-compile-cache", action="store_true", dest="no_compile_cache",
                        help="do not use the persistent compilation cache (default: "
                        "$JAXNM_COMPILATION_CACHE or ~/.cache/jaxnm/xla)")
+        p.add_argument("--nondeterministic", action="store_true",
+                       help="allow run-to-run differences on a GPU (faster scatter-adds); "
+                       "by default results are reproducible on every backend")
     args = parser.parse_args(argv)
-    if not args.no_compile_cache:
-        from .config import use_compilation_cache
+    from .config import use_compilation_cache, use_deterministic_ops
 
+    if not args.nondeterministic:
+        use_deterministic_ops()  # before JAX initialises a backend
+    if not args.no_compile_cache:
         use_compilation_cache()
     try:
         return _render(args) if args.command == "render" else _fit(args)

@@ -78,7 +78,8 @@ from .textures import NormalMapOptions, decode_normal_map, srgb_to_linear
 
 __all__ = ["load_scene", "scene_from_dict", "load_fit", "fit_from_dict", "parse_camera",
            "parse_lights", "parse_material", "load_normal_map", "load_height_map",
-           "use_compilation_cache", "compilation_cache_dir", "SCENE_KEYS", "FIT_KEYS"]
+           "use_compilation_cache", "compilation_cache_dir", "use_deterministic_ops",
+           "SCENE_KEYS", "FIT_KEYS"]
 
 SCENE_KEYS = ("mesh", "model", "camera", "width", "height", "normal_map", "height_map",
               "albedo", "lights", "material", "frame", "derivatives", "double_sided",
@@ -573,3 +574,20 @@ def use_compilation_cache(directory=None, *, min_compile_seconds: float = 0.05) 
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_seconds))
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
+
+
+#: The XLA flag that makes GPU scatter-adds (the texture gather's transpose in a fit's
+#: gradient) and reductions run in a fixed order.
+DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
+
+
+def use_deterministic_ops() -> None:
+    """Ask XLA for run-to-run identical results on a GPU: two identical fits then give
+    bit-identical maps (on the CPU they already do). Adds `DETERMINISTIC_FLAG` to
+    ``XLA_FLAGS``, which JAX reads when it first initialises a backend: the command line
+    calls this before any JAX computation; from Python, call it first thing (or set the
+    flag yourself). The cost on a GPU is slower scatter-adds, hence slower gradients.
+    """
+    flags = os.environ.get("XLA_FLAGS", "")
+    if DETERMINISTIC_FLAG not in flags.split():
+        os.environ["XLA_FLAGS"] = f"{flags} {DETERMINISTIC_FLAG}".strip()

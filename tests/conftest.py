@@ -5,6 +5,10 @@ import os
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 # hermetic: the CLI tests must not read or fill the user's persistent compilation cache
 os.environ["JAXNM_COMPILATION_CACHE"] = "off"
+# reproducible on a GPU too (fixed-order scatter-adds; a no-op on the CPU)
+if "--xla_gpu_deterministic_ops=true" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                               + " --xla_gpu_deterministic_ops=true").strip()
 
 import jax  # noqa: E402
 

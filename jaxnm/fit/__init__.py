@@ -60,6 +60,7 @@ from .prepare import Prepared as Prepared
 from .prepare import View as View
 from .prepare import ViewBatch as ViewBatch
 from .prepare import prepare as prepare
+from .prepare import shard_views as shard_views
 from .prepare import view_key as view_key
 from .prepare import with_map_size as with_map_size
 from .problem import SOLVERS as SOLVERS
@@ -85,5 +86,6 @@ __all__ = [
     "fit_normal_map", "level_sizes", "loss", "make_solver", "normals_to_slopes",
     "preconditioner", "prepare", "problem_from_scene", "psnr", "render_with_map", "residuals",
     "sample_split", "seen_texels", "slopes_to_normals", "texel_influence", "validate_problem",
-    "view_key", "with_map_size", "FitJob", "FitOutputs", "fit_outputs", "score_held_out",
+    "view_key", "with_map_size", "shard_views", "FitJob", "FitOutputs", "fit_outputs",
+    "score_held_out",
 ]

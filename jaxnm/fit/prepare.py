@@ -23,7 +23,8 @@ from ..render import GBuffer, RenderOptions, build_gbuffer, check_mesh
 from ..shading import Lights, Material
 from .problem import FitProblem, FitTarget, validate_problem
 
-__all__ = ["ViewBatch", "Prepared", "View", "prepare", "with_map_size", "view_key"]
+__all__ = ["ViewBatch", "Prepared", "View", "prepare", "with_map_size", "view_key",
+           "shard_views"]
 
 
 @jax.tree_util.register_dataclass
@@ -284,3 +285,43 @@ def with_map_size(prep: Prepared, size) -> Prepared:
     return _assemble(views, tuple(opts_all), prep.material)
 
 
+
+
+def shard_views(prep: Prepared, devices=None) -> Prepared:
+    """``prep`` with the views of every `ViewBatch` spread over ``devices`` (default: all
+    local devices), for a fit that runs on several GPUs (or hosts) at once.
+
+    A `jax.sharding.Mesh` with one axis, ``"views"``, and a `NamedSharding` that splits the
+    leading (view) axis of every batch array; the material is replicated. A batch whose
+    view count is not a multiple of the device count is padded with copies of its first
+    view that weigh nothing (so they change no residual, loss or gradient). `fit_normal_map`
+    and `residuals` then run as one SPMD program: each device shades its views, and the
+    texel gradients are summed across devices by XLA. With ``jax.distributed.initialize``
+    run first, ``jax.devices()`` spans every host, and the same call spreads the views over
+    all of them. Results equal the single-device ones up to the order of the sums.
+    """
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    devices = list(jax.devices() if devices is None else devices)
+    n = len(devices)
+    if n == 1:
+        return prep
+    mesh = Mesh(np.array(devices), ("views",))
+    split = NamedSharding(mesh, PartitionSpec("views"))
+    batches = []
+    for b in prep.batches:
+        pad = (-len(b.views)) % n
+        if pad:
+            def extend(x, pad=pad):
+                x = np.asarray(x)
+                return np.concatenate([x, np.repeat(x[:1], pad, axis=0)], axis=0)
+
+            b = jax.tree_util.tree_map(extend, b)
+            b = dataclasses.replace(b, weights=np.concatenate(
+                [np.asarray(b.weights)[:-pad], np.zeros_like(np.asarray(b.weights)[-pad:])]),
+                pixels=np.concatenate([np.asarray(b.pixels)[:-pad],
+                                       np.full_like(np.asarray(b.pixels)[-pad:], -1)]),
+                views=b.views + (-1,) * pad, targets=b.targets + (0,) * pad)
+        batches.append(jax.device_put(b, split))
+    material = jax.device_put(prep.material, NamedSharding(mesh, PartitionSpec()))
+    return Prepared(tuple(batches), material, prep.options)

@@ -35,7 +35,7 @@ from jax import Array
 
 from .diagnostics import angular_error, check_identifiability, seen_texels, texel_influence
 from .model import ModelArgs, loss, residuals, slopes_to_normals
-from .prepare import Prepared, prepare, with_map_size
+from .prepare import Prepared, prepare, shard_views, with_map_size
 from .problem import FitOptions, FitProblem, FitResult
 
 __all__ = ["fit_normal_map", "make_solver", "preconditioner", "level_sizes"]
@@ -129,6 +129,14 @@ def _flat(history: list, level: int, options: FitOptions) -> bool:
         return False
     before, now = losses[-1 - options.patience], losses[-1]
     return bool(before - now <= options.ftol * abs(before))
+
+
+def _like(level: Prepared, prep: Prepared) -> Prepared:
+    """A coarse-to-fine level spread over the devices ``prep``'s views are spread over."""
+    sharding = prep.batches[0].pixels.sharding
+    if len(sharding.device_set) == 1:
+        return level
+    return shard_views(level, list(sharding.mesh.devices.flat))
 
 
 def _upsample(slopes: Array, size: tuple[int, int]) -> Array:
@@ -244,7 +252,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                 if level > 0:
                     slopes = _upsample(best[1], size)
                     best = (math.inf, slopes)
-                lp = prep if size == (h, w) else with_map_size(prep, size)
+                lp = prep if size == (h, w) else _like(with_map_size(prep, size), prep)
                 scale = preconditioner(lp)
                 # least squares on reduced residuals (same loss and Gauss-Newton steps,
                 # fewer numbers per pixel); L-BFGS only needs the loss and its gradient
