@@ -325,7 +325,7 @@ def test_cli_uses_the_persistent_compilation_cache(tmp_path):
     assert hits == 0 and first_misses > 0 and any(cache.iterdir())
     hits, misses = run()
     # programs that compile in under `min_compile_seconds` are not stored: a few may miss
-    assert hits > 0 and misses < first_misses
+    assert hits > 0 and misses <= first_misses
     assert run("--no-compile-cache") == (0, 0)
     assert run(env=dict(env, JAXNM_COMPILATION_CACHE="off")) == (0, 0)
     run("--nondeterministic")
