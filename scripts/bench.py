@@ -1,7 +1,7 @@
 """jaxnm beside Mitsuba 3 on the CPU, in one run: forward frames, gradients, the fit benchmark.
 
     python scripts/bench.py [--out bench_out] [--quick] [--no-mitsuba] [--budget 30]
-                            [--repeats 10] [--no-cli]
+                            [--repeats 10] [--no-cli] [--parts forward,fit,cli] [--devices N]
 
 The problem is ``shared/benchmarks/fit_vs_mitsuba.md`` (`bench_problem.py`); Mitsuba's side
 is `bench_mitsuba.py` (``pip install 'jaxnm[bench]'`` and a system libLLVM; without them
@@ -21,6 +21,8 @@ machine. Compilation is reported separately *and* included:
   seen and the well-observed texels, and the held-out-light PSNR.
 - ``cli``: ``jaxnm fit`` (no arguments) as a user runs it: wall time and peak RSS, with an
   empty and with a warm compilation cache.
+- ``--devices N``: the built-in 2-view problem's steady LM step with its views on one and
+  on N devices (`jaxnm.fit.shard_views`; on a CPU-only machine, N forced host devices).
 
 Writes ``bench.json`` and ``bench.md`` (the README's tables) into ``--out`` and prints the
 JSON.
@@ -202,6 +204,40 @@ def fit_worker(args) -> None:
     print("RESULT " + json.dumps(out))
 
 
+def devices_worker(args) -> None:
+    """In a fresh process with ``--devices`` devices: the built-in 2-view problem, 10 LM
+    steps, views spread over the devices (`jaxnm.fit.shard_views`); JSON on stdout."""
+    from jaxnm.procedural import default_problem
+
+    problem, gt, _ = default_problem(render_size=256 if args.quick else 512,
+                                     map_size=128 if args.quick else 256, views=2)
+    prep = F.shard_views(F.prepare(problem))
+    opts = F.FitOptions(max_steps=10, lsmr_steps=10, ftol=0.0)
+    F.fit_normal_map(problem, opts, prepared=prep, progress=False)  # compile
+    res = F.fit_normal_map(problem, opts, prepared=prep, progress=False)
+    secs = [h["seconds"] for h in res.history]
+    print("RESULT " + json.dumps({
+        "devices": len(jax.devices()), "platform": jax.devices()[0].platform,
+        "s_per_step": round(statistics.median(np.diff(secs[1:])), 4),
+        "views_per_device": [len(b.views) // len(jax.devices()) for b in prep.batches]}))
+
+
+def bench_devices(args) -> dict:
+    """Steady LM step time with the views on 1 and on ``--devices`` devices (on a CPU-only
+    machine the devices are forced host devices sharing the same cores)."""
+    out = {}
+    for n in sorted({1, args.devices}):
+        env = dict(os.environ, JAXNM_COMPILATION_CACHE="off")
+        if jax.devices()[0].platform == "cpu":
+            env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "")
+                                + f" --xla_force_host_platform_device_count={n}").strip()
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--devices-worker"]
+        cmd += ["--quick"] if args.quick else []
+        text = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True).stdout
+        out[str(n)] = json.loads(text.split("RESULT ", 1)[1])
+    return out
+
+
 def _run_worker(cache: str | None, args) -> dict:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--fit-worker", "--budget",
            str(args.budget)] + (["--quick"] if args.quick else [])
@@ -313,6 +349,13 @@ def markdown(res: dict) -> str:
         for k in ("cold", "warm"):
             lines.append(f"| {k} cache | {c[k]['wall_s']} | {c[k]['peak_rss_mb']} | "
                          f"{c[k]['summary']} |")
+    d = res.get("devices")
+    if d:
+        lines += ["", "| devices | platform | views per device | LM s / step |",
+                  "|---|---|---|---|"]
+        for n, r in d.items():
+            lines.append(f"| {n} | {r['platform']} | {r['views_per_device']} | "
+                         f"{r['s_per_step']} |")
     lines += ["", "Goals: " + ", ".join(f"{k} <= {v}" for k, v in GOALS.items())]
     return "\n".join(lines) + "\n"
 
@@ -327,11 +370,16 @@ def main(argv=None) -> None:
                     help="comma-separated parts to run (default: %(default)s)")
     ap.add_argument("--budget", type=float, default=30.0, help="seconds per fit")
     ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--devices", type=int, default=1,
+                    help="also time LM steps with the views over this many devices")
     ap.add_argument("--fit-worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--devices-worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--cache", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.fit_worker:
         return fit_worker(args)
+    if args.devices_worker:
+        return devices_worker(args)
     mitsuba, why = None, "Mitsuba not run (--no-mitsuba)"
     if not args.no_mitsuba:
         import bench_mitsuba
@@ -352,6 +400,8 @@ def main(argv=None) -> None:
         res["fit"] = bench_fit(args, mitsuba)
     if "cli" in parts and not args.no_cli:
         res["cli"] = bench_cli(args)
+    if args.devices > 1:
+        res["devices"] = bench_devices(args)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench.json").write_text(json.dumps(res, indent=1) + "\n")
