@@ -1,0 +1,235 @@
+"""MikkTSpace tangents: the frame most tangent-space normal maps are baked in.
+
+Blender, Substance, xNormal, Unity and Unreal bake tangent-space normal maps in
+MikkTSpace, and glTF 2.0 prescribes it for meshes that carry no tangents. To
+decode such a map a renderer must rebuild the baker's frame exactly. This
+module ports the algorithm of Morten S. Mikkelsen's reference implementation
+(``mikktspace.c``, 2011, zlib licence; the theory is in his thesis "Simulation
+of Wrinkled Surfaces Revisited", 2008) to NumPy, for triangle meshes:
+
+1. **Welding.** Corners whose vertices have bitwise-identical position, normal
+   and uv are the same vertex; nothing else is shared (so uv seams and hard
+   edges split the frame).
+2. **Per triangle**, the first-order derivatives of position with respect to
+   ``u`` and ``v``, ``vOs = dv31 dp1 - dv21 dp2`` and
+   ``vOt = -du31 dp1 + du21 dp2`` (not divided by the uv area), normalised and
+   multiplied by the sign of the signed uv area (``orient``: whether the uv
+   mapping preserves the orientation). A triangle with coinciding positions
+   is *degenerate*; one with a zero uv area or zero derivatives "groups with
+   anything" (it contributes no direction).
+3. **Groups.** Around each welded vertex, the triangles reachable through
+   shared edges that have the same orientation form a group (a mirror seam
+   through a vertex therefore gives it two tangents, one per handedness).
+   Triangles that group with anything take the orientation of the first group
+   that reaches them — the one order dependency of the reference.
+4. **The tangent of a corner** is the sum over its group of each triangle's
+   ``vOs`` projected onto the vertex normal's tangent plane and normalised,
+   weighted by the triangle's corner angle (measured between the projected
+   edges), then normalised. Its sign is +1 for orientation-preserving groups,
+   -1 otherwise.
+5. **Degenerate triangles** copy the tangent of the first non-degenerate
+   corner of the same welded vertex; corners no group reaches keep
+   ``(1, 0, 0)`` and sign -1, as the reference leaves them.
+
+The frame is reconstructed per pixel as the reference prescribes for bakers
+that follow it (see `jaxnm.frames.mikktspace_frame`): the interpolated,
+*unnormalised* tangent ``T`` and normal ``N``, ``B = sign * cross(N, T)``, and
+the perturbed normal ``normalize(m.x T + m.y B + m.z N)``.
+
+Quads are not handled (jaxnm meshes are triangles): a mesh baked as quads must
+be triangulated before baking for the two frames to agree.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["mikktspace_tangents"]
+
+_F32_MIN = np.float32(np.finfo(np.float32).tiny)  # FLT_MIN: the reference's "not zero"
+
+
+def _not_zero(x) -> np.ndarray:
+    return np.abs(x) > _F32_MIN
+
+
+def _normalize_rows(v: np.ndarray) -> np.ndarray:
+    """Each row divided by its length where some component is not zero (else unchanged)."""
+    nz = np.any(_not_zero(v), axis=-1, keepdims=True)
+    length = np.sqrt(np.sum(v * v, axis=-1, keepdims=True, dtype=np.float32))
+    return np.where(nz, v * (np.float32(1.0) / np.where(nz, length, 1)), v).astype(np.float32)
+
+
+def _project(n: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``v`` minus its component along the unit normal ``n``, normalised (rows)."""
+    d = np.sum(n * v, axis=-1, keepdims=True, dtype=np.float32)
+    return _normalize_rows((v - d * n).astype(np.float32))
+
+
+def _weld(positions, normals, uv, faces) -> np.ndarray:
+    """(F, 3) welded vertex index of every corner: equal (position, normal, uv) bits."""
+    key = np.concatenate([positions, normals, uv], axis=1).astype(np.float32)
+    key = np.ascontiguousarray(key).view(np.dtype((np.void, key.dtype.itemsize * 8)))[:, 0]
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    return first[inverse.reshape(-1)][faces]  # the lowest vertex index with that key
+
+
+def _neighbours(corner_w: np.ndarray, good: np.ndarray) -> np.ndarray:
+    """(F, 3): the triangle across edge ``i`` (corner ``i`` to ``i + 1``), or -1.
+
+    Edges are pairs of welded vertices; an edge is shared with a triangle that
+    runs through it in the opposite direction. Where more than two triangles
+    share an edge, each pairs with the first unpaired one in (edge, triangle)
+    order, as the reference does.
+    """
+    nf = corner_w.shape[0]
+    nbr = np.full((nf, 3), -1, np.int64)
+    f_idx = np.repeat(np.flatnonzero(good), 3)
+    e_idx = np.tile(np.arange(3), int(good.sum()))
+    a = corner_w[f_idx, e_idx]
+    b = corner_w[f_idx, (e_idx + 1) % 3]
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    order = np.lexsort((f_idx, hi, lo))
+    lo, hi, a, f_idx, e_idx = lo[order], hi[order], a[order], f_idx[order], e_idx[order]
+    start = 0
+    n = len(lo)
+    while start < n:
+        end = start + 1
+        while end < n and lo[end] == lo[start] and hi[end] == hi[start]:
+            end += 1
+        for i in range(start, end):
+            if nbr[f_idx[i], e_idx[i]] != -1:
+                continue
+            for j in range(i + 1, end):
+                # the other triangle runs through the edge the other way round
+                if a[j] != a[i] and nbr[f_idx[j], e_idx[j]] == -1:
+                    nbr[f_idx[i], e_idx[i]] = f_idx[j]
+                    nbr[f_idx[j], e_idx[j]] = f_idx[i]
+                    break
+        start = end
+    return nbr
+
+
+def mikktspace_tangents(positions, normals, uv, faces) -> np.ndarray:
+    """MikkTSpace tangents of every face corner (see the module docstring).
+
+    **Arguments** (NumPy or JAX arrays, concrete):
+    - `positions` (V, 3), `normals` (V, 3) unit vertex normals, `uv` (V, 2),
+      `faces` (F, 3) counter-clockwise triangles.
+
+    **Returns:** (F, 3, 4) float32: per corner the unit tangent (along +u on the
+    surface, in the tangent plane of the vertex normal) and its sign ``w``
+    (+1 or -1, the bitangent is ``w * cross(N, T)``), the values the reference
+    implementation's ``setTSpaceBasic`` reports.
+    """
+    pos = np.asarray(positions, np.float32)
+    nrm = np.asarray(normals, np.float32)
+    tex = np.asarray(uv, np.float32)
+    faces = np.asarray(faces, np.int64)
+    nf = faces.shape[0]
+    corner_w = _weld(pos, nrm, tex, faces)
+    p = pos[corner_w]  # (F, 3, 3) per corner, through the welded vertex
+    t = tex[corner_w]
+    degenerate = (np.all(p[:, 0] == p[:, 1], -1) | np.all(p[:, 0] == p[:, 2], -1)
+                  | np.all(p[:, 1] == p[:, 2], -1))
+    good = ~degenerate
+
+    # per-triangle first-order derivatives (eqs. 18 and 19 of the reference)
+    d1, d2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    t21, t31 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    area2 = (t21[:, 0] * t31[:, 1] - t21[:, 1] * t31[:, 0]).astype(np.float32)
+    v_os = (t31[:, 1:2] * d1 - t21[:, 1:2] * d2).astype(np.float32)
+    v_ot = (-t31[:, 0:1] * d1 + t21[:, 0:1] * d2).astype(np.float32)
+    orient = area2 > 0
+    sign = np.where(orient, np.float32(1), np.float32(-1))[:, None]
+    len_os = np.sqrt(np.sum(v_os * v_os, -1, dtype=np.float32))
+    len_ot = np.sqrt(np.sum(v_ot * v_ot, -1, dtype=np.float32))
+    has_area = _not_zero(area2)
+    abs_area = np.where(has_area, np.abs(area2), 1)
+    v_os = np.where((has_area & _not_zero(len_os))[:, None],
+                    v_os * (sign / np.where(_not_zero(len_os), len_os, 1)[:, None]), 0)
+    v_ot = np.where((has_area & _not_zero(len_ot))[:, None],
+                    v_ot * (sign / np.where(_not_zero(len_ot), len_ot, 1)[:, None]), 0)
+    mag_s = np.where(has_area, len_os / abs_area, 0)
+    mag_t = np.where(has_area, len_ot / abs_area, 0)
+    any_group = ~(has_area & _not_zero(mag_s) & _not_zero(mag_t))
+    v_os, v_ot = v_os.astype(np.float32), v_ot.astype(np.float32)
+
+    nbr = _neighbours(corner_w, good)
+
+    # groups: triangles around a welded vertex, connected through shared edges, one
+    # orientation (depth first, left edge before right edge, as the reference recurses)
+    assigned = np.full((nf, 3), -1, np.int64)
+    group_vertex, group_orient, group_faces = [], [], []
+    orient = orient.copy()
+    for f in np.flatnonzero(good & ~any_group):
+        for i in range(3):
+            if assigned[f, i] != -1:
+                continue
+            g = len(group_vertex)
+            rep = corner_w[f, i]
+            group_vertex.append(rep)
+            group_orient.append(bool(orient[f]))
+            members = [f]
+            assigned[f, i] = g
+            stack = [nbr[f, (i + 2) % 3], nbr[f, i]]  # popped: left (edge i) first
+            while stack:
+                t_ = stack.pop()
+                if t_ < 0:
+                    continue
+                j = int(np.flatnonzero(corner_w[t_] == rep)[0])
+                if assigned[t_, j] != -1:
+                    continue
+                if any_group[t_] and np.all(assigned[t_] == -1):
+                    orient[t_] = group_orient[g]  # the first group to reach it decides
+                if bool(orient[t_]) != group_orient[g]:
+                    continue
+                members.append(t_)
+                assigned[t_, j] = g
+                stack += [nbr[t_, (j + 2) % 3], nbr[t_, j]]
+            group_faces.append(members)
+
+    # per corner: the triangle's directions projected onto the tangent plane of the corner's
+    # (welded) vertex normal, and the corner angle between its projected edges
+    n_c = nrm[corner_w]  # (F, 3, 3)
+    os_c = _project(n_c, np.broadcast_to(v_os[:, None], n_c.shape))
+    ot_c = _project(n_c, np.broadcast_to(v_ot[:, None], n_c.shape))
+    e1 = _project(n_c, np.roll(p, 1, axis=1) - p)  # towards the previous corner
+    e2 = _project(n_c, np.roll(p, -1, axis=1) - p)  # towards the next corner
+    angle_c = np.arccos(np.clip(np.sum(e1 * e2, -1, dtype=np.float32), -1, 1)).astype(np.float32)
+
+    # one tangent per (sub)group: the angle-weighted average of its members' directions
+    tangent = np.zeros((nf, 3, 3), np.float32)
+    tangent[..., 0] = 1.0
+    corner_sign = np.full((nf, 3), -1.0, np.float32)
+    thres_cos = np.float32(np.cos(np.float32(np.pi)))  # the default 180 degree threshold
+    for g, members in enumerate(group_faces):
+        mem = np.asarray(members)
+        corner = np.argmax(corner_w[mem] == group_vertex[g], axis=1)  # first matching corner
+        os_m, ot_m = os_c[mem, corner], ot_c[mem, corner]
+        gwa = any_group[mem]
+        weight = np.where(gwa, 0, angle_c[mem, corner])[:, None]  # only good ones contribute
+        cache = {}
+        for k in range(len(mem)):
+            keep = (gwa[k] | gwa | (np.arange(len(mem)) == k)
+                    | ((os_m @ os_m[k] > thres_cos) & (ot_m @ ot_m[k] > thres_cos)))
+            sub = tuple(np.sort(mem[keep]))
+            if sub not in cache:
+                cache[sub] = _normalize_rows(
+                    np.sum(weight[keep] * os_m[keep], axis=0, dtype=np.float32)[None])[0]
+            tangent[mem[k], corner[k]] = cache[sub]
+            corner_sign[mem[k], corner[k]] = 1.0 if group_orient[g] else -1.0
+
+    # degenerate triangles: the first good corner of the same welded vertex
+    if degenerate.any():
+        good_corners = np.flatnonzero(np.repeat(good, 3))
+        first = {}
+        for c in good_corners[::-1]:
+            first[corner_w.reshape(-1)[c]] = c
+        flat_t, flat_s = tangent.reshape(-1, 3), corner_sign.reshape(-1)
+        for c in np.flatnonzero(np.repeat(degenerate, 3)):
+            src = first.get(corner_w.reshape(-1)[c])
+            if src is not None:
+                flat_t[c], flat_s[c] = flat_t[src], flat_s[src]
+    return np.concatenate([tangent, corner_sign[..., None]], -1).astype(np.float32)
+
