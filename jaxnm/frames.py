@@ -15,7 +15,10 @@ decoded tangent-space map vector ``m`` (``m.x`` along ``+u``, ``m.y`` along
   optimisation", where the perpendiculars are replaced by the edges.
 - ``"exact"`` (`exact_frame`): the 3x3 solution from the pixel's own triangle
   (the geometry-shader variant).
-- ``"vertex"`` (`vertex_tangents` + `vertex_frame`): precomputed per-vertex
+- ``"vertex"`` (`mikktspace_frame`): precomputed MikkTSpace tangents per face
+  corner (`jaxnm.tangents`, what Blender, Substance, xNormal, Unity, Unreal and
+  glTF bake and decode with), reconstructed per pixel as the reference prescribes.
+- ``"vertex_area"`` (`vertex_tangents` + `vertex_frame`): precomputed per-vertex
   tangents with a handedness sign, Gram-Schmidt per pixel.
 - ``"axis"`` (`axis_frame`): the fixed-axis approximation (GLSL Hacker); it
   ignores the uv mapping.
@@ -62,11 +65,12 @@ __all__ = [
     "perturb_normal",
     "vertex_frame",
     "vertex_tangents",
+    "mikktspace_frame",
 ]
 
 #: The frame methods (`compute_frame`, the scene key ``frame``, ``--frame``).
 FRAMES = ("cotangent", "cotangent_unnormalized", "nonperspective", "exact", "exact_face",
-          "vertex", "axis", "none")
+          "vertex", "vertex_area", "axis", "none")
 _NORMALIZE_MODES = ("max", "none")
 
 #: A summed per-vertex tangent shorter than this fraction of the summed face weights
@@ -403,6 +407,33 @@ def vertex_frame(T_interp: Array, w_interp: Array, N: Array) -> Frame:
     return Frame(T, s * _cross(n, T), n)
 
 
+def mikktspace_frame(T_interp: Array, w_interp: Array, N_interp: Array) -> Frame:
+    r"""The pixel-shader side of MikkTSpace: the frame a tangent-space map baked in
+    MikkTSpace must be decoded with.
+
+    .. math:: B = \operatorname{sign}(w)\, N \times T, \qquad
+              n' = \operatorname{normalize}(m_x T + m_y B + m_z N)
+
+    with ``T`` and ``N`` the interpolated tangent and normal *as interpolated*
+    (neither normalised nor re-orthogonalised: the reference's "bakers that follow
+    it" decode this way), ``sign(0) = +1``.
+
+    **Arguments:**
+    - `T_interp`: ``(..., 3)`` interpolated per-corner tangent (`jaxnm.tangents`).
+    - `w_interp`: ``(...)`` or ``(..., 1)`` interpolated sign.
+    - `N_interp`: ``(..., 3)`` interpolated vertex normal.
+
+    **Returns:** a `Frame` for `perturb_normal` (not orthonormal in general).
+    """
+    T = jnp.asarray(T_interp)
+    w = jnp.asarray(w_interp)
+    if w.ndim == T.ndim:
+        w = w[..., 0]
+    N = jnp.asarray(N_interp)
+    s = jnp.where(w < 0, -1.0, 1.0).astype(T.dtype)[..., None]
+    return Frame(T, s * _cross(N, T), N)
+
+
 def axis_frame(N: Array) -> Frame:
     r"""GLSL Hacker's fixed-axis approximation; ignores the uv mapping entirely.
 
@@ -498,7 +529,9 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
       `Attribute`s with derivatives: ``"cotangent"``, ``"nonperspective"``.
     - `tri_p`, `tri_uv`: ``(..., 3, 3)``, ``(..., 3, 2)`` corners
       (`jaxnm.interpolate.triangle_corners`): ``"exact"``, ``"exact_face"``.
-    - `tangent`: ``(..., 4)`` interpolated `vertex_tangents`: ``"vertex"``.
+    - `tangent`: ``(..., 4)`` interpolated tangent and sign: per-corner MikkTSpace
+      tangents (`jaxnm.tangents`) for ``"vertex"``, `vertex_tangents` for
+      ``"vertex_area"``.
     - `front_facing`: ``(...)`` bool, required when `double_sided`.
     - `double_sided`: apply `face_forward` to back-facing fragments (after
       re-orienting the published cotangent frame, see there).
@@ -534,7 +567,15 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
     elif frame == "vertex":
         if tangent is None:
             raise ValueError("compute_frame(frame='vertex') needs `tangent` (interpolated "
-                             "vertex_tangents, (..., 4))")
+                             "MikkTSpace tangents and signs, (..., 4))")
+        t = _value(tangent)
+        # MikkTSpace decodes with the interpolated normal as it is, not normalised
+        out = mikktspace_frame(t[..., :3], t[..., 3], jnp.where(_dot(n, n, True) > 0,
+                                                                _value(N), 0.0))
+    elif frame == "vertex_area":
+        if tangent is None:
+            raise ValueError("compute_frame(frame='vertex_area') needs `tangent` "
+                             "(interpolated vertex_tangents, (..., 4))")
         t = _value(tangent)
         out = vertex_frame(t[..., :3], t[..., 3], n)
     else:

@@ -33,12 +33,30 @@ class Mesh:
     - `faces`: (F, 3) int32 vertex indices, counter-clockwise = front.
     - `uv`: (V, 2) float32 texture coordinates, origin bottom-left, or None.
     - `normals`: (V, 3) float32 unit vertex normals, or None.
+    - `tangents`: (F, 3, 4) float32 per face corner: the tangent ``xyz`` and its
+      sign ``w`` (the bitangent is ``w * cross(N, T)``), or None. Per corner
+      because MikkTSpace gives a vertex on a mirror seam one tangent per side.
+    - `tangent_source` (static): where `tangents` came from: ``"mikktspace"``
+      (`with_tangents`), ``"file"`` (a glTF ``TANGENT`` attribute), or None.
     """
 
     positions: Array
     faces: Array
     uv: Array | None = None
     normals: Array | None = None
+    tangents: Array | None = None
+    tangent_source: str | None = dataclasses.field(default=None, metadata=dict(static=True))
+
+    def with_tangents(self) -> Mesh:
+        """This mesh with MikkTSpace ``tangents`` (`jaxnm.tangents.mikktspace_tangents`),
+        replacing any it had; needs concrete (not traced) positions, normals and uvs."""
+        from .tangents import mikktspace_tangents
+
+        if self.uv is None or self.normals is None:
+            raise ValueError("MikkTSpace tangents need uvs and vertex normals")
+        t = mikktspace_tangents(np.asarray(self.positions), np.asarray(self.normals),
+                                np.asarray(self.uv), np.asarray(self.faces))
+        return dataclasses.replace(self, tangents=jnp.asarray(t), tangent_source="mikktspace")
 
     @property
     def num_vertices(self) -> int:
@@ -75,9 +93,18 @@ class Mesh:
             normals = safe_normalize(jnp.matmul(jnp.asarray(normals),
                                                 jnp.asarray(nmat.T, jnp.float32),
                                                 precision=HIGHEST))
+        tangents = self.tangents
+        if tangents is not None:  # directions: the linear part; the sign is re-derived below
+            t = jnp.asarray(tangents)
+            xyz = safe_normalize(jnp.matmul(t[..., :3], jnp.asarray(lin.T, jnp.float32),
+                                            precision=HIGHEST))
+            tangents = jnp.concatenate([xyz, t[..., 3:]], -1)
         if np.linalg.det(lin) < 0:  # a mirror flips the winding; keep CCW = front
             faces = jnp.asarray(faces)[:, ::-1]
-        return dataclasses.replace(self, positions=pos, normals=normals, faces=faces)
+            if tangents is not None:  # per corner like the faces; cross(N, T) flips too
+                tangents = tangents[:, ::-1] * jnp.asarray([1.0, 1.0, 1.0, -1.0])
+        return dataclasses.replace(self, positions=pos, normals=normals, faces=faces,
+                                   tangents=tangents)
 
 
 def face_normals(positions: Array, faces: Array, *, normalize: bool = True) -> Array:

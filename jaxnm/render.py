@@ -36,7 +36,8 @@ from .scene import Scene, validate_scene
 from .shading import Lights, Material, check_shading_model, shade
 from .textures import NormalMapOptions
 
-__all__ = ["OUTPUTS", "GBuffer", "RenderOptions", "build_gbuffer", "shade_gbuffer", "render"]
+__all__ = ["OUTPUTS", "GBuffer", "RenderOptions", "build_gbuffer", "shade_gbuffer", "render",
+           "with_tangents_if_needed"]
 
 #: Every output `render` can produce (image layout, row 0 = top, float32 (H, W, C)).
 OUTPUTS = ("mask", "triangle_id", "depth", "front_facing", "position", "view", "uv", "normal",
@@ -149,13 +150,16 @@ def _needs(opts: RenderOptions):
 
 def check_mesh(mesh: Mesh, opts: RenderOptions, source: str = "render") -> None:
     """Raise a clear `ValueError` if ``mesh`` lacks an attribute the requested outputs need."""
-    has_map, _, _, need_uv, _, need_n = _needs(opts)
+    has_map, _, need_tb, need_uv, _, need_n = _needs(opts)
     if need_uv and mesh.uv is None:
         why = "a normal map" if has_map else f"the outputs {list(opts.outputs)}"
         raise ValueError(f"{source}: the mesh has no texture coordinates (uv), needed for {why}")
     if need_n and mesh.normals is None:
         raise ValueError(f"{source}: the mesh has no vertex normals, needed for "
                          f"{list(opts.outputs)} (compute them with Mesh.with_normals())")
+    if need_tb and opts.frame == "vertex" and mesh.tangents is None:
+        raise ValueError(f"{source}: frame 'vertex' needs the mesh's MikkTSpace tangents "
+                         "(Mesh.with_tangents(), or a glTF file's TANGENT attribute)")
 
 
 @functools.partial(jax.jit, static_argnames=("opts",))
@@ -219,7 +223,13 @@ def _frame(opts: RenderOptions, mesh: Mesh, frags, gb) -> _frames.Frame:
     elif kind in ("exact", "exact_face"):
         inputs = dict(tri_p=triangle_corners(mesh.positions, frags),
                       tri_uv=triangle_corners(mesh.uv, frags))
-    elif kind == "vertex":
+    elif kind == "vertex":  # MikkTSpace: per-corner tangents, the normal as interpolated
+        at = interpolate({"t": mesh.tangents, "n": mesh.normals[mesh.faces]}, frags,
+                         derivatives=None)
+        return _frames.compute_frame(kind, N=at["n"].value, tangent=at["t"].value,
+                                     front_facing=frags.front_facing,
+                                     double_sided=opts.double_sided)
+    elif kind == "vertex_area":
         tangents = _frames.vertex_tangents(mesh.positions, mesh.normals, mesh.uv, mesh.faces)
         inputs = dict(tangent=interpolate(tangents, frags, derivatives=None).value)
     return _frames.compute_frame(kind, N=gb["normal"], front_facing=frags.front_facing,
@@ -299,10 +309,23 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     """
     scene = validate_scene(scene)
     opts = RenderOptions.of(scene, outputs=outputs, derivatives=derivatives, frame=frame)
+    scene = with_tangents_if_needed(scene, opts)
     check_mesh(scene.mesh, opts, scene.source)
     nm = None if scene.normal_map is None else jnp.asarray(scene.normal_map)
     return _render(scene.mesh, scene.camera, nm, jnp.asarray(scene.albedo), scene.lights,
                    scene.material, opts=opts)
+
+
+def with_tangents_if_needed(scene: Scene, opts: RenderOptions) -> Scene:
+    """``scene`` with MikkTSpace tangents on its mesh when ``opts`` renders the ``"vertex"``
+    frame and the mesh has none (computed on the host: the mesh must be concrete). Compute
+    them once with ``scene.replace(mesh=scene.mesh.with_tangents())`` to render many times."""
+    m = scene.mesh
+    if opts.frame != "vertex" or m.tangents is not None or m.uv is None or m.normals is None:
+        return scene
+    if any(isinstance(x, jax.core.Tracer) for x in (m.positions, m.normals, m.uv)):
+        return scene  # `check_mesh` explains
+    return dataclasses.replace(scene, mesh=m.with_tangents())
 
 
 @functools.partial(jax.jit, static_argnames=("opts",))

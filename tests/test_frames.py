@@ -25,8 +25,8 @@ from jaxnm.interpolate import triangle_corners
 from jaxnm.numerics import safe_normalize
 
 SIZE = 48
-# the five constructions; the other names in F.FRAMES are variants of them (and "none")
-METHODS = ("cotangent", "nonperspective", "exact", "vertex", "axis")
+# the six constructions; the other names in F.FRAMES are variants of them (and "none")
+METHODS = ("cotangent", "nonperspective", "exact", "vertex", "vertex_area", "axis")
 MIRROR = np.array([-1.0, 1.0, 1.0])
 
 
@@ -98,7 +98,7 @@ def pipeline(frags, pos, uv, nrm, eye, noise, *, mode="fine"):
     variants["cotangent_none"] = dict(frame="cotangent", normalize="none")
     variants["cotangent_unnormalized"] = dict(frame="cotangent_unnormalized")
     if mode == "fine":
-        variants.update({name: dict(frame=name) for name in ("vertex", "axis")})
+        variants.update({name: dict(frame=name) for name in ("vertex", "vertex_area", "axis")})
         variants.update({name + "_ds": dict(frame=name, double_sided=True) for name in METHODS})
         variants["cotangent_hlsl"] = dict(frame="cotangent", ddy_sign=-1)
     out = {}
@@ -766,7 +766,7 @@ def test_gradients_check_grads_float64():
         # constant uv: the uv-based frames fall back to the unperturbed normal there
         n0 = nrm[0] / np.linalg.norm(nrm[0])
         sel = tid == 0
-        for k in (0, 1, 2, 5):  # cotangent, nonperspective, exact, cotangent 'none'
+        for k in (0, 1, 2, len(METHODS)):  # cotangent, nonperspective, exact, cotangent 'none'
             np.testing.assert_allclose(out[k][sel], np.broadcast_to(n0, (sel.sum(), 3)),
                                        atol=1e-6)
 

@@ -148,6 +148,8 @@ def view_key(t: FitTarget) -> tuple:
 def prepare(problem: FitProblem) -> Prepared:
     """Rasterize every view once and stack its targets (see `Prepared`)."""
     validate_problem(problem)
+    if problem.frame == "vertex" and problem.mesh.tangents is None:  # MikkTSpace, once
+        problem = dataclasses.replace(problem, mesh=problem.mesh.with_tangents())
     groups: dict = {}
     for t in problem.targets:
         groups.setdefault(view_key(t), []).append(t)
