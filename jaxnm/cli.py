@@ -100,10 +100,16 @@ def _render(args) -> int:
         changes.update(normal_map=d, normal_map_options=opts)
     if changes:
         scene = scene.replace(**changes)
+    frame = args.frame or scene.frame
+    if frame == "vertex" and scene.mesh.tangents is None and scene.mesh.uv is not None:
+        scene = scene.replace(mesh=scene.mesh.with_tangents())  # MikkTSpace
     result = render(scene, outputs=tuple(names), derivatives=args.derivatives, frame=args.frame)
     io.save_png(args.output, np.asarray(to_display(result["color"], exposure=args.exposure)),
                 bits=args.bits)
-    msg = f"wrote {args.output} ({scene.width}x{scene.height})"
+    msg = f"wrote {args.output} ({scene.width}x{scene.height}, frame {frame}"
+    if frame == "vertex":
+        msg += f", tangents: {scene.mesh.tangent_source}"
+    msg += ")"
     if args.aovs:
         io.save_aovs(args.aovs, result)
         msg += f" and {args.aovs} ({', '.join(result)})"

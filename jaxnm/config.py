@@ -26,7 +26,9 @@ A **scene file**::
       "material": {"model": "blinn_phong", "diffuse": [1,1,1], "specular": [0.4,0.4,0.4],
                    "shininess": 48, "ambient": [0.03,0.03,0.03]},
       "frame": "cotangent", "derivatives": "fine", "double_sided": true, "cull_back": false,
-      "ddy": "up"             // "down": emulate HLSL's ddy (y down) in the screen-space frames
+      "ddy": "up",            // "down": emulate HLSL's ddy (y down) in the screen-space frames
+      "tangents": "auto"      // frame "vertex": the file's glTF TANGENT, else MikkTSpace;
+                              // "mikktspace": always MikkTSpace
     }
 
 Every key but ``mesh`` and ``camera`` is optional (defaults: 512 x 512, no
@@ -83,7 +85,10 @@ __all__ = ["load_scene", "scene_from_dict", "load_fit", "fit_from_dict", "parse_
 
 SCENE_KEYS = ("mesh", "model", "camera", "width", "height", "normal_map", "height_map",
               "albedo", "lights", "material", "frame", "derivatives", "double_sided",
-              "cull_back", "shading", "ddy")
+              "cull_back", "shading", "ddy", "tangents")
+#: The scene key ``tangents``: ``"auto"`` uses a glTF file's TANGENT attribute where there is
+#: one (the glTF rule) and MikkTSpace otherwise; ``"mikktspace"`` always computes them.
+TANGENT_MODES = ("auto", "mikktspace")
 FIT_KEYS = ("scene", "views", "targets", "map", "ground_truth", "held_out", "solver")
 _SOLVER_KEYS = {"method": "solver", "max_steps": "max_steps", "lsmr_steps": "lsmr_steps",
                 "smoothness": "smoothness", "coarse_to_fine": "coarse_to_fine", "seed": "seed",
@@ -350,6 +355,10 @@ def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scen
                              "not both")
         shading = _field(data, "shading", str, "blinn_phong", where)
     model = _matrix(data["model"], "model", where) if "model" in data else None
+    tangent_mode = _field(data, "tangents", str, "auto", where)
+    if tangent_mode not in TANGENT_MODES:
+        raise ValueError(f"{where}'tangents' must be one of {', '.join(TANGENT_MODES)}, got "
+                         f"{tangent_mode!r}")
     if data.get("normal_map") is not None and data.get("height_map") is not None:
         raise ValueError(f"{where}give either 'normal_map' or 'height_map', not both")
     check_scene_options(width=width, height=height, shading=shading, source=source,
@@ -372,6 +381,11 @@ def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scen
             mesh = mesh.transformed(model)
         except ValueError as e:
             raise _rewrap(e, f"{where}'model': ") from None
+    if options["frame"] == "vertex" or tangent_mode == "mikktspace":
+        if tangent_mode == "mikktspace" or mesh.tangents is None:
+            if mesh.uv is None or mesh.normals is None:
+                raise ValueError(f"{where}frame 'vertex' needs a mesh with uvs and normals")
+            mesh = mesh.with_tangents()  # MikkTSpace, once, at load
     nm, nm_opts = None, NormalMapOptions()
     if data.get("normal_map") is not None:
         nm, nm_opts = load_normal_map(data["normal_map"], base_dir=base, where=where)

@@ -150,6 +150,13 @@ def load_mesh(path: PathLike, *, require_uv: bool = False,
       `JaxnmWarning` where the file has none. ``"angle"`` or ``"area"`` always
       recompute them with `jaxnm.geometry.vertex_normals`.
 
+    **Tangents.** A glTF primitive's ``TANGENT`` attribute (``xyz`` and the sign
+    ``w``, the bitangent being ``w * cross(N, T)``, pointing to the top of the
+    image) becomes the mesh's per-corner ``tangents`` (``tangent_source="file"``),
+    which the ``"vertex"`` frame uses as glTF prescribes; without it, the frame
+    computes MikkTSpace tangents. The sign needs no change for the flipped uvs:
+    glTF defines it against the image's "up", which is jaxnm's +v.
+
     **Returns:** a `Mesh` of jax arrays; ``uv`` is None if the file has none.
 
     **Raises:** `FileNotFoundError` for a missing file; `ValueError` (message
@@ -164,7 +171,7 @@ def load_mesh(path: PathLike, *, require_uv: bool = False,
     ext = _check_extension(p, MESH_EXTENSIONS, "mesh")
     src = str(p)
     scene = _load_scene(p, ext)
-    pos, faces, uv, file_n, has_n = _concatenate_scene(scene, src)
+    pos, faces, uv, file_n, has_n, tangents = _concatenate_scene(scene, src)
 
     pos = pos.astype(np.float32)
     validate_arrays(pos, faces, source=src)  # before any normal is computed from them
@@ -181,8 +188,16 @@ def load_mesh(path: PathLike, *, require_uv: bool = False,
 
     n = _resolve_normals(pos, faces, file_n, has_n, normals, src)
     validate_arrays(pos, faces, uv, n, source=src)
+    if tangents is not None:
+        if not np.all(np.isfinite(tangents)):
+            raise ValueError(f"{src}: TANGENT contains NaN or infinite values")
+        xyz = tangents[..., :3]
+        xyz = xyz / np.maximum(np.linalg.norm(xyz, axis=-1, keepdims=True), 1e-30)
+        w = np.where(tangents[..., 3:] < 0, -1.0, 1.0)
+        tangents = jnp.asarray(np.concatenate([xyz, w], -1), jnp.float32)
     return Mesh(positions=jnp.asarray(pos), faces=jnp.asarray(faces),
-                uv=None if uv is None else jnp.asarray(uv), normals=jnp.asarray(n))
+                uv=None if uv is None else jnp.asarray(uv), normals=jnp.asarray(n),
+                tangents=tangents, tangent_source=None if tangents is None else "file")
 
 
 def _load_scene(p: Path, ext: str) -> trimesh.Scene:
@@ -228,7 +243,7 @@ def _concatenate_scene(scene: trimesh.Scene, src: str):
         warnings.warn(f"{src}: ignored {skipped} geometries without triangles (points or "
                       f"lines)", JaxnmWarning, stacklevel=3)
 
-    pos, faces, uvs, nrm, has_n, offset = [], [], [], [], [], 0
+    pos, faces, uvs, nrm, has_n, tans, offset = [], [], [], [], [], [], 0
     for geom, t in parts:
         # trimesh computes vertex normals lazily and caches them under the same key
         # as the normals it was given by the loader, so the file had normals iff the
@@ -246,6 +261,12 @@ def _concatenate_scene(scene: trimesh.Scene, src: str):
                 raise ValueError(f"{src}: {uv.shape[0]} texture coordinates for {len(v)} "
                                  f"vertices")
             uv = uv[:, :2]
+        tan = getattr(geom, "vertex_attributes", {}).get("_TANGENT")
+        if tan is not None:
+            tan = np.array(tan, np.float64)
+            if tan.shape != (len(v), 4):
+                raise ValueError(f"{src}: TANGENT must be one VEC4 per vertex, got shape "
+                                 f"{tan.shape}")
         if not np.allclose(t, np.eye(4)):
             lin = t[:3, :3]
             det = np.linalg.det(lin)
@@ -253,8 +274,11 @@ def _concatenate_scene(scene: trimesh.Scene, src: str):
                 raise ValueError(f"{src}: a scene node has a singular transform")
             v = v @ lin.T + t[:3, 3]
             n = n @ np.linalg.inv(lin)  # inverse transpose, as row vectors
+            if tan is not None:  # a direction; a mirror flips cross(N, T), hence the sign
+                tan = np.concatenate([tan[:, :3] @ lin.T, tan[:, 3:] * np.sign(det)], 1)
             if det < 0:
                 f = f[:, ::-1]
+        tans.append(None if tan is None else tan[f])  # per face corner
         pos.append(v)
         faces.append(f + offset)
         uvs.append(uv)
@@ -262,6 +286,12 @@ def _concatenate_scene(scene: trimesh.Scene, src: str):
         has_n.append(np.full(len(v), had_normals))
         offset += len(v)
 
+    with_t = sum(x is not None for x in tans)
+    tangents = np.concatenate(tans) if with_t == len(tans) else None
+    if 0 < with_t < len(tans):
+        warnings.warn(f"{src}: only {with_t} of {len(tans)} meshes have TANGENT; ignoring "
+                      f"them all (MikkTSpace tangents are computed instead)", JaxnmWarning,
+                      stacklevel=3)
     with_uv = sum(u is not None for u in uvs)
     if with_uv == len(uvs):
         uv_all = np.concatenate(uvs)
@@ -271,7 +301,7 @@ def _concatenate_scene(scene: trimesh.Scene, src: str):
             warnings.warn(f"{src}: only {with_uv} of {len(uvs)} meshes have texture "
                           f"coordinates; ignoring them all", JaxnmWarning, stacklevel=3)
     return (np.concatenate(pos), np.concatenate(faces), uv_all, np.concatenate(nrm),
-            np.concatenate(has_n))
+            np.concatenate(has_n), tangents)
 
 
 def _resolve_normals(pos: np.ndarray, faces: np.ndarray, file_n: np.ndarray,
@@ -399,7 +429,10 @@ def _gltf_tree_for_geometry(tree: Any, src: str) -> dict:
         for mesh in tree.get("meshes", []):
             for prim in mesh.get("primitives", []):
                 prim.setdefault("material", bare)
-                for attr in ("POSITION", "NORMAL", "TEXCOORD_0"):
+                attrs = prim.get("attributes", {})
+                if "TANGENT" in attrs:  # trimesh keeps only custom ("_") attributes
+                    attrs["_TANGENT"] = attrs.pop("TANGENT")
+                for attr in ("POSITION", "NORMAL", "TEXCOORD_0", "_TANGENT"):
                     if attr in prim.get("attributes", {}):
                         ctype = accessors[prim["attributes"][attr]].get("componentType")
                         if ctype != _GLTF_FLOAT:

@@ -664,3 +664,78 @@ def test_load_json(tmp_path):
         load_json(_write(tmp_path / "list.json", "[1, 2]"))
     with pytest.raises(FileNotFoundError, match="none.json"):
         load_json(tmp_path / "none.json")
+
+
+def _gltf_quad_with_tangents(tmp_path, tangent):
+    """A unit quad (2 triangles) in z = 0 with NORMAL, TEXCOORD_0 and one TANGENT for all four
+    vertices, as a self-contained .gltf (base64 buffer)."""
+    import base64
+    import json as _json
+
+    pos = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32)
+    nrm = np.tile(np.float32([0, 0, 1]), (4, 1))
+    uv = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], np.float32)  # glTF: top-left origin
+    tan = np.tile(np.asarray(tangent, np.float32), (4, 1))
+    idx = np.array([0, 1, 2, 0, 2, 3], np.uint16)
+    blob, views, acc = b"", [], []
+    for a, kind, ctype in ((pos, "VEC3", 5126), (nrm, "VEC3", 5126), (uv, "VEC2", 5126),
+                           (tan, "VEC4", 5126), (idx, "SCALAR", 5123)):
+        data = a.tobytes()
+        views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": len(data)})
+        blob += data + b"\0" * (-len(data) % 4)
+        entry = {"bufferView": len(views) - 1, "componentType": ctype, "count": len(a),
+                 "type": kind}
+        if a is pos:
+            entry.update(min=[0, 0, 0], max=[1, 1, 0])
+        acc.append(entry)
+    tree = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+            "nodes": [{"mesh": 0}],
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1,
+                                                       "TEXCOORD_0": 2, "TANGENT": 3},
+                                        "indices": 4}]}],
+            "buffers": [{"byteLength": len(blob), "uri": "data:application/octet-stream;base64,"
+                         + base64.b64encode(blob).decode()}],
+            "bufferViews": views, "accessors": acc}
+    path = tmp_path / "quad.gltf"
+    path.write_text(_json.dumps(tree))
+    return path
+
+
+def test_gltf_tangent_attribute_is_used_as_the_vertex_frame(tmp_path):
+    """A glTF TANGENT (here rotated 30 deg from dp/du, left-handed) becomes the mesh's
+    per-corner tangents and the "vertex" frame decodes with it; the scene key
+    tangents="mikktspace" recomputes them instead."""
+    import json as _json
+
+    import jaxnm
+    from jaxnm.config import load_scene
+
+    c, s = np.cos(np.radians(30)), np.sin(np.radians(30))
+    path = _gltf_quad_with_tangents(tmp_path, [c, s, 0.0, -1.0])
+    mesh = load_mesh(path)
+    assert mesh.tangent_source == "file" and mesh.tangents.shape == (2, 3, 4)
+    np.testing.assert_allclose(np.asarray(mesh.tangents), np.tile([c, s, 0, -1], (2, 3, 1)),
+                               atol=1e-6)
+    scene = {"mesh": "quad.gltf", "width": 24, "height": 24, "frame": "vertex",
+             "camera": {"eye": [0.5, 0.5, 2], "target": [0.5, 0.5, 0], "up": [0, 1, 0]}}
+    (tmp_path / "s.json").write_text(_json.dumps(scene))
+    (tmp_path / "m.json").write_text(_json.dumps({**scene, "tangents": "mikktspace"}))
+    out = {}
+    for name in ("s", "m"):
+        sc = load_scene(tmp_path / f"{name}.json")
+        out[name] = (sc.mesh.tangent_source,
+                     jaxnm.render(sc, outputs=("tangent", "bitangent", "mask")))
+    src, o = out["s"]
+    m = np.asarray(o["mask"])[..., 0] > 0
+    assert src == "file"
+    np.testing.assert_allclose(np.asarray(o["tangent"])[m], np.tile([c, s, 0], (m.sum(), 1)),
+                               atol=1e-5)
+    # B = w cross(N, T) with w = -1
+    np.testing.assert_allclose(np.asarray(o["bitangent"])[m],
+                               np.tile([s, -c, 0], (m.sum(), 1)), atol=1e-5)
+    src, o = out["m"]
+    assert src == "mikktspace"  # dp/du = +x, and uv (after the glTF flip) is right-handed
+    np.testing.assert_allclose(np.asarray(o["tangent"])[m], np.tile([1, 0, 0], (m.sum(), 1)),
+                               atol=1e-5)
+    np.testing.assert_allclose(np.asarray(o["bitangent"])[m], np.tile([0, 1, 0], (m.sum(), 1)),
+                               atol=1e-5)
