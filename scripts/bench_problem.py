@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxnm
+from jaxnm import fit as F
 from jaxnm import procedural
 from jaxnm.maps import height_to_normal_map
 from jaxnm.scene import Scene
@@ -182,12 +183,10 @@ def render_color(sc: Scene, texels) -> jax.Array:
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Per-texel angle in degrees, float64 atan2(|a x b|, a . b)."""
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, -1)))
+    """Per-texel angle in degrees (float64 atan2, `jaxnm.fit.angular_error`)."""
+    return F.angular_error(a, b)
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    """Full-image PSNR with peak 1 (linear values)."""
-    mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
-    return math.inf if mse == 0 else 10 * math.log10(1.0 / mse)
+    """Full-image PSNR with peak 1 (linear values), `jaxnm.fit.psnr`."""
+    return F.psnr(np.asarray(a), np.asarray(b), peak=1.0)

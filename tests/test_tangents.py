@@ -6,8 +6,10 @@ turns a missing Blender into a failure)."""
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,14 +21,16 @@ from jaxnm.tangents import mikktspace_tangents
 HERE = Path(__file__).resolve().parent
 
 
-def blender_python() -> str | None:
-    """The Python that can import bpy: $JAXNM_BLENDER_PYTHON or .venv-blender/bin/python."""
-    cand = os.environ.get("JAXNM_BLENDER_PYTHON") or str(HERE.parent / ".venv-blender" / "bin"
-                                                         / "python")
-    return cand if Path(cand).exists() else None
+def _cases_module():
+    spec = importlib.util.spec_from_file_location(
+        "blender_bake_cases", HERE.parent / "scripts" / "blender_bake_cases.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["blender_bake_cases"] = mod
+    spec.loader.exec_module(mod)
+    return mod
 
 
-BLENDER = blender_python()
+BLENDER = _cases_module().blender_python()  # $JAXNM_BLENDER_PYTHON or .venv-blender
 needs_blender = pytest.mark.skipif(
     BLENDER is None and os.environ.get("JAXNM_REQUIRE_BLENDER") != "1",
     reason="no Blender Python (set JAXNM_BLENDER_PYTHON or make .venv-blender with bpy)")
