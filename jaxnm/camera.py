@@ -31,8 +31,10 @@ class Camera:
     - `view`: (4, 4) world-to-eye matrix.
     - `projection`: (4, 4) eye-to-clip matrix (OpenGL clip space).
     - `eye`: (3,) camera position in world space, ``inverse(view) @ [0, 0, 0, 1]``,
-      kept separately (computed in float64) so that camera-relative positions
-      stay accurate for geometry far from the origin.
+      kept separately so that camera-relative positions stay accurate for
+      geometry far from the origin: `from_matrices` stores it as a float64
+      NumPy array (JAX reads it as float32; `jaxnm.render` subtracts it from
+      the model's positions in float64 on the host).
     """
 
     view: Array
@@ -53,7 +55,7 @@ class Camera:
         return Camera(
             view=jnp.asarray(view64, jnp.float32),
             projection=jnp.asarray(proj64, jnp.float32),
-            eye=jnp.asarray(eye, jnp.float32),
+            eye=np.asarray(eye, np.float64),
         )
 
     @staticmethod

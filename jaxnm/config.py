@@ -376,11 +376,7 @@ def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scen
             raise _rewrap(e, f"{where}'mesh': ") from None
     else:
         mesh = io.load_mesh(base / mesh_ref)
-    if model is not None:
-        try:
-            mesh = mesh.transformed(model)
-        except ValueError as e:
-            raise _rewrap(e, f"{where}'model': ") from None
+
     if options["frame"] == "vertex" or tangent_mode == "mikktspace":
         if tangent_mode == "mikktspace" or mesh.tangents is None:
             if mesh.uv is None or mesh.normals is None:
@@ -392,10 +388,11 @@ def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scen
     if data.get("height_map") is not None:
         nm, nm_opts = load_height_map(data["height_map"], base_dir=base, where=where)
     albedo = _albedo(data.get("albedo", [0.8, 0.8, 0.8]), base, where)
+    # the model stays a float64 matrix: render composes it with the camera in float64
     return validate_scene(Scene(
         mesh=mesh, camera=camera, width=width, height=height, normal_map=nm,
         normal_map_options=nm_opts, albedo=albedo, lights=lights, material=material,
-        shading=shading, source=source, **options))
+        model=model, shading=shading, source=source, **options))
 
 
 # --------------------------------------------------------------------------------------

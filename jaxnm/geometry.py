@@ -85,7 +85,7 @@ class Mesh:
         if abs(np.linalg.det(lin)) < 1e-12:
             raise ValueError("model matrix is singular")
         pos = jnp.matmul(jnp.asarray(self.positions), jnp.asarray(lin.T, jnp.float32),
-                         precision=HIGHEST) + jnp.asarray(m[:3, 3], jnp.float32)
+                         precision=HIGHEST) + jnp.asarray(m[None, :3, 3], jnp.float32)
         normals = self.normals
         faces = self.faces
         if normals is not None:

@@ -22,6 +22,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from . import frames as _frames
@@ -37,7 +38,7 @@ from .shading import Lights, Material, check_shading_model, shade
 from .textures import NormalMapOptions
 
 __all__ = ["OUTPUTS", "GBuffer", "RenderOptions", "build_gbuffer", "shade_gbuffer", "render",
-           "with_tangents_if_needed"]
+           "with_tangents_if_needed", "camera_relative"]
 
 #: Every output `render` can produce (image layout, row 0 = top, float32 (H, W, C)).
 OUTPUTS = ("mask", "triangle_id", "depth", "front_facing", "position", "view", "uv", "normal",
@@ -311,9 +312,61 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     opts = RenderOptions.of(scene, outputs=outputs, derivatives=derivatives, frame=frame)
     scene = with_tangents_if_needed(scene, opts)
     check_mesh(scene.mesh, opts, scene.source)
+    scene, origin = camera_relative(scene)
     nm = None if scene.normal_map is None else jnp.asarray(scene.normal_map)
     return _render(scene.mesh, scene.camera, nm, jnp.asarray(scene.albedo), scene.lights,
-                   scene.material, opts=opts)
+                   scene.material, jnp.asarray(origin, jnp.float32), opts=opts)
+
+
+def _concrete(*xs) -> bool:
+    return all(not isinstance(x, jax.core.Tracer)
+               for x in jax.tree_util.tree_leaves(xs))
+
+
+def camera_relative(scene: Scene) -> tuple[Scene, Array]:
+    """``scene`` with its model matrix applied and everything moved so that the camera sits
+    at the origin, and that origin (the camera's world position).
+
+    The model's translation and the eye are subtracted in float64 on the host before
+    anything is rounded to float32 (what engines call camera-relative rendering), so a mesh
+    far from the world origin keeps its precision: its float32 positions are small numbers
+    near the camera. Point lights move with it; directional lights, normals and the view
+    rotation do not change. When the camera or the model is traced (``jax.grad`` with
+    respect to them), the same is done in float32 with JAX.
+    """
+    cam, model = scene.camera, scene.model
+    if not _concrete(cam.eye, cam.view, model):  # traced: JAX, float32
+        eye = jnp.asarray(cam.eye, jnp.float32)
+        mesh = scene.mesh
+        if model is not None:
+            m = jnp.asarray(model, jnp.float32)
+            pos = jnp.matmul(mesh.positions, m[:3, :3].T, precision=jax.lax.Precision.HIGHEST)
+            nrm = None if mesh.normals is None else safe_normalize(jnp.matmul(
+                mesh.normals, jnp.linalg.inv(m[:3, :3]), precision=jax.lax.Precision.HIGHEST))
+            mesh = dataclasses.replace(mesh, positions=pos + m[None, :3, 3], normals=nrm)
+        return dataclasses.replace(scene, mesh=mesh, model=None), jnp.zeros(3)
+    eye = np.asarray(cam.eye, np.float64)
+    m = np.eye(4) if model is None else np.asarray(model, np.float64)
+    rel = m.copy()
+    rel[:3, 3] = m[:3, 3] - eye  # large model offset and large eye cancel in float64 here
+    if np.array_equal(rel[:3, :3], np.eye(3)):
+        mesh = dataclasses.replace(scene.mesh, positions=scene.mesh.positions + jnp.asarray(
+            rel[None, :3, 3], jnp.float32))
+    else:
+        mesh = scene.mesh.transformed(rel)
+    view = np.asarray(cam.view, np.float64).copy()
+    view[:3, 3] = 0.0
+    camera = Camera(view=jnp.asarray(view, jnp.float32), projection=cam.projection,
+                    eye=np.zeros(3))
+    lights = scene.lights
+    if lights is not None and lights.point is not None:
+        p = lights.point
+        shift = (np.asarray(p.position, np.float64) - eye if _concrete(p.position)
+                 else p.position - jnp.asarray(eye, jnp.float32).reshape((1,) * (
+                     jnp.ndim(p.position) - 1) + (3,)))
+        lights = dataclasses.replace(lights, point=dataclasses.replace(
+            p, position=jnp.asarray(shift, jnp.float32)))
+    return dataclasses.replace(scene, mesh=mesh, camera=camera, lights=lights, model=None), eye
 
 
 def with_tangents_if_needed(scene: Scene, opts: RenderOptions) -> Scene:
@@ -329,9 +382,10 @@ def with_tangents_if_needed(scene: Scene, opts: RenderOptions) -> Scene:
 
 
 @functools.partial(jax.jit, static_argnames=("opts",))
-def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, *,
+def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, origin, *,
             opts: RenderOptions) -> dict[str, Array]:
-    """`render` as one XLA program (one compilation per scene shape and options)."""
+    """`render` as one XLA program (one compilation per scene shape and options); the scene
+    is camera-relative (`camera_relative`), ``origin`` the camera's world position."""
     gb = build_gbuffer(mesh, camera, albedo, opts=opts)
     res = {}
     if set(opts.outputs) & _NEEDS_FRAME:
@@ -341,7 +395,7 @@ def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, *,
         "triangle_id": lambda: gb.triangle_id,
         "depth": lambda: gb.depth,
         "front_facing": lambda: gb.front_facing,
-        "position": lambda: gb.position,
+        "position": lambda: jnp.where(gb.mask[..., None], gb.position + origin[None, None], 0.0),
         "view": lambda: gb.view.value,
         "uv": lambda: gb.uv.value,
         "normal": lambda: jnp.where(gb.mask[..., None], gb.normal, 0.0),

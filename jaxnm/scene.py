@@ -52,6 +52,11 @@ class Scene:
     - `albedo`: linear RGB, a constant (3,) or a texture (H, W, 3).
     - `lights`: `Lights`; `material`: a `Material`. None means the defaults
       (`default_lights`, `default_material`), filled in by `validate_scene`.
+    - `model`: (4, 4) affine object-to-world matrix of the mesh (column vectors),
+      or None for the identity. Keep it float64 (a NumPy array) for geometry far
+      from the origin: `jaxnm.render` composes it with the camera in float64
+      and renders camera-relative, so a mesh a million units out renders like
+      one at the origin.
 
     **Options** (static, checked when the scene is constructed):
     - `width`, `height`: image size in pixels.
@@ -71,6 +76,7 @@ class Scene:
         default_factory=lambda: np.array([0.8, 0.8, 0.8], np.float32))
     lights: Lights | None = None
     material: Material | None = None
+    model: Array | None = None
     width: int = _static(512)
     height: int = _static(512)
     normal_map_options: NormalMapOptions = _static(NormalMapOptions())
@@ -155,6 +161,16 @@ def validate_scene(scene: Scene) -> Scene:
         if opts.space in ("tangent", "derivative") and m.uv is None:
             raise ValueError(f"{src}: the scene has a {opts.space}-space map but the mesh has "
                              "no texture coordinates (uv)")
+    if scene.model is not None:
+        if jnp.shape(scene.model) != (4, 4):
+            raise ValueError(f"{src}: the model matrix must be 4x4, got {jnp.shape(scene.model)}")
+        if _is_concrete(scene.model):
+            m64 = np.asarray(scene.model, np.float64)
+            if not np.all(np.isfinite(m64)) or not np.allclose(m64[3], [0, 0, 0, 1]):
+                raise ValueError(f"{src}: the model matrix must be finite and affine (last row "
+                                 "0, 0, 0, 1)")
+            if abs(np.linalg.det(m64[:3, :3])) < 1e-12:
+                raise ValueError(f"{src}: the model matrix is singular")
     a_shape = jnp.shape(scene.albedo)
     if a_shape != (3,) and not (len(a_shape) == 3 and a_shape[2] == 3):
         raise ValueError(f"{src}: the albedo must be an RGB constant (3,) or an RGB texture "
@@ -177,8 +193,14 @@ def _check_near_plane(scene: Scene) -> None:
     leaves = jax.tree_util.tree_leaves((scene.mesh.positions, scene.camera))
     if not all(_is_concrete(x) for x in leaves):
         return
+    if scene.model is not None and not _is_concrete(scene.model):
+        return
     cam = scene.camera  # float64 NumPy, as `jaxnm.camera.to_clip` (no traced op inside jit)
-    eye_space = ((np.asarray(scene.mesh.positions, np.float64) - np.asarray(cam.eye, np.float64))
+    world = np.asarray(scene.mesh.positions, np.float64)
+    if scene.model is not None:
+        m64 = np.asarray(scene.model, np.float64)
+        world = world @ m64[:3, :3].T + m64[:3, 3]
+    eye_space = ((world - np.asarray(cam.eye, np.float64))
                  @ np.asarray(cam.view, np.float64)[:3, :3].T)
     proj = np.asarray(cam.projection, np.float64)
     clip = eye_space @ proj[:, :3].T + proj[None, :, 3]

@@ -1,0 +1,91 @@
+"""Hard cases: the renderer stays accurate and finite where float32 usually gives up.
+
+Far from the origin: a scene's model matrix and camera are composed in float64 and the
+scene is rendered camera-relative (`jaxnm.render.camera_relative`), so a mesh a million
+units out renders like the same mesh at the origin; baking the model into float32 world
+positions (what the renderer did before) turns its normals by tens of degrees there.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import jaxnm
+from jaxnm.camera import Camera, look_at, perspective
+from jaxnm.procedural import default_scene
+
+
+def _angle(a, b):
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, -1)))
+
+
+def _translated(scene, t, *, bake: bool):
+    """``scene`` moved by ``t``: the mesh through the model matrix (or baked into float32
+    world positions), the camera and the point light with it."""
+    model = np.eye(4)
+    model[:3, 3] = t
+    cam = Camera.from_matrices(look_at(np.array([0.0, -2.35, 1.75]) + t, t + [0.0, 0.0, -0.1],
+                                       (0, 0, 1)), perspective(45.0, 1.0, 0.1, 50.0))
+    p = scene.lights.point
+    lights = dataclasses.replace(scene.lights, point=dataclasses.replace(
+        p, position=np.asarray(p.position, np.float64) + t))
+    if bake:
+        return scene.replace(mesh=scene.mesh.transformed(model), camera=cam, lights=lights)
+    return scene.replace(model=model, camera=cam, lights=lights)
+
+
+@pytest.fixture(scope="module")
+def at_origin():
+    scene = default_scene(width=96, height=96)
+    return scene, jaxnm.render(scene, outputs=("perturbed_normal", "color", "mask",
+                                               "position"))
+
+
+@pytest.mark.parametrize("offset", [1e3, 1e6, 1e7])
+def test_far_from_the_origin_renders_like_the_origin(at_origin, offset):
+    scene, ref = at_origin
+    t = np.array([1.0, -0.5, 0.25]) * offset
+    out = jaxnm.render(_translated(scene, t, bake=False),
+                       outputs=("perturbed_normal", "color", "mask", "position"))
+    np.testing.assert_array_equal(np.asarray(out["mask"]), np.asarray(ref["mask"]))
+    m = np.asarray(ref["mask"])[..., 0] > 0
+    err = _angle(out["perturbed_normal"], ref["perturbed_normal"])[m]
+    assert err.max() < 0.01, (offset, float(err.max()))
+    np.testing.assert_allclose(np.asarray(out["color"]), np.asarray(ref["color"]), atol=1e-5)
+    # world positions come back in world space (float32 at that magnitude)
+    np.testing.assert_allclose(np.asarray(out["position"])[m], np.asarray(ref["position"])[m]
+                               + t, rtol=1e-6, atol=1e-6 * offset)
+
+
+def test_float32_world_positions_lose_the_normal_far_out(at_origin):
+    """What camera-relative rendering avoids: the same scene with the model baked into
+    float32 world positions a million units out (float32 spacing there: 0.06)."""
+    scene, ref = at_origin
+    out = jaxnm.render(_translated(scene, np.array([1e6, -5e5, 2.5e5]), bake=True),
+                       outputs=("perturbed_normal", "mask"))
+    m = (np.asarray(ref["mask"])[..., 0] > 0) & (np.asarray(out["mask"])[..., 0] > 0)
+    assert _angle(out["perturbed_normal"], ref["perturbed_normal"])[m].mean() > 5.0
+
+
+def test_a_rotating_mirroring_model_far_out(at_origin):
+    """A model that rotates, scales and mirrors as well as translates by 1e6: equal to the
+    same linear map applied at the origin (the winding and the tangent frame follow the
+    mirror)."""
+    scene, _ = at_origin
+    c, s = np.cos(0.5), np.sin(0.5)
+    lin = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.diag([-1.2, 1.0, 0.9])
+    near = np.eye(4)
+    near[:3, :3] = lin
+    ref = jaxnm.render(scene.replace(mesh=scene.mesh.transformed(near)),
+                       outputs=("perturbed_normal", "mask"))
+    t = np.array([1e6, -5e5, 2.5e5])
+    far = _translated(scene, t, bake=False)
+    model = np.asarray(far.model).copy()
+    model[:3, :3] = lin
+    out = jaxnm.render(far.replace(model=model), outputs=("perturbed_normal", "mask"))
+    np.testing.assert_array_equal(np.asarray(out["mask"]), np.asarray(ref["mask"]))
+    m = np.asarray(ref["mask"])[..., 0] > 0
+    assert m.sum() > 1000
+    assert _angle(out["perturbed_normal"], ref["perturbed_normal"])[m].max() < 0.01
