@@ -68,8 +68,10 @@ class FitProblem:
 
 def problem_from_scene(scene, targets, map_size, *, source: str | None = None) -> FitProblem:
     """The `FitProblem` of fitting ``scene``'s normal map (its mesh, material, albedo, frame,
-    derivative mode and map sampling options) to ``targets``."""
-    return FitProblem(mesh=scene.mesh, material=scene.material, targets=tuple(targets),
+    derivative mode and map sampling options) to ``targets``. The scene's model matrix is
+    applied to the mesh (the fit works in world space)."""
+    mesh = scene.mesh if scene.model is None else scene.mesh.transformed(scene.model)
+    return FitProblem(mesh=mesh, material=scene.material, targets=tuple(targets),
                       map_size=tuple(int(s) for s in map_size), albedo=scene.albedo,
                       shading=scene.shading, frame=scene.frame, derivatives=scene.derivatives,
                       double_sided=scene.double_sided,
