@@ -12,6 +12,10 @@ outside the image.
   aligned to even window coordinates. ``dFdx`` = right minus left pixel of the
   quad *in the pixel's own row*; ``dFdy`` = upper minus lower pixel *in the
   pixel's own column* (window y points up, so "upper" is the image row above).
+  One exception: where the quad partner's centre sees the triangle's plane
+  behind the camera (the partner is beyond the plane's horizon, which happens
+  at grazing views near the horizon), a GPU's difference is meaningless (the
+  interpolant passes through infinity) and the analytic derivative is used.
 - ``"coarse"``: GLSL ``dFdxCoarse``/``dFdyCoarse``: one value per quad, taken
   from the row and column named by `COARSE_REFERENCE`.
 - ``"analytic"``: the exact derivative of the perspective-correct interpolant
@@ -203,8 +207,15 @@ def barycentrics(frags: Fragments, *, derivatives: str | None = "fine") -> Baryc
             dxp = dyp = jnp.ones_like(ox)
         gx = a * sx - ex * a_s
         gy = b * sy - ey * b_s
-        ddx = safe_div(gx, sx * (sx + dxp * a_s))
-        ddy = safe_div(gy, sy * (sy + dyp * b_s))
+        # S at the quad partner; where it has the other sign (or vanishes) the partner's
+        # centre sees the triangle's plane behind the camera (beyond its horizon): there a
+        # GPU's difference is meaningless (the interpolant wraps through infinity), so the
+        # analytic derivative at the reference is used instead
+        px, py = sx + dxp * a_s, sy + dyp * b_s
+        px = jnp.where(px * sx > 0, px, sx)
+        py = jnp.where(py * sy > 0, py, sy)
+        ddx = safe_div(gx, sx * px)
+        ddy = safe_div(gy, sy * py)
     ddx = jnp.where(m, ddx, 0.0)
     ddy = jnp.where(m, ddy, 0.0)
     return Barycentrics(value, ddx, ddy, derivatives)

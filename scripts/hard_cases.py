@@ -1,0 +1,210 @@
+"""Hard cases: worst-pixel error against an exact reference, and finite gradients.
+
+    python scripts/hard_cases.py [--out hard_cases_out] [--size 64]
+
+Every case renders a plane (or a closed mesh) whose uv mapping is affine, with a constant,
+clearly tilted normal map value ``m``. On a plane the per-pixel cotangent frame is exact
+whatever the view (its screen-space derivatives are scaled alike), so the perturbed normal
+has a closed form: ``normalize(T m.x + B m.y + N m.z)`` with ``T, B`` the world gradients
+of ``u`` and ``v`` scaled so that the longer is unit (Schüler's normalisation), computed
+here in float64. Each case reports the worst pixel's angle to it, the tolerance it must
+meet, and whether the image, the gradients with respect to the map, the vertex positions
+and the camera, and every output are finite. Writes ``hard_cases.json``, ``hard_cases.md``
+and one PNG per case (the shaded image) into ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxnm
+from jaxnm.camera import Camera, look_at, perspective
+from jaxnm.scene import Scene
+from jaxnm.textures import NormalMapOptions
+
+MAP_VALUE = np.array([0.35, -0.25, 0.9])  # decoded tangent-space vector (clearly tilted)
+#: Worst-pixel angle to the exact perturbed normal every plane case must meet (degrees).
+TOLERANCE = 1e-3
+
+
+def _texels(n: int = 8) -> np.ndarray:
+    """A constant unsigned map storing `MAP_VALUE` (normalised)."""
+    m = MAP_VALUE / np.linalg.norm(MAP_VALUE)
+    return np.broadcast_to(((m + 1) / 2).astype(np.float32), (n, n, 3)).copy()
+
+
+def plane(segments: int = 2, size: float = 2.0, uv_matrix=((0.5, 0.0), (0.0, 0.5)),
+          uv_offset=(0.5, 0.5), z: float = 0.0) -> tuple[jaxnm.Mesh, np.ndarray]:
+    """A square in the plane z = ``z`` facing +z, uv = uv_matrix @ (x, y) + uv_offset."""
+    t = np.linspace(-size / 2, size / 2, segments + 1)
+    x, y = np.meshgrid(t, t, indexing="xy")
+    pos = np.stack([x.ravel(), y.ravel(), np.full(x.size, z)], 1)
+    a = np.asarray(uv_matrix, np.float64)
+    uv = pos[:, :2] @ a.T + np.asarray(uv_offset)
+    n = segments + 1
+    i, j = np.meshgrid(np.arange(segments), np.arange(segments), indexing="xy")
+    k = (j * n + i).ravel()
+    faces = np.concatenate([np.stack([k, k + 1, k + n + 1], 1),
+                            np.stack([k, k + n + 1, k + n], 1)])
+    mesh = jaxnm.Mesh(jnp.asarray(pos, jnp.float32), jnp.asarray(faces, jnp.int32),
+                      jnp.asarray(uv, jnp.float32),
+                      jnp.asarray(np.tile([0.0, 0.0, 1.0], (len(pos), 1)), jnp.float32))
+    return mesh, a
+
+
+def plane_reference(uv_matrix: np.ndarray) -> np.ndarray:
+    """The exact perturbed normal on a z-plane with the affine uv ``uv_matrix`` (float64)."""
+    gu = np.array([uv_matrix[0, 0], uv_matrix[0, 1], 0.0])
+    gv = np.array([uv_matrix[1, 0], uv_matrix[1, 1], 0.0])
+    s = math.sqrt(max(gu @ gu, gv @ gv))
+    m = MAP_VALUE / np.linalg.norm(MAP_VALUE)
+    v = gu / s * m[0] + gv / s * m[1] + np.array([0.0, 0.0, 1.0]) * m[2]
+    return v / np.linalg.norm(v)
+
+
+@dataclasses.dataclass
+class Case:
+    name: str
+    scene: Scene
+    reference: np.ndarray | None  # (3,) the exact perturbed normal, or None: finite only
+    tolerance_deg: float | None
+    note: str = ""
+
+
+def _scene(mesh, cam, size, **kw) -> Scene:
+    return Scene(mesh=mesh, camera=cam, width=size, height=size,
+                 normal_map=jnp.asarray(_texels()),
+                 normal_map_options=NormalMapOptions(filter="nearest"),
+                 albedo=np.array([0.8, 0.7, 0.6], np.float32), source="<hard case>",
+                 **kw).replace()
+
+
+def _look(eye, target, up=(0, 1, 0), fov=50.0, near=0.1, far=100.0) -> Camera:
+    return Camera.from_matrices(look_at(eye, target, up), perspective(fov, 1.0, near, far))
+
+
+def cases(size: int = 64) -> list[Case]:
+    out = []
+    mesh, a = plane()
+    ref = plane_reference(a)
+    for deg in (85.0, 89.0, 89.9, 89.99):  # angle between the view and the normal
+        r = math.radians(deg)
+        eye = (0.0, -3.0 * math.sin(r), 3.0 * math.cos(r))
+        big, _ = plane(size=200.0, uv_matrix=a, uv_offset=(0.5, 0.5))
+        out.append(Case(f"grazing view {deg} deg", _scene(big, _look(eye, (0, 0, 0), (0, 0, 1),
+                                                                       fov=20.0), size),
+                        ref, TOLERANCE))
+    for h in (1e-2, 1e-4):  # extreme close-up: the camera h above the surface
+        cam = _look((0.1, 0.05, h), (0.1, 0.05, 0.0), fov=60.0, near=h * 0.1, far=10.0)
+        out.append(Case(f"close-up {h:g} above the surface", _scene(mesh, cam, size), ref,
+                        TOLERANCE))
+    sheared = np.array([[0.5, 0.5 * math.tan(math.radians(80))], [0.0, 0.5]])
+    m2, _ = plane(uv_matrix=sheared, uv_offset=(0.0, 0.0))
+    out.append(Case("uv sheared 80 deg", _scene(m2, _look((0.3, -0.2, 2.5), (0, 0, 0)), size),
+                    plane_reference(sheared), TOLERANCE))
+    mirrored = np.array([[-0.5, 0.0], [0.0, 0.5]])
+    m3, _ = plane(uv_matrix=mirrored)
+    out.append(Case("uv mirrored", _scene(m3, _look((0.3, -0.2, 2.5), (0, 0, 0)), size),
+                    plane_reference(mirrored), TOLERANCE))
+    stretched = np.array([[0.5, 0.0], [0.0, 0.5e-3]])  # 1000:1
+    m4, _ = plane(uv_matrix=stretched)
+    out.append(Case("uv stretched 1000:1", _scene(m4, _look((0.3, -0.2, 2.5), (0, 0, 0)), size),
+                    plane_reference(stretched), TOLERANCE))
+    tiny, _ = plane(segments=160, uv_matrix=a)  # triangles of about 0.1 pixel
+    out.append(Case("sub-pixel triangles", _scene(tiny, _look((0.0, 0.0, 30.0), (0, 0, 0),
+                                                               fov=8.0), size), ref, TOLERANCE))
+    cross, _ = plane(size=40.0, uv_matrix=a)  # reaches behind the camera
+    out.append(Case("triangles crossing the near plane",
+                    _scene(cross, _look((0.0, -0.5, 0.3), (0.0, 3.0, 0.0), (0, 0, 1)), size),
+                    ref, TOLERANCE))
+    # finite only: degenerate uvs, silhouettes, a camera inside a closed mesh
+    deg, _ = plane(uv_matrix=np.zeros((2, 2)), uv_offset=(0.3, 0.6))
+    out.append(Case("constant uv (no frame)", _scene(deg, _look((0.3, -0.2, 2.5), (0, 0, 0)),
+                                                     size),
+                    np.array([0.0, 0.0, 1.0]), 1e-3, "falls back to the unperturbed normal"))
+    sphere = jaxnm.procedural.uv_sphere(1.0, 24, 12)
+    out.append(Case("silhouettes (sphere)", _scene(sphere, _look((0.0, -3.0, 0.5), (0, 0, 0),
+                                                                   (0, 0, 1)), size),
+                    None, None, "finite values and gradients"))
+    box = jaxnm.procedural.uv_sphere(3.0, 16, 8)
+    out.append(Case("camera inside a closed mesh", _scene(box, _look((0.2, 0.1, 0.0),
+                                                                      (1.0, 0.5, 0.3)), size,
+                                                          double_sided=True),
+                    None, None, "finite values and gradients"))
+    return out
+
+
+def run_case(case: Case) -> dict:
+    scene = case.scene
+    out = jaxnm.render(scene, outputs=("color", "perturbed_normal", "mask", "tangent",
+                                       "bitangent", "dpdx", "duvdy"))
+    mask = np.asarray(out["mask"])[..., 0] > 0
+    finite = all(bool(np.isfinite(np.asarray(v)).all()) for v in out.values())
+    rec = {"case": case.name, "covered_pixels": int(mask.sum()), "finite_outputs": finite,
+           "note": case.note}
+    if case.reference is not None and mask.any():
+        n = np.asarray(out["perturbed_normal"], np.float64)[mask]
+        ref = np.broadcast_to(case.reference, n.shape)
+        ang = np.degrees(np.arctan2(np.linalg.norm(np.cross(n, ref), axis=-1),
+                                    np.sum(n * ref, -1)))
+        rec.update(worst_deg=float(ang.max()), mean_deg=float(ang.mean()),
+                   tolerance_deg=case.tolerance_deg)
+
+    def loss(nm, positions, cam):
+        sc = scene.replace(normal_map=nm, mesh=dataclasses.replace(scene.mesh,
+                                                                   positions=positions),
+                           camera=cam)
+        return jnp.sum(jaxnm.render(sc)["color"] * jnp.linspace(0.5, 1.5, 3)[None, None])
+
+    grads = jax.grad(loss, argnums=(0, 1, 2))(jnp.asarray(scene.normal_map),
+                                              scene.mesh.positions, scene.camera)
+    rec["finite_gradients"] = all(bool(np.isfinite(np.asarray(g)).all())
+                                  for g in jax.tree_util.tree_leaves(grads))
+    ok = finite and rec["finite_gradients"] and rec["covered_pixels"] > 0
+    if "worst_deg" in rec:
+        ok &= rec["worst_deg"] <= case.tolerance_deg
+    rec["pass"] = bool(ok)
+    rec["image"] = np.asarray(jaxnm.shading.to_display(out["color"]))
+    return rec
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="hard_cases_out")
+    ap.add_argument("--size", type=int, default=64)
+    args = ap.parse_args(argv)
+    from jaxnm.io import save_png
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for k, case in enumerate(cases(args.size)):
+        rec = run_case(case)
+        save_png(out / f"case_{k:02d}.png", rec.pop("image"))
+        rec["image"] = f"case_{k:02d}.png"
+        rows.append(rec)
+        print(json.dumps(rec), flush=True)
+    (out / "hard_cases.json").write_text(json.dumps(rows, indent=1) + "\n")
+    md = ["| case | worst error (deg) | tolerance (deg) | finite values / gradients | pass | "
+          "image |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        worst = f"{r['worst_deg']:.4f}" if "worst_deg" in r else "-"
+        tol = f"{r['tolerance_deg']:g}" if r.get("tolerance_deg") is not None else "-"
+        md.append(f"| {r['case']} | {worst} | {tol} | {r['finite_outputs']} / "
+                  f"{r['finite_gradients']} | {'yes' if r['pass'] else 'NO'} | {r['image']} |")
+    (out / "hard_cases.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+    return 0 if all(r["pass"] for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
