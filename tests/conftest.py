@@ -35,3 +35,18 @@ def pytest_configure(config):
     ok, why = gl_available()
     if not ok:
         raise pytest.UsageError(f"JAXNM_REQUIRE_GL=1 but no OpenGL 4.5 context: {why}")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_code():
+    """Drop every compiled executable after each test module. XLA's CPU backend maps each
+    executable's code into its own memory regions and never returns them while the jit
+    caches hold it; over the whole suite one process passed Linux's ``vm.max_map_count``
+    (65530 regions) and the next compile segfaulted inside LLVM. Shared fixtures are
+    module-scoped, so this costs only the recompiles of the few functions several modules
+    call."""
+    yield
+    import gc
+
+    jax.clear_caches()
+    gc.collect()
