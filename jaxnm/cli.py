@@ -22,7 +22,7 @@ __all__ = ["main"]
 
 def _add_render(sub) -> None:
     from .frames import FRAMES
-    from .interpolate import DERIVATIVE_MODES
+    from .interpolate import DERIVATIVE_MODES, PRECISIONS
     from .render import OUTPUTS
 
     p = sub.add_parser("render", help="render a scene to a PNG (and optional AOVs)",
@@ -36,6 +36,8 @@ def _add_render(sub) -> None:
                    help="comma-separated AOV names to write with --aovs (default: all)")
     p.add_argument("--derivatives", choices=DERIVATIVE_MODES, help="screen-space derivative mode")
     p.add_argument("--frame", choices=FRAMES, help="tangent frame method")
+    p.add_argument("--precision", choices=PRECISIONS,
+                   help="shader arithmetic of the frame and perturbation (float16: mediump)")
     p.add_argument("--normal-map", metavar="PATH",
                    help="use this tangent-space normal map (8/16-bit PNG, unsigned, green up; "
                    "the scene's uv origin, wrap, filter and strength)")
@@ -103,7 +105,8 @@ def _render(args) -> int:
     frame = args.frame or scene.frame
     if frame == "vertex" and scene.mesh.tangents is None and scene.mesh.uv is not None:
         scene = scene.replace(mesh=scene.mesh.with_tangents())  # MikkTSpace
-    result = render(scene, outputs=tuple(names), derivatives=args.derivatives, frame=args.frame)
+    result = render(scene, outputs=tuple(names), derivatives=args.derivatives, frame=args.frame,
+                    precision=args.precision)
     io.save_png(args.output, np.asarray(to_display(result["color"], exposure=args.exposure)),
                 bits=args.bits)
     msg = f"wrote {args.output} ({scene.width}x{scene.height}, frame {frame}"

@@ -26,6 +26,7 @@ A **scene file**::
       "material": {"model": "blinn_phong", "diffuse": [1,1,1], "specular": [0.4,0.4,0.4],
                    "shininess": 48, "ambient": [0.03,0.03,0.03]},
       "frame": "cotangent", "derivatives": "fine", "double_sided": true, "cull_back": false,
+      "precision": "float32", // the shader's arithmetic: "float16" models GLSL mediump
       "ddy": "up",            // "down": emulate HLSL's ddy (y down) in the screen-space frames
       "tangents": "auto"      // frame "vertex": the file's glTF TANGENT, else MikkTSpace;
                               // "mikktspace": always MikkTSpace
@@ -84,7 +85,7 @@ __all__ = ["load_scene", "scene_from_dict", "load_fit", "fit_from_dict", "parse_
            "SCENE_KEYS", "FIT_KEYS"]
 
 SCENE_KEYS = ("mesh", "model", "camera", "width", "height", "normal_map", "height_map",
-              "albedo", "lights", "material", "frame", "derivatives", "double_sided",
+              "albedo", "lights", "material", "frame", "derivatives", "precision", "double_sided",
               "cull_back", "shading", "ddy", "tangents")
 #: The scene key ``tangents``: ``"auto"`` uses a glTF file's TANGENT attribute where there is
 #: one (the glTF rule) and MikkTSpace otherwise; ``"mikktspace"`` always computes them.
@@ -343,6 +344,7 @@ def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scen
         raise ValueError(f"{where}'width' and 'height' must be positive, got {width}x{height}")
     options = dict(frame=_field(data, "frame", str, "cotangent", where),
                    derivatives=_field(data, "derivatives", str, "fine", where),
+                   precision=_field(data, "precision", str, "float32", where),
                    double_sided=_field(data, "double_sided", bool, True, where),
                    cull_back=_field(data, "cull_back", bool, False, where),
                    ddy=_field(data, "ddy", str, "up", where))

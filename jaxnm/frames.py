@@ -153,9 +153,32 @@ def _relative_div(T: Array, B: Array, det: Array, scale: Array) -> tuple[Array, 
     return jnp.where(ok, T / d, 0.0), jnp.where(ok, B / d, 0.0)
 
 
+def _low_precision(dtype) -> bool:
+    return jnp.dtype(dtype) in (jnp.float16, jnp.bfloat16)
+
+
+def _prescaled(dp1: Array, dp2: Array, duv1: Array, duv2: Array):
+    """``dp`` and ``duv`` each divided by their largest absolute component (constants for AD).
+
+    For the max-normalised frames only, and only in half precision: there ``T`` and ``B``
+    are products of a position and a uv difference, and for per-pixel differences (say
+    0.02 and 0.005) that product is a float16 subnormal or zero; ``T`` and ``B`` are
+    bilinear in ``(dp, duv)``, so the max-normalised frame does not change, and every
+    product stays a normal number. (float32 keeps the published arithmetic unchanged.)"""
+    def unit(a, b):
+        m = jnp.maximum(jnp.max(jnp.abs(a), -1, keepdims=True),
+                        jnp.max(jnp.abs(b), -1, keepdims=True))
+        m = jax.lax.stop_gradient(jnp.where(m > 0, m, jnp.ones_like(m)))
+        return a / m, b / m
+
+    return (*unit(dp1, dp2), *unit(duv1, duv2))
+
+
 def _cotangent_TB(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Array,
                   normalize: str) -> tuple[Array, Array]:
     """The published solution of the linear system, then the chosen normalisation."""
+    if normalize == "max" and _low_precision(dp1.dtype):
+        dp1, dp2, duv1, duv2 = _prescaled(dp1, dp2, duv1, duv2)
     dp2perp = _cross(dp2, N)
     dp1perp = _cross(N, dp1)
     T = dp2perp * duv1[..., 0:1] + dp1perp * duv2[..., 0:1]
@@ -266,6 +289,8 @@ def nonperspective_frame(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Ar
     _check_ddy_sign(ddy_sign)
     if ddy_sign == -1:
         dp2, duv2 = -dp2, -duv2
+    if normalize == "max" and _low_precision(dp1.dtype):
+        dp1, dp2, duv1, duv2 = _prescaled(dp1, dp2, duv1, duv2)
     T = dp1 * duv1[..., 0:1] + dp2 * duv2[..., 0:1]
     B = dp1 * duv1[..., 1:2] + dp2 * duv2[..., 1:2]
     if normalize == "max":

@@ -67,7 +67,10 @@ __all__ = [
     "Attribute",
     "Barycentrics",
     "DERIVATIVE_MODES",
+    "PRECISIONS",
     "check_derivatives",
+    "check_precision",
+    "at_precision",
     "COARSE_REFERENCE",
     "barycentrics",
     "interpolate",
@@ -77,6 +80,12 @@ __all__ = [
 
 #: The screen-space derivative modes (the scene key ``derivatives``, ``--derivatives``).
 DERIVATIVE_MODES = ("fine", "coarse", "analytic", "gbuffer")
+
+#: Fragment-shader arithmetic precisions (the scene key ``precision``, ``--precision``):
+#: ``float32`` is GLSL ``highp``; ``float16`` is ``mediump`` on hardware with half-precision
+#: ALUs (IEEE binary16: 11-bit significand, largest 65504); ``bfloat16`` keeps float32's
+#: range with an 8-bit significand (what some ML accelerators offer instead).
+PRECISIONS = ("float32", "float16", "bfloat16")
 
 #: ``dFdxCoarse`` is taken from the quad's lower row (window y even) and
 #: ``dFdyCoarse`` from its left column (window x even): the quad's lower-left
@@ -133,6 +142,59 @@ def check_derivatives(derivatives: str | None, *, allow_none: bool = True) -> No
     if derivatives not in DERIVATIVE_MODES:
         raise ValueError(f"unknown derivatives mode {derivatives!r}; expected one of "
                          f"{', '.join(DERIVATIVE_MODES)}")
+
+
+def check_precision(precision: str) -> None:
+    """Raise a `ValueError` unless ``precision`` is one of `PRECISIONS`."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"unknown precision {precision!r}; expected one of "
+                         f"{', '.join(PRECISIONS)}")
+
+
+def at_precision(attr: Attribute, precision: str, mask: Array, *,
+                 derivatives: str | None) -> Attribute:
+    """``attr`` as a shader running at ``precision`` sees it (a model of GLSL ``mediump``).
+
+    The rasterizer's interpolators stay float32 (fixed-function hardware); the shader
+    receives the value rounded to ``precision``, and a quad derivative is the difference,
+    in ``precision``, of the two *rounded* quad values. So the derivative of a value that
+    changes by less than its own rounding step across a pixel is 0 or one whole step: the
+    close-up noise Schüler's readers report ("the differences between pixels of the texture
+    coordinate become too small for floating point precision", 2013 comments).
+
+    - ``fine`` and ``gbuffer``: exactly that; the partner's value is this pixel's value
+      plus or minus the float32 difference (the partner is the helper pixel to the right
+      of or above a quad's left or lower pixel, and to the left or below otherwise).
+    - ``coarse``: the same construction from the pixel's own value; a GPU takes both
+      values from the quad's reference pixel, whose value differs (same step size, a
+      different sample of the rounding).
+    - ``analytic``: value and derivatives rounded (the exact reference, stored at
+      ``precision``).
+
+    Returns an `Attribute` whose arrays have ``precision``'s dtype (0 on background).
+    """
+    check_precision(precision)
+    if precision == "float32":
+        return attr
+    dt = jnp.dtype(precision)
+    v = attr.value
+    lo = v.astype(dt)
+    if attr.ddx is None:
+        return Attribute(lo)
+    if derivatives == "analytic":
+        return Attribute(lo, attr.ddx.astype(dt), attr.ddy.astype(dt))
+    height, width = mask.shape
+    first_x = (jnp.arange(width) % 2 == 0)[None, :, None]  # left pixel of its quad
+    first_y = ((height - 1 - jnp.arange(height)) % 2 == 0)[:, None, None]  # lower pixel
+
+    def diff(d, first):
+        partner = jnp.where(first, v + d, v - d).astype(dt)
+        return jnp.where(first, partner - lo, lo - partner)
+
+    m = mask[..., None]
+    zero = jnp.zeros((), dt)
+    return Attribute(lo, jnp.where(m, diff(attr.ddx, first_x), zero),
+                     jnp.where(m, diff(attr.ddy, first_y), zero))
 
 
 def _pixel_setup(frags: Fragments):

@@ -30,7 +30,14 @@ from . import maps as _maps
 from . import textures as _tex
 from .camera import Camera, to_clip
 from .geometry import Mesh
-from .interpolate import Attribute, check_derivatives, interpolate, triangle_corners
+from .interpolate import (
+    Attribute,
+    at_precision,
+    check_derivatives,
+    check_precision,
+    interpolate,
+    triangle_corners,
+)
 from .numerics import materialize, safe_normalize
 from .raster import rasterize
 from .scene import Scene, validate_scene
@@ -60,6 +67,7 @@ class RenderOptions:
     height: int
     derivatives: str = "fine"
     frame: str = "cotangent"
+    precision: str = "float32"
     shading: str = "blinn_phong"
     double_sided: bool = True
     cull_back: bool = False
@@ -71,6 +79,7 @@ class RenderOptions:
 
     def __post_init__(self):
         check_derivatives(self.derivatives, allow_none=False)
+        check_precision(self.precision)
         _frames.check_frame(self.frame)
         check_shading_model(self.shading)
         bad = [o for o in self.outputs if o not in OUTPUTS]
@@ -81,15 +90,18 @@ class RenderOptions:
             raise ValueError(f"RenderOptions: ddy_sign must be 1 or -1, got {self.ddy_sign!r}")
 
     @staticmethod
-    def of(scene: Scene, *, outputs=("color",), derivatives=None, frame=None) -> RenderOptions:
-        """The options that render ``outputs`` of ``scene`` (``derivatives`` and ``frame``
-        override the scene's)."""
+    def of(scene: Scene, *, outputs=("color",), derivatives=None, frame=None,
+           precision=None) -> RenderOptions:
+        """The options that render ``outputs`` of ``scene`` (``derivatives``, ``frame`` and
+        ``precision`` override the scene's)."""
         nm = scene.normal_map
         alb = jnp.shape(scene.albedo)
         return RenderOptions(
             width=int(scene.width), height=int(scene.height),
             derivatives=scene.derivatives if derivatives is None else derivatives,
-            frame=scene.frame if frame is None else frame, shading=scene.shading,
+            frame=scene.frame if frame is None else frame,
+            precision=scene.precision if precision is None else precision,
+            shading=scene.shading,
             double_sided=scene.double_sided, cull_back=scene.cull_back,
             ddy_sign=1 if scene.ddy == "up" else -1,
             normal_map=None if nm is None else scene.normal_map_options,
@@ -216,24 +228,32 @@ def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOpti
 
 
 def _frame(opts: RenderOptions, mesh: Mesh, frags, gb) -> _frames.Frame:
-    """The tangent frame named by ``opts.frame`` (face-forwarded when double-sided)."""
-    kind = opts.frame
+    """The tangent frame named by ``opts.frame`` (face-forwarded when double-sided), computed
+    at ``opts.precision`` from inputs rounded to it (`jaxnm.interpolate.at_precision`)."""
+    kind, prec, mode = opts.frame, opts.precision, opts.derivatives
+
+    def low(x):  # a shader input at the shader's precision
+        return at_precision(Attribute(x), prec, frags.mask, derivatives=None).value
+
     inputs = {}
+    n = low(gb["normal"])
     if kind in ("cotangent", "cotangent_unnormalized", "nonperspective"):
-        inputs = dict(p_attr=gb["view"], uv_attr=gb["uv"], ddy_sign=opts.ddy_sign)
+        inputs = dict(p_attr=at_precision(gb["view"], prec, frags.mask, derivatives=mode),
+                      uv_attr=at_precision(gb["uv"], prec, frags.mask, derivatives=mode),
+                      ddy_sign=opts.ddy_sign)
     elif kind in ("exact", "exact_face"):
-        inputs = dict(tri_p=triangle_corners(mesh.positions, frags),
-                      tri_uv=triangle_corners(mesh.uv, frags))
+        inputs = dict(tri_p=low(triangle_corners(mesh.positions, frags)),
+                      tri_uv=low(triangle_corners(mesh.uv, frags)))
     elif kind == "vertex":  # MikkTSpace: per-corner tangents, the normal as interpolated
         at = interpolate({"t": mesh.tangents, "n": mesh.normals[mesh.faces]}, frags,
                          derivatives=None)
-        return _frames.compute_frame(kind, N=at["n"].value, tangent=at["t"].value,
+        return _frames.compute_frame(kind, N=low(at["n"].value), tangent=low(at["t"].value),
                                      front_facing=frags.front_facing,
                                      double_sided=opts.double_sided)
     elif kind == "vertex_area":
         tangents = _frames.vertex_tangents(mesh.positions, mesh.normals, mesh.uv, mesh.faces)
-        inputs = dict(tangent=interpolate(tangents, frags, derivatives=None).value)
-    return _frames.compute_frame(kind, N=gb["normal"], front_facing=frags.front_facing,
+        inputs = dict(tangent=low(interpolate(tangents, frags, derivatives=None).value))
+    return _frames.compute_frame(kind, N=n, front_facing=frags.front_facing,
                                  double_sided=opts.double_sided, **inputs)
 
 
@@ -259,7 +279,8 @@ def perturbed_normal(gb: GBuffer, normal_map: Array, opts: RenderOptions,
     if nm.space == "object":
         n = _maps.object_space_normal(m, fallback=gb.frame.N)
         return jnp.where(gb.front_facing[..., None] | (not opts.double_sided), n, -n)
-    return _frames.perturb_normal(gb.frame, m)
+    # at the frame's precision (the texture unit returns float32; the shader rounds it)
+    return _frames.perturb_normal(gb.frame, m.astype(gb.frame.N.dtype)).astype(jnp.float32)
 
 
 @functools.partial(jax.jit, static_argnames=("opts",))
@@ -275,11 +296,12 @@ def shade_gbuffer(gb: GBuffer, normal_map: Array | None, lights: Lights, materia
     if gb.frame is None:
         return out
     n = perturbed_normal(gb, normal_map, opts) if normal_map is not None else gb.frame.N
+    n = n.astype(jnp.float32)  # lighting is float32 whatever the frame's precision
     mask = gb.mask[..., None]
     if "tangent" in want:
-        out["tangent"] = jnp.where(mask, gb.frame.T, 0.0)
+        out["tangent"] = jnp.where(mask, gb.frame.T.astype(jnp.float32), 0.0)
     if "bitangent" in want:
-        out["bitangent"] = jnp.where(mask, gb.frame.B, 0.0)
+        out["bitangent"] = jnp.where(mask, gb.frame.B.astype(jnp.float32), 0.0)
     if "perturbed_normal" in want:
         out["perturbed_normal"] = jnp.where(mask, n, 0.0)
     if "color" in want:
@@ -289,13 +311,13 @@ def shade_gbuffer(gb: GBuffer, normal_map: Array | None, lights: Lights, materia
 
 
 def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
-           frame: str | None = None) -> dict[str, Array]:
+           frame: str | None = None, precision: str | None = None) -> dict[str, Array]:
     """Render ``scene`` and return the requested outputs as float32 (H, W, C) arrays.
 
     **Arguments:**
     - `scene`: a `Scene` (`jaxnm.config.load_scene`, `jaxnm.procedural.default_scene`).
     - `outputs`: any of `OUTPUTS`; only the stages they need are run.
-    - `derivatives`, `frame`: override the scene's choices.
+    - `derivatives`, `frame`, `precision`: override the scene's choices.
 
     Row 0 is the top of the image. ``color`` is linear RGB (see
     `jaxnm.shading.to_display` for an sRGB PNG); ``triangle_id`` is -1 on the
@@ -309,7 +331,8 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     contribute no gradient). The scene is validated first (`validate_scene`).
     """
     scene = validate_scene(scene)
-    opts = RenderOptions.of(scene, outputs=outputs, derivatives=derivatives, frame=frame)
+    opts = RenderOptions.of(scene, outputs=outputs, derivatives=derivatives, frame=frame,
+                            precision=precision)
     scene = with_tangents_if_needed(scene, opts)
     check_mesh(scene.mesh, opts, scene.source)
     scene, origin = camera_relative(scene)

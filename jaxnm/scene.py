@@ -20,7 +20,7 @@ from jax import Array
 from .camera import Camera
 from .frames import check_frame
 from .geometry import Mesh, validate_arrays
-from .interpolate import check_derivatives
+from .interpolate import check_derivatives, check_precision
 from .numerics import safe_normalize
 from .shading import DirectionalLight, Lights, Material, check_shading_model, stack_lights
 from .textures import NormalMapOptions
@@ -64,6 +64,9 @@ class Scene:
     - `shading`: one of `jaxnm.shading.SHADING_MODELS`.
     - `frame`: one of `jaxnm.frames.FRAMES`.
     - `derivatives`: one of `jaxnm.interpolate.DERIVATIVE_MODES`.
+    - `precision`: the fragment shader's arithmetic, one of `jaxnm.interpolate.PRECISIONS`
+      (``"float16"`` models GLSL ``mediump``: the frame and the perturbation are computed
+      in it from rounded inputs; see `jaxnm.interpolate.at_precision`).
     - `double_sided`: flip N, T and B on back faces; `cull_back`: skip back faces.
     - `ddy`: ``"up"`` (GLSL ``dFdy``) or ``"down"`` (emulate HLSL's ``ddy``).
     - `source`: where the scene came from (named in error messages).
@@ -83,6 +86,7 @@ class Scene:
     shading: str = _static("blinn_phong")
     frame: str = _static("cotangent")
     derivatives: str = _static("fine")
+    precision: str = _static("float32")
     double_sided: bool = _static(True)
     cull_back: bool = _static(False)
     ddy: str = _static("up")
@@ -94,6 +98,7 @@ class Scene:
         check_scene_options(width=self.width, height=self.height,
                             normal_map_options=self.normal_map_options, shading=self.shading,
                             frame=self.frame, derivatives=self.derivatives,
+                            precision=self.precision,
                             double_sided=self.double_sided, cull_back=self.cull_back,
                             ddy=self.ddy, source=self.source)
 
@@ -104,6 +109,7 @@ class Scene:
 
 def check_scene_options(*, width=512, height=512, normal_map_options=NormalMapOptions(),
                         shading="blinn_phong", frame="cotangent", derivatives="fine",
+                        precision="float32",
                         double_sided=True, cull_back=False, ddy="up", source="<scene>") -> None:
     """Raise a `ValueError` naming ``source`` unless the static options of a `Scene` are valid
     (each vocabulary is checked by the stage that owns it)."""
@@ -120,6 +126,7 @@ def check_scene_options(*, width=512, height=512, normal_map_options=NormalMapOp
     try:
         check_frame(frame)
         check_derivatives(derivatives, allow_none=False)
+        check_precision(precision)
         check_shading_model(shading)
     except ValueError as e:
         raise ValueError(f"{src}: {e}") from None

@@ -69,7 +69,11 @@ class FitProblem:
 def problem_from_scene(scene, targets, map_size, *, source: str | None = None) -> FitProblem:
     """The `FitProblem` of fitting ``scene``'s normal map (its mesh, material, albedo, frame,
     derivative mode and map sampling options) to ``targets``. The scene's model matrix is
-    applied to the mesh (the fit works in world space)."""
+    applied to the mesh (the fit works in world space). The fit computes in float32: a scene
+    with another ``precision`` is refused."""
+    if scene.precision != "float32":
+        raise ValueError(f"{source or scene.source}: precision {scene.precision!r} is a render "
+                         "option; fitting computes in float32 (remove the scene's 'precision')")
     mesh = scene.mesh if scene.model is None else scene.mesh.transformed(scene.model)
     return FitProblem(mesh=mesh, material=scene.material, targets=tuple(targets),
                       map_size=tuple(int(s) for s in map_size), albedo=scene.albedo,

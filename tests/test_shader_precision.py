@@ -1,0 +1,169 @@
+"""Shader precision (``precision="float16"``, GLSL mediump; ``"bfloat16"``).
+
+Checked against an independent construction (the quad differences of the float32
+interpolants rounded with NumPy), against the float64 exact answer on a plane, and for
+the behaviour Schüler's readers report: half-precision uv differences at close range.
+"""
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxnm
+from jaxnm.camera import Camera, look_at, perspective
+from jaxnm.interpolate import Attribute, at_precision
+from jaxnm.procedural import default_scene
+
+
+def _hard_cases():
+    if "hard_cases" in sys.modules:
+        return sys.modules["hard_cases"]
+    path = Path(__file__).resolve().parents[1] / "scripts" / "hard_cases.py"
+    spec = importlib.util.spec_from_file_location("hard_cases", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["hard_cases"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+H = _hard_cases()
+
+
+def _angle(a, b):
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, -1)))
+
+
+def _plane_scene(distance: float, size: int = 64):
+    """The hard cases' tilted, sheared-uv plane seen from ``distance`` (60 deg fov)."""
+    a = np.array([[0.5, 0.5 * math.tan(math.radians(30))], [0.0, 0.5]])
+    mesh, _ = H.plane(uv_matrix=a)
+    eye = np.array([0.1, -0.6, 0.8]) * distance / np.linalg.norm([0.1, -0.6, 0.8])
+    cam = Camera.from_matrices(look_at(eye, (0.0, 0.0, 0.0), (0, 0, 1)),
+                               perspective(60.0, 1.0, distance * 1e-2, distance * 100))
+    return H._scene(mesh, cam, size), H.plane_reference(a)
+
+
+def _errors(scene, ref, **kw):
+    """Per covered pixel, the angle to ``ref``: a (3,) normal, or a (H, W, 3) image."""
+    out = jaxnm.render(scene, outputs=("perturbed_normal", "mask"), **kw)
+    m = np.asarray(out["mask"])[..., 0] > 0
+    ref = np.asarray(ref)
+    return _angle(np.asarray(out["perturbed_normal"])[m], ref[m] if ref.ndim == 3 else ref)
+
+
+def _render_normal(scene, **kw):
+    return np.asarray(jaxnm.render(scene, outputs=("perturbed_normal",), **kw)[
+        "perturbed_normal"])
+
+
+def test_fine_differences_are_those_of_the_rounded_quad_values():
+    scene, _ = _plane_scene(2.0)
+    out = jaxnm.render(scene, outputs=("view", "dpdx", "dpdy", "mask", "triangle_id"))
+    v, mask = np.asarray(out["view"]), np.asarray(out["mask"])[..., 0] > 0
+    tri = np.asarray(out["triangle_id"])[..., 0]
+    attr = Attribute(jnp.asarray(v), jnp.asarray(out["dpdx"]), jnp.asarray(out["dpdy"]))
+    lo = at_precision(attr, "float16", jnp.asarray(mask), derivatives="fine")
+    assert lo.value.dtype == jnp.float16 and lo.ddx.dtype == jnp.float16
+    # independent: the stored neighbours of interior quads, rounded by NumPy
+    h = v.astype(np.float16)
+    left, right = h[:, 0::2], h[:, 1::2]  # window x = image column
+    same = mask[:, 0::2] & mask[:, 1::2] & (tri[:, 0::2] == tri[:, 1::2])
+    want = (right - left)[same]
+    got_l, got_r = np.asarray(lo.ddx)[:, 0::2][same], np.asarray(lo.ddx)[:, 1::2][same]
+    assert same.sum() > 500
+    # the partner's value is v +- dFdx in float32: a tie at a rounding boundary may differ
+    assert np.mean(got_l == want) > 0.98 and np.mean(got_r == want) > 0.98
+    assert np.max(np.abs(got_l.astype(np.float64) - want)) <= 2 * np.max(
+        np.spacing(np.abs(h).max()))
+    # window y points up: image row 2k+1 is the lower pixel of its quad when H is even
+    low, up = h[1::2], h[0::2]
+    same_y = mask[1::2] & mask[0::2] & (tri[1::2] == tri[0::2])
+    assert np.mean(np.asarray(lo.ddy)[1::2][same_y] == (up - low)[same_y]) > 0.98
+
+
+def test_float32_is_unchanged_and_the_default():
+    scene, _ = _plane_scene(2.0)
+    a = jaxnm.render(scene, outputs=("perturbed_normal",))["perturbed_normal"]
+    b = jaxnm.render(scene, outputs=("perturbed_normal",), precision="float32")
+    assert scene.precision == "float32"
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b["perturbed_normal"]))
+
+
+@pytest.mark.parametrize("frame", ["cotangent", "exact", "vertex"])
+def test_half_arithmetic_alone_costs_hundredths_of_a_degree(frame):
+    """With exact (analytic) derivatives only the arithmetic is rounded: float16 keeps the
+    frame within a few of its units of rounding (2^-11 rad = 0.03 deg) of the exact normal."""
+    scene, ref = _plane_scene(2.0)
+    if frame == "vertex":  # MikkTSpace's orthonormal frame: its own float32 render
+        scene = scene.replace(mesh=scene.mesh.with_tangents())
+        ref = _render_normal(scene, frame=frame)
+    e32 = _errors(scene, ref, derivatives="analytic", frame=frame)
+    e16 = _errors(scene, ref, derivatives="analytic", frame=frame, precision="float16")
+    ebf = _errors(scene, ref, derivatives="analytic", frame=frame, precision="bfloat16")
+    assert e32.max() < 1e-3
+    assert e16.mean() < 0.05 and e16.max() < 0.3
+    assert 0.05 < ebf.mean() < 0.6  # 8-bit significand: eight times coarser
+    assert np.isfinite(e16).all() and np.isfinite(ebf).all()
+
+
+def test_half_close_up_noise_comes_from_the_uv_differences():
+    """Schüler's readers: "when approaching the camera close to the object, a strong noise"
+    (2019 comment): uv keeps its absolute rounding step (about 2^-11 near 0.5 in float16)
+    while its per-pixel difference shrinks with the distance, so the fine derivatives, and
+    the frame, get noisier close up. The camera-relative position (the article's ``-V``)
+    shrinks with the distance and keeps its relative precision. float32 stays exact."""
+    far, ref = _plane_scene(4.0)
+    near, _ = _plane_scene(0.05)
+    e_far = _errors(far, ref, precision="float16")
+    e_near = _errors(near, ref, precision="float16")
+    assert e_near.mean() > 4 * e_far.mean() and e_near.mean() > 1.0
+    assert _errors(near, ref).max() < 1e-3  # float32
+    # the same close-up with exact derivatives: the noise is the quantised differences
+    assert _errors(near, ref, precision="float16", derivatives="analytic").mean() < 0.05
+    # per-vertex tangents take no screen differences: unaffected
+    near_v = near.replace(mesh=near.mesh.with_tangents())
+    assert _errors(near_v, _render_normal(near_v, frame="vertex"), precision="float16",
+                   frame="vertex").mean() < 0.05
+
+
+def test_precision_in_scene_files_cli_and_fit(tmp_path):
+    from jaxnm.config import scene_from_dict
+
+    base = {"mesh": "builtin:torus", "camera": {"eye": [0, -3, 2], "target": [0, 0, 0]},
+            "width": 16, "height": 16}
+    assert scene_from_dict({**base, "precision": "float16"}).precision == "float16"
+    with pytest.raises(ValueError, match="s.json: unknown precision .half.; expected one of "
+                       "float32, float16, bfloat16"):
+        scene_from_dict({**base, "precision": "half"}, source="s.json")
+    with pytest.raises(ValueError, match="precision"):
+        jaxnm.render(default_scene().replace(width=8, height=8), precision="float64")
+    from jaxnm.fit import problem_from_scene
+
+    sc = default_scene().replace(width=8, height=8, precision="float16")
+    with pytest.raises(ValueError, match="fitting computes in float32"):
+        problem_from_scene(sc, [], (8, 8))
+    path = tmp_path / "s.json"
+    path.write_text(json.dumps({**base, "normal_map": "builtin:rivets"}))
+    from jaxnm.cli import main
+
+    assert main(["render", str(path), "-o", str(tmp_path / "a.png"),
+                 "--precision", "float16"]) == 0
+    assert (tmp_path / "a.png").exists()
+
+
+def test_half_precision_gradients_are_finite():
+    scene = default_scene().replace(width=32, height=32)
+
+    def loss(nm):
+        return jnp.sum(jaxnm.render(scene.replace(normal_map=nm), precision="float16")["color"])
+
+    g = jax.grad(loss)(jnp.asarray(scene.normal_map))
+    assert np.isfinite(np.asarray(g)).all() and float(jnp.abs(g).sum()) > 0
