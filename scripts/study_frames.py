@@ -4,9 +4,10 @@
 
 For every frame method and derivative mode, the per-pixel angle between the perturbed
 normal (a fixed, clearly tilted map value) and the float64 truth, and the angles of T and
-B, over sweeps of the field of view (1 to 120 deg), the view angle (0 to 89 deg), the uv
-layout (orthogonal, 1:4, sheared 30 and 60 deg, mirrored), and the tessellation of curved
-surfaces (sphere, cylinder, torus; smooth and flat normals).
+B, over sweeps of the field of view (1 to 120 deg), the view angle (0 to 89 deg), the
+camera distance, the uv layout (orthogonal, 1:4, sheared 30 and 60 deg, mirrored), the
+derivative mode (on a plane and on a torus, with the fixed value and with a real map), and
+the tessellation of curved surfaces (sphere, cylinder, torus; smooth and flat normals).
 
 **Two truths, one per convention.** A frame method aims at one of two frames, and is
 measured against its own (the other is reported too):
@@ -18,10 +19,12 @@ measured against its own (the other is reported too):
 - *orthonormal* (MikkTSpace's: ``vertex``, ``vertex_area``): ``T = normalize(dp/du)`` in
   the tangent plane, ``B = sign N x T``.
 
-On a plane with an affine uv both truths are closed forms. On a curved surface the truth
-is the *smooth* surface's frame at the pixel's mesh point (so the tessellation error is
-included); ``exact_face``, the triangle's own constant frame, is in that sweep too and
-shows how much of the error is the faceting itself. Only front-facing pixels are measured
+On a plane with an affine uv both truths are closed forms. On a curved surface there are
+two: the *smooth* surface's analytic frame at the pixel's mesh point (``error_*``: the
+tessellation error included) and the mesh's own exact per-triangle frame (``face_*``:
+Schüler's frame built in float64 from the pixel's triangle's edges and the pixel's
+interpolated normal, or that triangle's orthonormal dp/du frame), which isolates what the
+method adds on top of the faceting. Only front-facing pixels are measured
 (a back face's frame is flipped by ``double_sided``, and its truth is the other side's).
 
 The fixed-axis approximation (``axis``) ignores the uv mapping: it is right only where the
@@ -29,8 +32,8 @@ uv happens to run along its axes (the ``axis-aligned`` layout: on a +z plane ``T
 ``B = -y``) and wrong by tens of degrees elsewhere, which the uv sweep shows.
 
 Writes ``frames.json`` (one record per configuration and method), ``frames.csv``, plots
-(``error_vs_fov.png``, ``error_vs_view_angle.png``, ``error_vs_uv.png``,
-``error_vs_tessellation.png``) and error maps of one configuration
+(``error_vs_fov.png``, ``error_vs_view_angle.png``, ``error_vs_distance.png``,
+``error_vs_uv.png``, ``error_vs_tessellation.png``) and error maps of one configuration
 (``error_map_<frame>.png``) into ``--out``.
 """
 
@@ -43,6 +46,7 @@ import math
 import time
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -51,7 +55,7 @@ from jaxnm.camera import Camera, look_at, perspective
 from jaxnm.frames import FRAMES
 from jaxnm.interpolate import DERIVATIVE_MODES
 from jaxnm.scene import Scene
-from jaxnm.textures import NormalMapOptions
+from jaxnm.textures import NormalMapOptions, decode_normal_map, sample
 
 MAP_VALUE = np.array([0.35, -0.25, 0.9]) / np.linalg.norm([0.35, -0.25, 0.9])
 METHODS = [f for f in FRAMES if f != "none"]
@@ -88,8 +92,9 @@ def truth_frames(dp_du, dp_dv, n):
     return (gu / s, gv / s), (gu, gv), (t_o, sign * np.cross(n, t_o))
 
 
-def perturbed(t, b, n):
-    return _unit(t * MAP_VALUE[0] + b * MAP_VALUE[1] + n * MAP_VALUE[2])
+def perturbed(t, b, n, m=MAP_VALUE):
+    m = np.asarray(m, np.float64)
+    return _unit(t * m[..., :1] + b * m[..., 1:2] + n * m[..., 2:3])
 
 
 def angle(a, b):
@@ -204,46 +209,98 @@ def _mesh(surf):
                       jnp.asarray(surf.uv, jnp.float32), jnp.asarray(surf.nrm, jnp.float32))
 
 
-def measure(surf, camera, size, methods=METHODS, modes=("fine",), keep_maps=False) -> list:
+def face_truths(surf, tri, n):
+    """Per pixel, the mesh's own exact per-triangle frames (float64) from the pixel's
+    triangle ``tri`` and its interpolated unit normal ``n``: Schüler's frame built from the
+    triangle's edges instead of screen derivatives (scaled so the longer is unit, and
+    unscaled: the gradients of u and v on the plane normal to ``n``), and the orthonormal
+    frame of the triangle's dp/du (``T = normalize(dp/du)`` normal to ``n``)."""
+    p = surf.pos[surf.faces[tri]]
+    uv = surf.uv[surf.faces[tri]]
+    dp1, dp2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    perp2, perp1 = np.cross(dp2, n), np.cross(n, dp1)
+    area = np.sum(n * np.cross(dp1, dp2), -1, keepdims=True)  # T . dp_i = area * du_i
+    t = (perp2 * d1[:, :1] + perp1 * d2[:, :1]) / area
+    b = (perp2 * d1[:, 1:] + perp1 * d2[:, 1:]) / area
+    s = np.sqrt(np.maximum(np.sum(t * t, -1), np.sum(b * b, -1)))[:, None]
+    det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+    dp_du = (dp1 * d2[:, 1:] - dp2 * d1[:, 1:]) / det[:, None]
+    dp_dv = (dp2 * d1[:, :1] - dp1 * d2[:, :1]) / det[:, None]
+    t_o = _unit(dp_du - n * np.sum(dp_du * n, -1, keepdims=True))
+    sign = np.sign(np.sum(np.cross(dp_du, dp_dv) * n, -1))[:, None]
+    return (t / s, b / s), (t, b), (t_o, sign * np.cross(n, t_o))
+
+
+def _map_texels(kind: str) -> np.ndarray:
+    if kind == "constant":
+        return np.broadcast_to(((MAP_VALUE + 1) / 2).astype(np.float32), (4, 4, 3)).copy()
+    return ((jaxnm.procedural.default_normal_map(128) + 1) / 2).astype(np.float32)
+
+
+def measure(surf, camera, size, methods=METHODS, modes=("fine",), keep_maps=False,
+            normal_map="constant") -> list:
     """One record per (method, mode): mean / p95 / max angles of the perturbed normal to
-    the truth of the method's convention and to the other, and of T and B."""
-    texels = np.broadcast_to(((MAP_VALUE + 1) / 2).astype(np.float32), (4, 4, 3)).copy()
+    the smooth surface's truth of the method's convention (``error_*``) and to the other
+    convention's (``gradient_*`` / ``orthonormal_*``), to the mesh's own per-triangle
+    truth (``face_*``), and the mean angles of T and B to the smooth truth.
+
+    ``normal_map``: ``"constant"`` (every texel the fixed tilted `MAP_VALUE`) or
+    ``"rivets"`` (the default scene's map, 128 texels, bilinear; the truth decodes the
+    same bilinear sample at the pixel's rendered uv, so only the frame differs)."""
+    texels = _map_texels(normal_map)
+    options = NormalMapOptions(filter="nearest" if normal_map == "constant" else "bilinear",
+                               wrap="clamp" if normal_map == "constant" else "repeat")
     mesh = _mesh(surf)
-    scene = Scene(mesh=mesh, camera=camera, width=size, height=size,
-                  normal_map=jnp.asarray(texels),
-                  normal_map_options=NormalMapOptions(filter="nearest", wrap="clamp"),
-                  source="<frame study>").replace()
     if "vertex" in methods:
-        scene = scene.replace(mesh=mesh.with_tangents())
+        mesh = mesh.with_tangents()
+    scene = Scene(mesh=mesh, camera=camera, width=size, height=size,
+                  normal_map=jnp.asarray(texels), normal_map_options=options,
+                  source="<frame study>")
     rows, maps = [], {}
     for mode in modes:
         for method in methods:
             out = jaxnm.render(scene, outputs=("perturbed_normal", "tangent", "bitangent",
-                                               "position", "mask", "front_facing"),
+                                               "position", "normal", "uv", "triangle_id",
+                                               "mask", "front_facing"),
                                derivatives=mode, frame=method)
             m = np.asarray(out["mask"])[..., 0] > 0
             m &= np.asarray(out["front_facing"])[..., 0] > 0
             if m.sum() == 0:
                 continue
             p = np.asarray(out["position"], np.float64)[m]
+            if normal_map == "constant":
+                mv = np.broadcast_to(MAP_VALUE, p.shape)
+            else:
+                raw = sample(jnp.asarray(texels), out["uv"], filter="bilinear", wrap="repeat")
+                mv = np.asarray(decode_normal_map(raw), np.float64)[m]
             dp_du, dp_dv, n = surf.frame_at(p)
             (tg, bg), (tu, bu), (to, bo) = truth_frames(dp_du, dp_dv, n)
+            n_px = _unit(np.asarray(out["normal"], np.float64)[m])
+            tri = np.asarray(out["triangle_id"])[..., 0][m].astype(np.int64)
+            (fg, fb), (fu, fbu), (fo, fbo) = face_truths(surf, tri, n_px)
             unnorm = method == "cotangent_unnormalized"
             own = "gradient" if method in GRADIENT_METHODS else "orthonormal"
             truth = {"gradient": (tu, bu) if unnorm else (tg, bg), "orthonormal": (to, bo)}
+            face = {"gradient": (fu, fbu) if unnorm else (fg, fb), "orthonormal": (fo, fbo)}
             pn = np.asarray(out["perturbed_normal"], np.float64)[m]
-            rec = {"method": method, "mode": mode, "convention": own, "pixels": int(m.sum())}
+            rec = {"method": method, "mode": mode, "convention": own, "map": normal_map,
+                   "pixels": int(m.sum())}
             for conv, (t, b) in truth.items():
-                e = angle(pn, perturbed(t, b, n))
+                e = angle(pn, perturbed(t, b, n, mv))
                 rec[f"{conv}_mean"] = float(e.mean())
                 rec[f"{conv}_p95"] = float(np.percentile(e, 95))
                 rec[f"{conv}_max"] = float(e.max())
                 if conv == own:
                     rec["error_mean"], rec["error_p95"] = rec[f"{conv}_mean"], rec[f"{conv}_p95"]
+                    rec["error_max"] = rec[f"{conv}_max"]
                     if keep_maps:
                         img = np.full(m.shape, np.nan)
                         img[m] = e
                         maps[method] = img
+            e = angle(pn, perturbed(*face[own], n_px, mv))
+            rec["face_mean"], rec["face_p95"] = float(e.mean()), float(np.percentile(e, 95))
+            rec["face_max"] = float(e.max())
             t_px = np.asarray(out["tangent"], np.float64)[m]
             b_px = np.asarray(out["bitangent"], np.float64)[m]
             t_own, b_own = truth[own]
@@ -265,6 +322,11 @@ def _camera(view_deg, fov, target=(0.0, 0.0, 0.0), dist=None, extent=1.0):
                                 perspective(fov, 1.0, dist * 1e-3, dist * 10))
 
 
+def _torus_camera():
+    return Camera.from_matrices(look_at((4.0, -1.4, 1.6), (1.4, 0.0, 0.0), (0, 0, 1)),
+                                perspective(40, 1.0, 0.05, 50))
+
+
 def sweeps(size: int, quick: bool) -> list:
     rows = []
 
@@ -284,9 +346,19 @@ def sweeps(size: int, quick: bool) -> list:
     for name, a in UV_LAYOUTS.items():
         tag(measure(Plane(a), _camera(45, 60), size), sweep="uv", fov=60, view=45,
             surface="plane", uv=name)
+    base = 1.15 / math.tan(math.radians(30))
+    for f in ((0.1, 1, 10) if quick else (0.1, 0.3, 1, 3, 10)):
+        tag(measure(plane, _camera(60, 60, dist=f * base), size), sweep="distance", fov=60,
+            view=60, distance=f, surface="plane", uv="sheared 30 deg")
     tag(measure(plane, _camera(45, 60), size, modes=DERIVATIVE_MODES), sweep="derivatives",
         fov=60, view=45, surface="plane", uv="sheared 30 deg")
-    for seg in ((8, 32) if quick else (8, 16, 32, 64, 128)):
+    torus = Torus(32)
+    for normal_map in ("constant", "rivets"):
+        tag(measure(torus, _torus_camera(), size, modes=DERIVATIVE_MODES,
+                    normal_map=normal_map),
+            sweep="derivatives", surface="torus", segments=32, normals="smooth",
+            uv="surface", map=normal_map)
+    for seg in ((8, 32) if quick else (8, 16, 32, 64)):
         for name, surf in (("torus", Torus(seg)), ("sphere", Sphere(seg)),
                            ("cylinder", Cylinder(seg))):
             for normals in ("smooth", "flat"):
@@ -299,6 +371,7 @@ def sweeps(size: int, quick: bool) -> list:
                                                    "vertex", "vertex_area")),
                     sweep="tessellation", surface=name, segments=seg, normals=normals,
                     uv="surface")
+                jax.clear_caches()  # every mesh size compiles anew; keep memory flat
     return rows
 
 
@@ -310,14 +383,17 @@ def _plot(rows, out: Path) -> None:
         return
     for sweep, key, fname, xlabel in (("fov", "fov", "error_vs_fov.png", "field of view (deg)"),
                                       ("view angle", "view", "error_vs_view_angle.png",
-                                       "view angle from the normal (deg)")):
+                                       "view angle from the normal (deg)"),
+                                      ("distance", "distance", "error_vs_distance.png",
+                                       "camera distance / distance that frames the plane")):
         fig = Figure(figsize=(6.5, 4), dpi=100)
         ax = fig.add_subplot()
         for method in METHODS:
             pts = sorted((r[key], r["error_mean"]) for r in rows
                          if r["sweep"] == sweep and r["method"] == method)
             if pts:
-                ax.semilogy(*zip(*[(x, max(y, 1e-6)) for x, y in pts]), "o-", label=method)
+                plot = ax.loglog if sweep == "distance" else ax.semilogy
+                plot(*zip(*[(x, max(y, 1e-6)) for x, y in pts]), "o-", label=method)
         ax.set(xlabel=xlabel, ylabel="mean error vs own truth (deg)", title=sweep)
         ax.legend(fontsize=7)
         fig.tight_layout()
@@ -369,9 +445,7 @@ def main(argv=None) -> None:
         w.writeheader()
         w.writerows(rows)
     _plot(rows, out)
-    _, maps = measure(Torus(32), Camera.from_matrices(
-        look_at((4.0, -1.4, 1.6), (1.4, 0, 0), (0, 0, 1)), perspective(40, 1.0, 0.05, 50)),
-        args.size, keep_maps=True)
+    _, maps = measure(Torus(32), _torus_camera(), args.size, keep_maps=True)
     from jaxnm.io import save_png
 
     for method, img in maps.items():
