@@ -107,6 +107,13 @@ def cases(size: int = 64) -> list[Case]:
         cam = _look((0.1, 0.05, h), (0.1, 0.05, 0.0), fov=60.0, near=h * 0.1, far=10.0)
         out.append(Case(f"close-up {h:g} above the surface", _scene(mesh, cam, size), ref,
                         TOLERANCE))
+    # half precision (GLSL mediump) close up: fine differences of rounded uv values are the
+    # noise Schüler's readers report (test_shader_precision.py measures it); his advice,
+    # derivatives of full-precision values (here: the exact ones, rounded), removes it
+    cam = _look((0.1, 0.05, 1e-2), (0.1, 0.05, 0.0), fov=60.0, near=1e-3, far=10.0)
+    out.append(Case("close-up 1e-2 in float16, derivatives rounded, not differenced",
+                    _scene(mesh, cam, size, precision="float16", derivatives="analytic"),
+                    ref, 0.1, "float16 fine differences: 21 deg mean here"))
     sheared = np.array([[0.5, 0.5 * math.tan(math.radians(80))], [0.0, 0.5]])
     m2, _ = plane(uv_matrix=sheared, uv_offset=(0.0, 0.0))
     out.append(Case("uv sheared 80 deg", _scene(m2, _look((0.3, -0.2, 2.5), (0, 0, 0)), size),

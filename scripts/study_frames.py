@@ -5,7 +5,8 @@
 For every frame method and derivative mode, the per-pixel angle between the perturbed
 normal (a fixed, clearly tilted map value) and the float64 truth, and the angles of T and
 B, over sweeps of the field of view (1 to 120 deg), the view angle (0 to 89 deg), the
-camera distance, the uv layout (orthogonal, 1:4, sheared 30 and 60 deg, mirrored), the
+camera distance, the shader precision (float32, float16 = GLSL mediump, bfloat16) against
+the camera distance, the uv layout (orthogonal, 1:4, sheared 30 and 60 deg, mirrored), the
 derivative mode (on a plane and on a torus, with the fixed value and with a real map), and
 the tessellation of curved surfaces (sphere, cylinder, torus; smooth and flat normals).
 
@@ -33,8 +34,9 @@ uv happens to run along its axes (the ``axis-aligned`` layout: on a +z plane ``T
 
 Writes ``frames.json`` (one record per configuration and method), ``frames.csv``, plots
 (``error_vs_fov.png``, ``error_vs_view_angle.png``, ``error_vs_distance.png``,
-``error_vs_uv.png``, ``error_vs_tessellation.png``) and error maps of one configuration
-(``error_map_<frame>.png``) into ``--out``.
+``error_vs_precision.png``, ``error_vs_uv.png``, ``error_vs_tessellation.png``) and error
+maps of one configuration (``error_map_<frame>.png``) into ``--out``; ``--sweeps`` picks a
+subset.
 """
 
 from __future__ import annotations
@@ -239,7 +241,7 @@ def _map_texels(kind: str) -> np.ndarray:
 
 
 def measure(surf, camera, size, methods=METHODS, modes=("fine",), keep_maps=False,
-            normal_map="constant") -> list:
+            normal_map="constant", precision="float32") -> list:
     """One record per (method, mode): mean / p95 / max angles of the perturbed normal to
     the smooth surface's truth of the method's convention (``error_*``) and to the other
     convention's (``gradient_*`` / ``orthonormal_*``), to the mesh's own per-triangle
@@ -263,7 +265,7 @@ def measure(surf, camera, size, methods=METHODS, modes=("fine",), keep_maps=Fals
             out = jaxnm.render(scene, outputs=("perturbed_normal", "tangent", "bitangent",
                                                "position", "normal", "uv", "triangle_id",
                                                "mask", "front_facing"),
-                               derivatives=mode, frame=method)
+                               derivatives=mode, frame=method, precision=precision)
             m = np.asarray(out["mask"])[..., 0] > 0
             m &= np.asarray(out["front_facing"])[..., 0] > 0
             if m.sum() == 0:
@@ -285,7 +287,7 @@ def measure(surf, camera, size, methods=METHODS, modes=("fine",), keep_maps=Fals
             face = {"gradient": (fu, fbu) if unnorm else (fg, fb), "orthonormal": (fo, fbo)}
             pn = np.asarray(out["perturbed_normal"], np.float64)[m]
             rec = {"method": method, "mode": mode, "convention": own, "map": normal_map,
-                   "pixels": int(m.sum())}
+                   "precision": precision, "pixels": int(m.sum())}
             for conv, (t, b) in truth.items():
                 e = angle(pn, perturbed(t, b, n, mv))
                 rec[f"{conv}_mean"] = float(e.mean())
@@ -327,7 +329,10 @@ def _torus_camera():
                                 perspective(40, 1.0, 0.05, 50))
 
 
-def sweeps(size: int, quick: bool) -> list:
+SWEEPS = ("fov", "view angle", "uv", "distance", "derivatives", "precision", "tessellation")
+
+
+def sweeps(size: int, quick: bool, only=SWEEPS) -> list:
     rows = []
 
     def tag(records, **kw):
@@ -337,28 +342,44 @@ def sweeps(size: int, quick: bool) -> list:
         print(json.dumps({**kw, "methods": len(records)}), flush=True)
 
     plane = Plane(UV_LAYOUTS["sheared 30 deg"])
-    for fov in ((1, 30, 120) if quick else (1, 10, 30, 60, 90, 120)):
+    base = 1.15 / math.tan(math.radians(30))
+    if "precision" in only:  # shader precision against the camera distance (close-ups)
+        for precision in ("float32", "float16", "bfloat16"):
+            for f in ((0.01, 1) if quick else (0.003, 0.03, 0.3, 3)):
+                tag(measure(plane, _camera(60, 60, dist=f * base), size,
+                            modes=("fine", "analytic"), precision=precision),
+                    sweep="precision", fov=60, view=60, distance=f, surface="plane",
+                    uv="sheared 30 deg")
+        for precision in ("float16", "bfloat16"):
+            tag(measure(Torus(32), _torus_camera(), size, modes=("fine", "analytic"),
+                        normal_map="rivets", precision=precision),
+                sweep="precision", surface="torus", segments=32, normals="smooth",
+                uv="surface", map="rivets")
+    for fov in ([] if "fov" not in only else
+                (1, 30, 120) if quick else (1, 10, 30, 60, 90, 120)):
         tag(measure(plane, _camera(45, fov), size), sweep="fov", fov=fov, view=45,
             surface="plane", uv="sheared 30 deg")
-    for view in ((0, 60, 89) if quick else (0, 30, 60, 75, 85, 89)):
+    for view in ([] if "view angle" not in only else
+                 (0, 60, 89) if quick else (0, 30, 60, 75, 85, 89)):
         tag(measure(plane, _camera(view, 60), size), sweep="view angle", fov=60, view=view,
             surface="plane", uv="sheared 30 deg")
-    for name, a in UV_LAYOUTS.items():
+    for name, a in (UV_LAYOUTS.items() if "uv" in only else ()):
         tag(measure(Plane(a), _camera(45, 60), size), sweep="uv", fov=60, view=45,
             surface="plane", uv=name)
-    base = 1.15 / math.tan(math.radians(30))
-    for f in ((0.1, 1, 10) if quick else (0.1, 0.3, 1, 3, 10)):
+    for f in ([] if "distance" not in only else
+              (0.1, 1, 10) if quick else (0.1, 0.3, 1, 3, 10)):
         tag(measure(plane, _camera(60, 60, dist=f * base), size), sweep="distance", fov=60,
             view=60, distance=f, surface="plane", uv="sheared 30 deg")
-    tag(measure(plane, _camera(45, 60), size, modes=DERIVATIVE_MODES), sweep="derivatives",
-        fov=60, view=45, surface="plane", uv="sheared 30 deg")
+    if "derivatives" in only:
+        tag(measure(plane, _camera(45, 60), size, modes=DERIVATIVE_MODES),
+            sweep="derivatives", fov=60, view=45, surface="plane", uv="sheared 30 deg")
     torus = Torus(32)
-    for normal_map in ("constant", "rivets"):
+    for normal_map in (("constant", "rivets") if "derivatives" in only else ()):
         tag(measure(torus, _torus_camera(), size, modes=DERIVATIVE_MODES,
                     normal_map=normal_map),
             sweep="derivatives", surface="torus", segments=32, normals="smooth",
             uv="surface", map=normal_map)
-    for seg in ((8, 32) if quick else (8, 16, 32, 64)):
+    for seg in ([] if "tessellation" not in only else (8, 32) if quick else (8, 16, 32, 64)):
         for name, surf in (("torus", Torus(seg)), ("sphere", Sphere(seg)),
                            ("cylinder", Cylinder(seg))):
             for normals in ("smooth", "flat"):
@@ -398,6 +419,26 @@ def _plot(rows, out: Path) -> None:
         ax.legend(fontsize=7)
         fig.tight_layout()
         fig.savefig(out / fname)
+    prec = [r for r in rows if r["sweep"] == "precision" and r["surface"] == "plane"]
+    if prec:
+        fig = Figure(figsize=(9, 4), dpi=100)
+        for k, mode in enumerate(("fine", "analytic")):
+            ax = fig.add_subplot(1, 2, k + 1)
+            for method, color in (("cotangent", "C0"), ("exact", "C1"), ("vertex", "C2"),
+                                  ("nonperspective", "C3")):
+                for precision, style in (("float32", ":"), ("float16", "-"),
+                                         ("bfloat16", "--")):
+                    pts = sorted((r["distance"], r["error_mean"]) for r in prec
+                                 if r["method"] == method and r["mode"] == mode
+                                 and r["precision"] == precision)
+                    if pts:
+                        ax.loglog(*zip(*[(x, max(y, 1e-6)) for x, y in pts]), style,
+                                  color=color, marker="o", ms=3, label=f"{method} {precision}")
+            ax.set(xlabel="camera distance / distance that frames the plane",
+                   ylabel="mean error vs own truth (deg)", title=f"{mode} derivatives")
+            ax.legend(fontsize=5)
+        fig.tight_layout()
+        fig.savefig(out / "error_vs_precision.png")
     fig = Figure(figsize=(8, 4), dpi=100)
     ax = fig.add_subplot()
     layouts = list(UV_LAYOUTS)
@@ -433,11 +474,16 @@ def main(argv=None) -> None:
     ap.add_argument("--out", default="frames_out")
     ap.add_argument("--size", type=int, default=96)
     ap.add_argument("--quick", action="store_true", help="fewer sweep points (a smoke test)")
+    ap.add_argument("--sweeps", default=",".join(SWEEPS),
+                    help="comma-separated subset of: " + ", ".join(SWEEPS))
     args = ap.parse_args(argv)
+    only = tuple(x.strip() for x in args.sweeps.split(","))
+    if bad := [x for x in only if x not in SWEEPS]:
+        ap.error(f"--sweeps: unknown {bad}; expected any of {', '.join(SWEEPS)}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    rows = sweeps(args.size, args.quick)
+    rows = sweeps(args.size, args.quick, only)
     (out / "frames.json").write_text(json.dumps(rows, indent=1) + "\n")
     keys = sorted({k for r in rows for k in r})
     with open(out / "frames.csv", "w", newline="") as f:

@@ -114,6 +114,20 @@ def test_half_arithmetic_alone_costs_hundredths_of_a_degree(frame):
     assert np.isfinite(e16).all() and np.isfinite(ebf).all()
 
 
+def test_half_face_normals_of_small_triangles_do_not_underflow():
+    """``exact_face`` crosses the triangle's edges: for 0.03-unit triangles the squared
+    length of the cross product (1e-6) is below float16's normal range; the edges are
+    scaled first (the direction does not change). Unscaled, every pixel lost its frame
+    (18.8 deg); what remains is the rounding of the corners' camera-relative positions
+    (about 2 units from the eye: steps of 2^-10 against 0.03-unit edges)."""
+    a = np.array([[0.5, 0.5 * math.tan(math.radians(30))], [0.0, 0.5]])
+    mesh, _ = H.plane(segments=64, uv_matrix=a)
+    scene, ref = _plane_scene(2.0)
+    scene = scene.replace(mesh=mesh)
+    e16 = _errors(scene, ref, derivatives="analytic", frame="exact_face", precision="float16")
+    assert e16.mean() < 0.5 and e16.max() < 3.0
+
+
 def test_half_close_up_noise_comes_from_the_uv_differences():
     """Schüler's readers: "when approaching the camera close to the object, a strong noise"
     (2019 comment): uv keeps its absolute rounding step (about 2^-11 near 0.5 in float16)

@@ -1,0 +1,63 @@
+"""scripts/speed_vs_error.py measures what it says: its errors against the float64 truth
+order the configurations the way the frame study and the precision tests establish, its
+image error is zero where the normal is exact, and its Pareto front is the set of
+non-dominated configurations."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import jax
+import pytest
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def _module(name):
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+_module("study_frames")
+V = _module("speed_vs_error")
+
+
+@pytest.fixture(scope="module")
+def rows():
+    surf = V.Torus(12)
+    cfgs = [{**V.BASE, "size": 48, "filter": "bilinear", **c} for c in (
+        {}, {"frame": "exact"}, {"frame": "vertex"}, {"frame": "nonperspective"},
+        {"precision": "bfloat16"}, {"derivatives": "gbuffer"})]
+    out = {}
+    for c in cfgs:
+        r = V.run_one(c, surf, reps=2)
+        out[r["frame"], r["derivatives"], r["precision"]] = r
+    jax.clear_caches()
+    return out
+
+
+def test_errors_order_as_the_frame_study_says(rows):
+    cot, exact = rows["cotangent", "fine", "float32"], rows["exact", "fine", "float32"]
+    assert all(r["finite"] and r["pixels"] > 300 for r in rows.values())
+    # cotangent and exact build the same per-triangle frame: the same faceting error
+    assert abs(cot["normal_mean"] - exact["normal_mean"]) < 1e-3 * max(1, cot["normal_mean"])
+    assert cot["normal_mean"] < 3.0  # a 12-segment torus: first-order faceting error
+    assert rows["vertex", "fine", "float32"]["normal_mean"] < cot["normal_mean"]
+    assert rows["nonperspective", "fine", "float32"]["normal_mean"] > 2 * cot["normal_mean"]
+    assert rows["cotangent", "fine", "bfloat16"]["normal_mean"] > cot["normal_mean"]
+    assert rows["cotangent", "gbuffer", "float32"]["normal_p95"] > cot["normal_p95"]
+    # the image error follows the normal error
+    assert rows["nonperspective", "fine", "float32"]["image_rmse"] > cot["image_rmse"]
+    for r in rows.values():
+        assert r["forward_ms"] > 0 and r["grad_ms"] > 0 and r["compile_s"] > 0
+
+
+def test_pareto_front_is_the_non_dominated_set():
+    rows = [dict(size=256, forward_ms=t, normal_mean=e) for t, e in
+            ((1, 5), (2, 1), (3, 1), (4, 0.5), (5, 2), (1.5, 5))]
+    assert V._pareto(rows) == {0, 1, 3}
