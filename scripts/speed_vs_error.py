@@ -18,9 +18,9 @@ float64 truth. Per configuration:
 - ``image_rmse``: the RMS difference of the linear colour from the image shaded (by
   `jaxnm.shading.shade`, float32) with that truth normal, over covered pixels.
 
-Configurations: the full frame x derivative-mode grid at the base settings (256 px,
-float32, trilinear); every frame at float16 and bfloat16 (fine derivatives); cotangent and
-vertex at 512 and 1024 px; cotangent with nearest and bilinear filtering. Writes
+Configurations (`configurations`): around the base settings (cotangent, fine, float32,
+256 px, trilinear), one axis at a time; ``--full`` runs the whole frame x derivative-mode x
+precision grid. Writes
 ``speed_vs_error.json``, ``.csv``, a Markdown table and ``pareto.png`` into ``--out``.
 Machines are noisy: compare the ratios within one run.
 """
@@ -53,14 +53,21 @@ BASE = dict(frame="cotangent", derivatives="fine", precision="float32", size=256
             filter="trilinear")
 
 
-def configurations(quick: bool) -> list[dict]:
-    out = []
+def configurations(quick: bool = False, full: bool = False) -> list[dict]:
+    """The default set: every frame with fine and gbuffer derivatives and cotangent with all
+    four modes (fine, coarse and analytic build the same frame inside a triangle, so the
+    full grid repeats itself: ``--full`` runs it anyway); cotangent, exact, vertex and
+    nonperspective at float16 and bfloat16; cotangent and vertex at 512 and 1024 px;
+    cotangent with nearest and bilinear filtering."""
     methods = ("cotangent", "vertex", "nonperspective") if quick else METHODS
+    out = []
     for frame in methods:
-        for mode in (("fine", "gbuffer") if quick else DERIVATIVE_MODES):
+        modes = DERIVATIVE_MODES if full or frame == "cotangent" else ("fine", "gbuffer")
+        for mode in (("fine", "gbuffer") if quick else modes):
             out.append({**BASE, "frame": frame, "derivatives": mode})
     for precision in ("float16", "bfloat16"):
-        for frame in methods:
+        for frame in (methods if full or quick else
+                      ("cotangent", "exact", "vertex", "nonperspective")):
             out.append({**BASE, "frame": frame, "precision": precision})
     for size in ((512,) if quick else (512, 1024)):
         for frame in ("cotangent", "vertex"):
@@ -197,13 +204,15 @@ def main(argv=None) -> None:
     ap.add_argument("--out", default="speed_vs_error_out")
     ap.add_argument("--reps", type=int, default=5, help="steady-state calls per timing")
     ap.add_argument("--quick", action="store_true", help="a few configurations (smoke test)")
+    ap.add_argument("--full", action="store_true",
+                    help="the whole frame x derivative-mode x precision grid (about 3x longer)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     surf = Torus(64)
     t0 = time.perf_counter()
     rows = []
-    for cfg in configurations(args.quick):
+    for cfg in configurations(args.quick, args.full):
         rows.append(run_one(cfg, surf, args.reps))
         print(json.dumps(rows[-1]), flush=True)
         jax.clear_caches()  # each configuration compiles anew; keep memory flat
