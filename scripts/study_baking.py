@@ -5,15 +5,15 @@ A high-poly surface (a torus displaced along its normal by a smooth bump pattern
 normal is known analytically in float64) is baked onto a low-poly torus (smooth normals)
 into a tangent-space map, once per frame convention, two ways:
 
-- **projection**: per texel, the low-poly surface point with that uv, the high-poly normal
-  there, expressed in the low-poly frame of the convention (``m = [T B N]^-1 n_high``:
-  exactly what that frame decodes back to ``n_high``). Conventions: ``cotangent``
-  (Schüler's per-triangle gradient frame: what jaxnm's screen-space frame computes per
-  triangle), ``vertex`` (MikkTSpace, what Blender, Substance, xNormal and glTF bake in) and
-  ``vertex_area`` (plain per-vertex tangents). The high-poly surface is the low-poly's
-  smooth parent displaced along its normal, so a baker's ray from a low-poly point along
-  the smooth normal meets it at (nearly) the same surface parameters; the study uses that
-  parametric correspondence exactly.
+- **projection** (`jaxnm.bake.bake_normal_map`): per texel, the low-poly surface point with
+  that uv, the high-poly normal there, expressed in the low-poly frame of the convention
+  (``m = [T B N]^-1 n_high``: exactly what that frame decodes back to ``n_high``).
+  Conventions: ``cotangent`` (Schüler's per-triangle gradient frame: what jaxnm's
+  screen-space frame computes per triangle), ``vertex`` (MikkTSpace, what Blender,
+  Substance, xNormal and glTF bake in) and ``vertex_area`` (plain per-vertex tangents).
+  The high-poly surface is the low-poly's smooth parent displaced along its normal, so a
+  baker's ray from a low-poly point along the smooth normal meets it at (nearly) the same
+  surface parameters; the study uses that parametric correspondence exactly.
 - **fit**: jaxnm's own fitter, from images of the high-poly mesh (``--fit-views`` views,
   six lights each) fitted on the low-poly mesh with the ``cotangent`` and the ``vertex``
   frame (``--no-fit`` skips it).
@@ -37,6 +37,7 @@ import numpy as np
 
 import jaxnm
 from jaxnm import frames as F
+from jaxnm.bake import bake_normal_map
 from jaxnm.camera import Camera, look_at, perspective
 from jaxnm.fit import FitOptions, FitTarget, fit_normal_map, problem_from_scene
 from jaxnm.procedural import default_light_directions, default_scene
@@ -100,64 +101,10 @@ def high_mesh(segments: int) -> jaxnm.Mesh:
 # ---------------------------------------------------------------------- baking by projection
 
 
-def texel_uv(map_hw):
-    h, w = map_hw
-    u = (np.arange(w) + 0.5) / w
-    v = 1.0 - (np.arange(h) + 0.5) / h  # uv origin bottom-left: row 0 is v near 1
-    return np.meshgrid(u, v)
-
-
-def locate(mesh: jaxnm.Mesh, u, v):
-    """Per texel: the low-poly triangle whose uv contains (u, v) and the barycentrics."""
-    uv = np.asarray(mesh.uv, np.float64)[np.asarray(mesh.faces)]  # (F, 3, 2)
-    q = np.stack([u.ravel(), v.ravel()], -1)
-    tri = np.full(len(q), -1)
-    bary = np.zeros((len(q), 3))
-    a, b, c = uv[:, 0], uv[:, 1], uv[:, 2]
-    det = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
-    for f in np.nonzero(np.abs(det) > 0)[0]:
-        lo, hi = uv[f].min(0) - 1e-12, uv[f].max(0) + 1e-12
-        idx = np.nonzero(np.all((q >= lo) & (q <= hi), -1) & (tri < 0))[0]
-        if idx.size == 0:
-            continue
-        d = q[idx] - a[f]
-        b1 = (d[:, 0] * (c[f, 1] - a[f, 1]) - (c[f, 0] - a[f, 0]) * d[:, 1]) / det[f]
-        b2 = ((b[f, 0] - a[f, 0]) * d[:, 1] - d[:, 0] * (b[f, 1] - a[f, 1])) / det[f]
-        inside = (b1 >= -1e-12) & (b2 >= -1e-12) & (b1 + b2 <= 1 + 1e-12)
-        tri[idx[inside]] = f
-        bary[idx[inside]] = np.stack([1 - b1 - b2, b1, b2], -1)[inside]
-    if (tri < 0).any():
-        raise RuntimeError(f"{int((tri < 0).sum())} texels outside every uv triangle")
-    return tri, bary
-
-
 def bake_projection(mesh: jaxnm.Mesh, map_hw, convention: str) -> np.ndarray:
     """The tangent-space map (h, w, 3 signed unit vectors) of the high-poly normals in the
-    low-poly ``convention`` frame (see the module docstring)."""
-    u, v = texel_uv(map_hw)
-    tri, bary = locate(mesh, u, v)
-    faces = np.asarray(mesh.faces)[tri]
-    corner = lambda a: np.asarray(a, np.float64)[faces]  # noqa: E731  (T, 3, C)
-    interp = lambda c: np.einsum("tk,tkc->tc", bary, c)  # noqa: E731
-    n = interp(corner(mesh.normals))
-    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-    if convention == "cotangent":  # Schüler's frame of the triangle, interpolated normal
-        fr = F.exact_frame(f32(corner(mesh.positions)), f32(corner(mesh.uv)), f32(_unit(n)))
-    elif convention == "vertex":  # MikkTSpace per-corner tangents, reconstructed per pixel
-        t = np.einsum("tk,tkc->tc", bary, np.asarray(mesh.tangents, np.float64)[tri])
-        n_c = np.einsum("tk,tkc->tc", bary,
-                        np.asarray(mesh.normals, np.float64)[np.asarray(mesh.faces)][tri])
-        fr = F.compute_frame("vertex", N=f32(n_c), tangent=f32(t))
-    elif convention == "vertex_area":
-        vt = F.vertex_tangents(mesh.positions, mesh.normals, mesh.uv, mesh.faces)
-        fr = F.compute_frame("vertex_area", N=f32(_unit(n)), tangent=f32(interp(corner(vt))))
-    else:
-        raise ValueError(f"unknown bake convention {convention!r}")
-    basis = np.stack([np.asarray(fr.T, np.float64), np.asarray(fr.B, np.float64),
-                      np.asarray(fr.N, np.float64)], -1)  # columns T, B, N
-    target = high_normal(u.ravel(), v.ravel())
-    m = _unit(np.linalg.solve(basis, target[..., None])[..., 0])
-    return m.reshape(*map_hw, 3).astype(np.float32)
+    low-poly ``convention`` frame (`jaxnm.bake.bake_normal_map`)."""
+    return bake_normal_map(mesh, high_normal, map_hw, frame=convention)
 
 
 # ---------------------------------------------------------------------- baking by fitting

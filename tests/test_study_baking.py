@@ -1,6 +1,7 @@
-"""scripts/study_baking.py: its high-poly normals are right, and a bake decodes correctly only
-in the frame convention it was baked in (projection bakes; the fitter's bakes run in the
-script, at sizes too large for the suite)."""
+"""jaxnm.bake and scripts/study_baking.py: the study's high-poly normals are right, a bake
+decodes back to the target normals at texel centres in its own frame, and only there
+(projection bakes; the fitter's bakes run in the script, at sizes too large for the
+suite)."""
 
 import importlib.util
 import sys
@@ -41,8 +42,9 @@ def test_high_poly_normal_is_the_torus_normal_without_displacement(monkeypatch):
 
 def test_texels_are_located_in_their_uv_triangles():
     m = B.jaxnm.procedural.torus(B.R, B.RT, 12, 6)
-    u, v = B.texel_uv((8, 16))
-    tri, bary = B.locate(m, u, v)
+    u, v = B.jaxnm.bake.texel_uv((8, 16))
+    tri, bary = B.jaxnm.bake.locate_texels(m, u, v)
+    assert (tri >= 0).all()
     uv = np.asarray(m.uv, np.float64)[np.asarray(m.faces)[tri]]
     np.testing.assert_allclose(np.einsum("tk,tkc->tc", bary, uv),
                                np.stack([u.ravel(), v.ravel()], -1), atol=1e-12)
@@ -65,3 +67,35 @@ def test_a_bake_decodes_only_in_its_own_convention(matrix):
     assert matrix["cotangent", "cotangent"] < 1.0 and matrix["vertex", "vertex"] < 1.0
     assert matrix["cotangent", "vertex"] > 3 * matrix["cotangent", "cotangent"]
     assert matrix["vertex", "cotangent"] > 3 * matrix["vertex", "vertex"]
+
+
+@pytest.mark.parametrize("frame", ["cotangent", "vertex", "vertex_area"])
+def test_a_bake_decodes_back_at_texel_centres(frame):
+    """Render a plane seen head-on, one pixel per texel centre: the decoded normal is the
+    baked target (nearest filtering, so each pixel reads its own texel)."""
+    import jax.numpy as jnp
+
+    from jaxnm.camera import Camera, look_at, orthographic
+    from jaxnm.textures import NormalMapOptions
+
+    mesh = B.jaxnm.procedural.plane(2.0, 3).with_tangents()
+
+    def target(u, v):  # a smooth tilted field
+        n = np.stack([0.3 * np.sin(6 * u), 0.2 * np.cos(5 * v), np.ones_like(u)], -1)
+        return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+    baked = B.jaxnm.bake.bake_normal_map(mesh, target, (16, 16), frame=frame)
+    cam = Camera.from_matrices(look_at((0, 0, 3), (0, 0, 0), (0, 1, 0)),
+                               orthographic(-1, 1, -1, 1, 0.1, 10))
+    sc = B.jaxnm.Scene(mesh=mesh, camera=cam, width=16, height=16,
+                       normal_map=jnp.asarray(baked),
+                       normal_map_options=NormalMapOptions(encoding="signed",
+                                                           filter="nearest"),
+                       frame=frame)
+    out = B.jaxnm.render(sc, outputs=("perturbed_normal", "uv", "mask"))
+    m = np.asarray(out["mask"])[..., 0] > 0
+    uv = np.asarray(out["uv"], np.float64)[m]
+    want = target(np.round(uv[:, 0] * 16 - 0.5) / 16 + 1 / 32,
+                  np.round(uv[:, 1] * 16 - 0.5) / 16 + 1 / 32)
+    assert m.sum() > 200
+    assert B._angle(np.asarray(out["perturbed_normal"])[m], want).max() < 0.01

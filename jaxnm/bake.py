@@ -1,0 +1,134 @@
+"""Baking a tangent-space normal map from a normal field, in a chosen frame convention.
+
+A tangent-space map only means something together with the frame it is decoded in
+(`jaxnm.frames.FRAMES`): the renderer decodes ``normalize(T m.x + B m.y + N m.z)``. To bake
+is to invert that per texel: find the mesh point whose uv is the texel centre, build the
+frame there exactly as the renderer would, and store ``m = [T B N]^-1 n`` (normalised) for
+the target normal ``n``, so that decoding in the same frame returns ``n`` at texel centres.
+
+`bake_normal_map` does it for the texture-space conventions, the ones a baker can
+evaluate without a camera:
+
+- ``"cotangent"`` (also ``"exact"``): Schüler's frame of the texel's triangle (the uv
+  gradients on the plane normal to the interpolated normal, scaled so the longer is unit),
+  which is what the screen-space cotangent frame computes for every pixel of that triangle;
+- ``"vertex"``: MikkTSpace (the mesh's per-corner tangents, `jaxnm.tangents`), the frame of
+  Blender, Substance, xNormal and glTF;
+- ``"vertex_area"``: area-weighted per-vertex tangents.
+
+The target normals come from a function of uv (for example a high-poly surface evaluated at
+the same surface parameters, or an analytic bump). Everything here runs once, in NumPy
+float64 on the host, with the frames built by `jaxnm.frames` (float32).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax.numpy as jnp
+import numpy as np
+
+from . import frames as _frames
+from .geometry import Mesh
+
+__all__ = ["BAKE_FRAMES", "texel_uv", "locate_texels", "bake_normal_map"]
+
+#: The frame conventions `bake_normal_map` can bake for (``"exact"`` is ``"cotangent"``).
+BAKE_FRAMES = ("cotangent", "exact", "vertex", "vertex_area")
+
+
+def texel_uv(map_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The uv of each texel centre, two ``(h, w)`` arrays (float64), for a map stored with
+    its uv origin at the bottom left (row 0 holds v near 1: image layout)."""
+    h, w = map_hw
+    u = (np.arange(w) + 0.5) / w
+    v = 1.0 - (np.arange(h) + 0.5) / h
+    return np.meshgrid(u, v)
+
+
+def locate_texels(mesh: Mesh, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per point ``(u, v)`` (any shape, flattened): the index of a face whose uv triangle
+    contains it (-1 where none does) and its barycentrics ``(N, 3)`` in that face."""
+    if mesh.uv is None:
+        raise ValueError("locate_texels: the mesh has no texture coordinates (uv)")
+    uv = np.asarray(mesh.uv, np.float64)[np.asarray(mesh.faces)]  # (F, 3, 2)
+    q = np.stack([np.ravel(u), np.ravel(v)], -1)
+    tri = np.full(len(q), -1)
+    bary = np.zeros((len(q), 3))
+    a, b, c = uv[:, 0], uv[:, 1], uv[:, 2]
+    det = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
+    for f in np.nonzero(np.abs(det) > 0)[0]:  # zero-area uv triangles hold no texel
+        lo, hi = uv[f].min(0) - 1e-12, uv[f].max(0) + 1e-12
+        idx = np.nonzero(np.all((q >= lo) & (q <= hi), -1) & (tri < 0))[0]
+        if idx.size == 0:
+            continue
+        d = q[idx] - a[f]
+        b1 = (d[:, 0] * (c[f, 1] - a[f, 1]) - (c[f, 0] - a[f, 0]) * d[:, 1]) / det[f]
+        b2 = ((b[f, 0] - a[f, 0]) * d[:, 1] - d[:, 0] * (b[f, 1] - a[f, 1])) / det[f]
+        inside = (b1 >= -1e-12) & (b2 >= -1e-12) & (b1 + b2 <= 1 + 1e-12)
+        tri[idx[inside]] = f
+        bary[idx[inside]] = np.stack([1 - b1 - b2, b1, b2], -1)[inside]
+    return tri, bary
+
+
+def bake_normal_map(mesh: Mesh, normal_at_uv: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                    map_hw: tuple[int, int], *, frame: str = "vertex",
+                    fill: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """Bake the normals ``normal_at_uv(u, v) -> (N, 3)`` into a tangent-space map for
+    ``frame`` (one of `BAKE_FRAMES`).
+
+    **Arguments:**
+    - `mesh`: the (low-poly) mesh with uv and vertex normals; ``"vertex"`` needs its
+      MikkTSpace tangents (`Mesh.with_tangents`).
+    - `normal_at_uv`: the target unit normals (world space) at flat arrays of u and v.
+    - `map_hw`: ``(height, width)`` of the map.
+    - `fill`: the value of texels no uv triangle covers.
+
+    **Returns:** ``(h, w, 3)`` float32 signed unit vectors (decode them with
+    ``NormalMapOptions(encoding="signed")``; `jaxnm.textures.encode_normal_map` makes an
+    8-bit image), uv origin at the bottom left.
+    """
+    if frame not in BAKE_FRAMES:
+        raise ValueError(f"bake_normal_map: cannot bake for frame {frame!r}; expected one of "
+                         f"{', '.join(BAKE_FRAMES)} (the others depend on the camera)")
+    if mesh.normals is None:
+        raise ValueError("bake_normal_map: the mesh has no vertex normals")
+    if frame == "vertex" and mesh.tangents is None:
+        raise ValueError("bake_normal_map: frame 'vertex' needs the mesh's MikkTSpace "
+                         "tangents (Mesh.with_tangents())")
+    u, v = texel_uv(map_hw)
+    tri, bary = locate_texels(mesh, u, v)
+    hit = tri >= 0
+    tri, bary = tri[hit], bary[hit]
+    faces = np.asarray(mesh.faces)[tri]
+
+    def corners(a):
+        return np.asarray(a, np.float64)[faces]
+
+    def interp(c):
+        return np.einsum("tk,tkc->tc", bary, c)
+
+    def f32(x):
+        return jnp.asarray(x, jnp.float32)
+
+    n = interp(corners(mesh.normals))
+    n_unit = n / np.linalg.norm(n, axis=-1, keepdims=True)
+    if frame in ("cotangent", "exact"):
+        fr = _frames.exact_frame(f32(corners(mesh.positions)), f32(corners(mesh.uv)),
+                                 f32(n_unit))
+    elif frame == "vertex":  # per face corner, reconstructed as the renderer does
+        t = interp(np.asarray(mesh.tangents, np.float64)[tri])
+        fr = _frames.compute_frame("vertex", N=f32(n), tangent=f32(t))
+    else:
+        vt = _frames.vertex_tangents(mesh.positions, mesh.normals, mesh.uv, mesh.faces)
+        fr = _frames.compute_frame("vertex_area", N=f32(n_unit), tangent=f32(interp(corners(vt))))
+    basis = np.stack([np.asarray(fr.T, np.float64), np.asarray(fr.B, np.float64),
+                      np.asarray(fr.N, np.float64)], -1)  # columns T, B, N
+    target = np.asarray(normal_at_uv(u.ravel()[hit], v.ravel()[hit]), np.float64)
+    ok = np.abs(np.linalg.det(basis)) > 1e-12  # a degenerate frame stores the fill value
+    m = np.tile(np.asarray(fill, np.float64), (len(tri), 1))
+    m[ok] = np.linalg.solve(basis[ok], target[ok][..., None])[..., 0]
+    m /= np.linalg.norm(m, axis=-1, keepdims=True)
+    out = np.tile(np.asarray(fill, np.float32), (u.size, 1))
+    out[hit] = m
+    return out.reshape(*map_hw, 3)
