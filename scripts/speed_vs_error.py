@@ -121,8 +121,10 @@ def run_one(cfg: dict, surf: Torus, reps: int) -> dict:
     m = (np.asarray(out["mask"])[..., 0] > 0) & (np.asarray(out["front_facing"])[..., 0] > 0)
     p = np.asarray(out["position"], np.float64)[m]
     dp_du, dp_dv, n = surf.frame_at(p)
-    (tg, bg), _, (to, bo) = truth_frames(dp_du, dp_dv, n)
+    (tg, bg), (tu, bu), (to, bo) = truth_frames(dp_du, dp_dv, n)
     t_true, b_true = (tg, bg) if cfg["frame"] in GRADIENT_METHODS else (to, bo)
+    if cfg["frame"] == "cotangent_unnormalized":  # the true, unscaled gradients
+        t_true, b_true = tu, bu
     raw = sample(texels, out["uv"], out["duvdx"], out["duvdy"], filter=cfg["filter"],
                  wrap="repeat")
     mv = np.asarray(decode_normal_map(raw), np.float64)[m]
@@ -185,8 +187,18 @@ def _plot(rows, front, path: Path) -> None:
     for i, r in enumerate(rows):
         ax.scatter(r["forward_ms"], max(r["normal_mean"], 1e-6), c=colors[r["precision"]],
                    marker=markers[r["derivatives"]], s=20 + 10 * (r["size"] // 256))
-        if i in front or r["normal_mean"] > 5:
-            ax.annotate(_label(r), (r["forward_ms"], max(r["normal_mean"], 1e-6)), fontsize=5)
+    seen = set()  # one label per frame (its fastest configuration), and the Pareto front
+    for i, r in sorted(enumerate(rows), key=lambda ir: ir[1]["forward_ms"]):
+        if i in front or r["frame"] not in seen:
+            seen.add(r["frame"])
+            ax.annotate(_label(r), (r["forward_ms"], max(r["normal_mean"], 1e-6)), fontsize=6,
+                        xytext=(4, 2), textcoords="offset points")
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], ls="", marker="o", color=c, label=p) for p, c in colors.items()]
+    handles += [Line2D([], [], ls="", marker=m, color="k", label=d)
+                for d, m in markers.items()]
+    ax.legend(handles=handles, fontsize=7, loc="center right")
     for size in sorted({r["size"] for r in rows}):
         pts = sorted((rows[i]["forward_ms"], rows[i]["normal_mean"]) for i in front
                      if rows[i]["size"] == size)
