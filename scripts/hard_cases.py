@@ -61,6 +61,29 @@ def plane(segments: int = 2, size: float = 2.0, uv_matrix=((0.5, 0.0), (0.0, 0.5
     return mesh, a
 
 
+def chart_plane(uv_matrices, segments: int = 4, size: float = 2.0):
+    """The plane z = 0 as separate triangles (no shared vertices), face ``f`` mapped by
+    ``uv_matrices[f]`` (uv = A (x, y) + 0.5; None: a constant uv, zero uv area). Returns the
+    mesh and the exact perturbed normal per face (the unperturbed +z where uv is constant,
+    the renderer's documented fallback)."""
+    shared, _ = plane(segments=segments, size=size)
+    pos = np.asarray(shared.positions, np.float64)[np.asarray(shared.faces)]  # (F, 3, 3)
+    uv, ref = [], []
+    for f, a in enumerate(uv_matrices):
+        if a is None:
+            uv.append(np.full((3, 2), 0.37))
+            ref.append(np.array([0.0, 0.0, 1.0]))
+        else:
+            uv.append(pos[f, :, :2] @ np.asarray(a, np.float64).T + 0.5)
+            ref.append(plane_reference(np.asarray(a, np.float64)))
+    n = len(uv_matrices)
+    mesh = jaxnm.Mesh(jnp.asarray(pos.reshape(-1, 3), jnp.float32),
+                      jnp.arange(3 * n, dtype=jnp.int32).reshape(n, 3),
+                      jnp.asarray(np.concatenate(uv), jnp.float32),
+                      jnp.asarray(np.tile([0.0, 0.0, 1.0], (3 * n, 1)), jnp.float32))
+    return mesh, np.stack(ref)
+
+
 def plane_reference(uv_matrix: np.ndarray) -> np.ndarray:
     """The exact perturbed normal on a z-plane with the affine uv ``uv_matrix`` (float64)."""
     gu = np.array([uv_matrix[0, 0], uv_matrix[0, 1], 0.0])
@@ -75,7 +98,8 @@ def plane_reference(uv_matrix: np.ndarray) -> np.ndarray:
 class Case:
     name: str
     scene: Scene
-    reference: np.ndarray | None  # (3,) the exact perturbed normal, or None: finite only
+    # (3,) the exact perturbed normal, or (F, 3) one per face, or None: finite only
+    reference: np.ndarray | None
     tolerance_deg: float | None
     note: str = ""
 
@@ -107,6 +131,21 @@ def cases(size: int = 64) -> list[Case]:
         cam = _look((0.1, 0.05, h), (0.1, 0.05, 0.0), fov=60.0, near=h * 0.1, far=10.0)
         out.append(Case(f"close-up {h:g} above the surface", _scene(mesh, cam, size), ref,
                         TOLERANCE))
+    # quads straddling uv charts: the right half mirrored and shifted, every triangle its own
+    # chart boundary; and one triangle of zero uv area amid regular ones
+    grid, _ = plane(segments=4)
+    right = np.asarray(grid.positions)[np.asarray(grid.faces)].mean(1)[:, 0] > 0
+    nf = len(right)
+    charts = [np.array([[-0.5, 0.0], [0.0, 0.5]]) if r else a for r in right]
+    m5, ref5 = chart_plane(charts)
+    out.append(Case("quads straddling uv charts (mirrored half)",
+                    _scene(m5, _look((0.3, -0.2, 2.5), (0, 0, 0)), size), ref5, TOLERANCE))
+    degenerate = [a] * nf
+    degenerate[nf // 2 + 1] = None
+    m6, ref6 = chart_plane(degenerate)
+    out.append(Case("one triangle of zero uv area", _scene(m6, _look((0.3, -0.2, 2.5), (0, 0, 0)),
+                                                           size),
+                    ref6, TOLERANCE, "that triangle falls back to the unperturbed normal"))
     # half precision (GLSL mediump) close up: fine differences of rounded uv values are the
     # noise Schüler's readers report (test_shader_precision.py measures it); his advice,
     # derivatives of full-precision values (here: the exact ones, rounded), removes it
@@ -153,14 +192,17 @@ def cases(size: int = 64) -> list[Case]:
 def run_case(case: Case) -> dict:
     scene = case.scene
     out = jaxnm.render(scene, outputs=("color", "perturbed_normal", "mask", "tangent",
-                                       "bitangent", "dpdx", "duvdy"))
+                                       "bitangent", "dpdx", "duvdy", "triangle_id"))
     mask = np.asarray(out["mask"])[..., 0] > 0
     finite = all(bool(np.isfinite(np.asarray(v)).all()) for v in out.values())
     rec = {"case": case.name, "covered_pixels": int(mask.sum()), "finite_outputs": finite,
            "note": case.note}
     if case.reference is not None and mask.any():
         n = np.asarray(out["perturbed_normal"], np.float64)[mask]
-        ref = np.broadcast_to(case.reference, n.shape)
+        ref = np.asarray(case.reference, np.float64)
+        if ref.ndim == 2:  # one reference per face
+            ref = ref[np.asarray(out["triangle_id"])[..., 0][mask].astype(int)]
+        ref = np.broadcast_to(ref, n.shape)
         ang = np.degrees(np.arctan2(np.linalg.norm(np.cross(n, ref), axis=-1),
                                     np.sum(n * ref, -1)))
         rec.update(worst_deg=float(ang.max()), mean_deg=float(ang.mean()),
