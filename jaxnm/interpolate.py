@@ -71,6 +71,7 @@ __all__ = [
     "check_derivatives",
     "check_precision",
     "at_precision",
+    "require_x64",
     "COARSE_REFERENCE",
     "barycentrics",
     "interpolate",
@@ -84,8 +85,10 @@ DERIVATIVE_MODES = ("fine", "coarse", "analytic", "gbuffer")
 #: Fragment-shader arithmetic precisions (the scene key ``precision``, ``--precision``):
 #: ``float32`` is GLSL ``highp``; ``float16`` is ``mediump`` on hardware with half-precision
 #: ALUs (IEEE binary16: 11-bit significand, largest 65504); ``bfloat16`` keeps float32's
-#: range with an 8-bit significand (what some ML accelerators offer instead).
-PRECISIONS = ("float32", "float16", "bfloat16")
+#: range with an 8-bit significand (what some ML accelerators offer instead); ``float64``
+#: (needs 64-bit JAX, ``jax_enable_x64``) computes the frame in double precision from the
+#: float32 interpolants, which shows what the arithmetic alone still costs in float32.
+PRECISIONS = ("float32", "float16", "bfloat16", "float64")
 
 #: ``dFdxCoarse`` is taken from the quad's lower row (window y even) and
 #: ``dFdyCoarse`` from its left column (window x even): the quad's lower-left
@@ -151,6 +154,14 @@ def check_precision(precision: str) -> None:
                          f"{', '.join(PRECISIONS)}")
 
 
+def require_x64(what: str) -> None:
+    """Raise a `ValueError` naming ``what`` unless 64-bit JAX is enabled (without it a
+    float64 array silently becomes float32)."""
+    if not jax.config.jax_enable_x64:
+        raise ValueError(f"{what} needs 64-bit JAX: set JAX_ENABLE_X64=1 or call "
+                         "jax.config.update('jax_enable_x64', True) before rendering")
+
+
 def at_precision(attr: Attribute, precision: str, mask: Array, *,
                  derivatives: str | None) -> Attribute:
     """``attr`` as a shader running at ``precision`` sees it (a model of GLSL ``mediump``).
@@ -171,11 +182,18 @@ def at_precision(attr: Attribute, precision: str, mask: Array, *,
     - ``analytic``: value and derivatives rounded (the exact reference, stored at
       ``precision``).
 
+    - ``float64``: value and derivatives converted exactly (nothing to round).
+
     Returns an `Attribute` whose arrays have ``precision``'s dtype (0 on background).
     """
     check_precision(precision)
     if precision == "float32":
         return attr
+    if precision == "float64":
+        require_x64("precision 'float64'")
+        f64 = jnp.float64
+        return Attribute(attr.value.astype(f64),
+                         *(None if d is None else d.astype(f64) for d in (attr.ddx, attr.ddy)))
     dt = jnp.dtype(precision)
     v = attr.value
     lo = v.astype(dt)

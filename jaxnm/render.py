@@ -36,6 +36,7 @@ from .interpolate import (
     check_derivatives,
     check_precision,
     interpolate,
+    require_x64,
     triangle_corners,
 )
 from .numerics import materialize, safe_normalize
@@ -333,6 +334,11 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     scene = validate_scene(scene)
     opts = RenderOptions.of(scene, outputs=outputs, derivatives=derivatives, frame=frame,
                             precision=precision)
+    if opts.precision == "float64":
+        try:
+            require_x64("precision 'float64'")
+        except ValueError as e:
+            raise ValueError(f"{scene.source}: {e}") from None
     scene = with_tangents_if_needed(scene, opts)
     check_mesh(scene.mesh, opts, scene.source)
     scene, origin = camera_relative(scene)

@@ -18,6 +18,8 @@ float64 truth. Per configuration:
 - ``image_rmse``: the RMS difference of the linear colour from the image shaded (by
   `jaxnm.shading.shade`, float32) with that truth normal, over covered pixels.
 
+Precisions: float32, float16 (GLSL mediump), bfloat16, and float64 (the frame in double
+precision from the float32 interpolants, with 64-bit JAX enabled for that configuration).
 Configurations (`configurations`): around the base settings (cotangent, fine, float32,
 256 px, trilinear), one axis at a time; ``--full`` runs the whole frame x derivative-mode x
 precision grid. Writes
@@ -57,7 +59,7 @@ def configurations(quick: bool = False, full: bool = False) -> list[dict]:
     """The default set: every frame with fine and gbuffer derivatives and cotangent with all
     four modes (fine, coarse and analytic build the same frame inside a triangle, so the
     full grid repeats itself: ``--full`` runs it anyway); cotangent, exact, vertex and
-    nonperspective at float16 and bfloat16; cotangent and vertex at 512 and 1024 px;
+    nonperspective at float16, bfloat16 and float64; cotangent and vertex at 512 and 1024 px;
     cotangent with nearest and bilinear filtering."""
     methods = ("cotangent", "vertex", "nonperspective") if quick else METHODS
     out = []
@@ -65,7 +67,7 @@ def configurations(quick: bool = False, full: bool = False) -> list[dict]:
         modes = DERIVATIVE_MODES if full or frame == "cotangent" else ("fine", "gbuffer")
         for mode in (("fine", "gbuffer") if quick else modes):
             out.append({**BASE, "frame": frame, "derivatives": mode})
-    for precision in ("float16", "bfloat16"):
+    for precision in ("float16", "bfloat16", "float64"):
         for frame in (methods if full or quick else
                       ("cotangent", "exact", "vertex", "nonperspective")):
             out.append({**BASE, "frame": frame, "precision": precision})
@@ -87,6 +89,14 @@ def _median_time(fn, reps: int) -> float:
 
 
 def run_one(cfg: dict, surf: Torus, reps: int) -> dict:
+    """Time and measure one configuration (``float64`` runs with 64-bit JAX enabled)."""
+    if cfg["precision"] == "float64":
+        with jax.enable_x64(True):
+            return _run_one(cfg, surf, reps)
+    return _run_one(cfg, surf, reps)
+
+
+def _run_one(cfg: dict, surf: Torus, reps: int) -> dict:
     base = default_scene(width=cfg["size"], height=cfg["size"])
     mesh = jaxnm.Mesh(jnp.asarray(surf.pos, jnp.float32), jnp.asarray(surf.faces, jnp.int32),
                       jnp.asarray(surf.uv, jnp.float32), jnp.asarray(surf.nrm, jnp.float32))
@@ -182,7 +192,7 @@ def _plot(rows, front, path: Path) -> None:
         return
     fig = Figure(figsize=(8, 5), dpi=110)
     ax = fig.add_subplot()
-    colors = {"float32": "C0", "float16": "C1", "bfloat16": "C3"}
+    colors = {"float32": "C0", "float16": "C1", "bfloat16": "C3", "float64": "C2"}
     markers = {"fine": "o", "coarse": "s", "analytic": "^", "gbuffer": "x"}
     for i, r in enumerate(rows):
         ax.scatter(r["forward_ms"], max(r["normal_mean"], 1e-6), c=colors[r["precision"]],

@@ -341,6 +341,11 @@ def sweeps(size: int, quick: bool, only=SWEEPS) -> list:
         rows.extend(records)
         print(json.dumps({**kw, "methods": len(records)}), flush=True)
 
+    def forget():
+        # drop compiled programs no later sweep point reuses: XLA's CPU backend keeps every
+        # executable mapped, and a long run would pass Linux's vm.max_map_count (65530)
+        jax.clear_caches()
+
     plane = Plane(UV_LAYOUTS["sheared 30 deg"])
     base = 1.15 / math.tan(math.radians(30))
     if "precision" in only:  # shader precision against the camera distance (close-ups)
@@ -350,11 +355,13 @@ def sweeps(size: int, quick: bool, only=SWEEPS) -> list:
                             modes=("fine", "analytic"), precision=precision),
                     sweep="precision", fov=60, view=60, distance=f, surface="plane",
                     uv="sheared 30 deg")
+            forget()
         for precision in ("float16", "bfloat16"):
             tag(measure(Torus(32), _torus_camera(), size, modes=("fine", "analytic"),
                         normal_map="rivets", precision=precision),
                 sweep="precision", surface="torus", segments=32, normals="smooth",
                 uv="surface", map="rivets")
+            forget()
     for fov in ([] if "fov" not in only else
                 (1, 30, 120) if quick else (1, 10, 30, 60, 90, 120)):
         tag(measure(plane, _camera(45, fov), size), sweep="fov", fov=fov, view=45,
@@ -379,6 +386,7 @@ def sweeps(size: int, quick: bool, only=SWEEPS) -> list:
                     normal_map=normal_map),
             sweep="derivatives", surface="torus", segments=32, normals="smooth",
             uv="surface", map=normal_map)
+        forget()
     for seg in ([] if "tessellation" not in only else (8, 32) if quick else (8, 16, 32, 64)):
         for name, surf in (("torus", Torus(seg)), ("sphere", Sphere(seg)),
                            ("cylinder", Cylinder(seg))):
@@ -392,7 +400,7 @@ def sweeps(size: int, quick: bool, only=SWEEPS) -> list:
                                                    "vertex", "vertex_area")),
                     sweep="tessellation", surface=name, segments=seg, normals=normals,
                     uv="surface")
-                jax.clear_caches()  # every mesh size compiles anew; keep memory flat
+                forget()
     return rows
 
 

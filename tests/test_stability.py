@@ -10,6 +10,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from helpers import load_script
 
 import jaxnm
 from jaxnm.camera import Camera, look_at, perspective
@@ -91,20 +92,7 @@ def test_a_rotating_mirroring_model_far_out(at_origin):
     assert _angle(out["perturbed_normal"], ref["perturbed_normal"])[m].max() < 0.01
 
 
-def _hard_cases_module():
-    import importlib.util
-    import sys
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "hard_cases.py"
-    spec = importlib.util.spec_from_file_location("hard_cases", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["hard_cases"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-H = _hard_cases_module()
+H = load_script("hard_cases")
 HARD = {c.name: c for c in H.cases(48)}
 
 

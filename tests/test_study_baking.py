@@ -3,27 +3,12 @@ decodes back to the target normals at texel centres in its own frame, and only t
 (projection bakes; the fitter's bakes run in the script, at sizes too large for the
 suite)."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import jax
 import numpy as np
 import pytest
+from helpers import load_script
 
-
-def _module():
-    if "study_baking" in sys.modules:
-        return sys.modules["study_baking"]
-    path = Path(__file__).resolve().parents[1] / "scripts" / "study_baking.py"
-    spec = importlib.util.spec_from_file_location("study_baking", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["study_baking"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-B = _module()
+B = load_script("study_baking")
 
 
 def test_high_poly_normal_is_the_torus_normal_without_displacement(monkeypatch):

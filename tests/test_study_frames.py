@@ -6,24 +6,11 @@ formulas) must approach the analytic frame at the triangle's centroid as the mes
 error falls with the square of the edge length).
 """
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
+from helpers import load_script
 
-
-def _study_module():
-    path = Path(__file__).resolve().parents[1] / "scripts" / "study_frames.py"
-    spec = importlib.util.spec_from_file_location("study_frames", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["study_frames"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-S = _study_module()
+S = load_script("study_frames")
 
 
 def _face_gradient_frames(surf):
