@@ -91,7 +91,8 @@ def _pixel_colors(m: Array, gb: GBuffer, lights: Lights, material: Material, sha
                   strength) -> Array:
     """(T, K, 3): each stacked light's shading of the per-pixel map vectors ``m`` (K, 3)."""
     m = m * jnp.stack([strength, strength, jnp.ones_like(strength)]).astype(m.dtype)[None]
-    n = perturb_normal(gb.frame, m)
+    # at the frame's precision (``FitProblem.precision``), like `jaxnm.render`
+    n = perturb_normal(gb.frame, m.astype(gb.frame.N.dtype)).astype(m.dtype)
     return jax.vmap(lambda lt: shade(shading, n, gb.position, gb.eye, lt, material,
                                      albedo=gb.albedo))(lights)
 

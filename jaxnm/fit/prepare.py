@@ -158,6 +158,7 @@ def prepare(problem: FitProblem) -> Prepared:
     for ts in groups.values():
         t0 = ts[0]
         opts = RenderOptions(width=t0.width, height=t0.height, derivatives=problem.derivatives,
+                             precision=problem.precision,
                              frame=problem.frame, shading=problem.shading,
                              double_sided=problem.double_sided, normal_map=nm,
                              normal_map_shape=tuple(problem.map_size),

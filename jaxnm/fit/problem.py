@@ -11,7 +11,7 @@ import numpy as np
 from ..camera import Camera
 from ..frames import check_frame
 from ..geometry import Mesh
-from ..interpolate import check_derivatives
+from ..interpolate import check_derivatives, check_precision, require_x64
 from ..shading import Lights, Material, check_shading_model
 from ..textures import NormalMapOptions
 
@@ -61,6 +61,7 @@ class FitProblem:
     shading: str = "blinn_phong"
     frame: str = "cotangent"
     derivatives: str = "fine"
+    precision: str = "float32"
     double_sided: bool = True
     sampling: NormalMapOptions = NormalMapOptions(encoding="signed")
     source: str = "<fit problem>"
@@ -69,15 +70,14 @@ class FitProblem:
 def problem_from_scene(scene, targets, map_size, *, source: str | None = None) -> FitProblem:
     """The `FitProblem` of fitting ``scene``'s normal map (its mesh, material, albedo, frame,
     derivative mode and map sampling options) to ``targets``. The scene's model matrix is
-    applied to the mesh (the fit works in world space). The fit computes in float32: a scene
-    with another ``precision`` is refused."""
-    if scene.precision != "float32":
-        raise ValueError(f"{source or scene.source}: precision {scene.precision!r} is a render "
-                         "option; fitting computes in float32 (remove the scene's 'precision')")
+    applied to the mesh (the fit works in world space). The scene's ``precision`` is the
+    shader arithmetic the map is fitted for (the frame and the perturbation; the solver
+    itself works in float32)."""
     mesh = scene.mesh if scene.model is None else scene.mesh.transformed(scene.model)
     return FitProblem(mesh=mesh, material=scene.material, targets=tuple(targets),
                       map_size=tuple(int(s) for s in map_size), albedo=scene.albedo,
                       shading=scene.shading, frame=scene.frame, derivatives=scene.derivatives,
+                      precision=scene.precision,
                       double_sided=scene.double_sided,
                       sampling=dataclasses.replace(scene.normal_map_options, encoding="signed",
                                                    channels=3),
@@ -176,6 +176,9 @@ def validate_problem(problem: FitProblem) -> None:
     try:
         check_frame(problem.frame)
         check_derivatives(problem.derivatives, allow_none=False)
+        check_precision(problem.precision)
+        if problem.precision == "float64":
+            require_x64("precision 'float64'")
         check_shading_model(problem.shading)
     except ValueError as e:
         raise ValueError(f"{src}: {e}") from None

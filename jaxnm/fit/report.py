@@ -86,6 +86,7 @@ def fit_outputs(job: FitJob, prep: Prepared, result: FitResult, *,
               "final_loss": result.best_loss, "identifiability": result.identifiability,
               "solver": dataclasses.asdict(job.options), "map_size": list(problem.map_size),
               "frame": problem.frame, "derivatives": problem.derivatives,
+              "precision": problem.precision,
               "tangents": (problem.mesh.tangent_source or "mikktspace")
               if problem.frame == "vertex" else None,
               "map_encoding": {"encoding": enc.encoding, "green": enc.green, "bits": enc.bits,
