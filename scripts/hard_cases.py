@@ -8,9 +8,9 @@ whatever the view (its screen-space derivatives are scaled alike), so the pertur
 has a closed form: ``normalize(T m.x + B m.y + N m.z)`` with ``T, B`` the world gradients
 of ``u`` and ``v`` scaled so that the longer is unit (Schüler's normalisation), computed
 here in float64. Each case reports the worst pixel's angle to it, the tolerance it must
-meet, and whether the image, the gradients with respect to the map, the vertex positions
-and the camera, and every output are finite. Writes ``hard_cases.json``, ``hard_cases.md``
-and one PNG per case (the shaded image) into ``--out``.
+meet, and whether the image, the gradients with respect to the map, the vertex positions,
+the camera and the lights, and every output are finite. Writes ``hard_cases.json``,
+``hard_cases.md`` and one PNG per case (the shaded image) into ``--out``.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ import numpy as np
 import jaxnm
 from jaxnm.camera import Camera, look_at, perspective
 from jaxnm.scene import Scene
+from jaxnm.shading import DirectionalLight, Lights, PointLight, stack_lights
 from jaxnm.textures import NormalMapOptions
 
 MAP_VALUE = np.array([0.35, -0.25, 0.9])  # decoded tangent-space vector (clearly tilted)
@@ -104,12 +105,20 @@ class Case:
     note: str = ""
 
 
+#: A directional and a point light (each case differentiates with respect to both).
+LIGHTS = Lights(
+    directional=stack_lights([DirectionalLight(jnp.array([-0.5, -0.4, 0.8]),
+                                               jnp.array([1.0, 0.95, 0.9]), jnp.asarray(0.8))]),
+    point=stack_lights([PointLight(jnp.array([0.6, -0.8, 1.5]), jnp.array([0.6, 0.7, 1.0]),
+                                   jnp.asarray(2.0))]))
+
+
 def _scene(mesh, cam, size, **kw) -> Scene:
     return Scene(mesh=mesh, camera=cam, width=size, height=size,
                  normal_map=jnp.asarray(_texels()),
                  normal_map_options=NormalMapOptions(filter="nearest"),
-                 albedo=np.array([0.8, 0.7, 0.6], np.float32), source="<hard case>",
-                 **kw).replace()
+                 albedo=np.array([0.8, 0.7, 0.6], np.float32), lights=LIGHTS,
+                 source="<hard case>", **kw).replace()
 
 
 def _look(eye, target, up=(0, 1, 0), fov=50.0, near=0.1, far=100.0) -> Camera:
@@ -208,14 +217,15 @@ def run_case(case: Case) -> dict:
         rec.update(worst_deg=float(ang.max()), mean_deg=float(ang.mean()),
                    tolerance_deg=case.tolerance_deg)
 
-    def loss(nm, positions, cam):
+    def loss(nm, positions, cam, lights):
         sc = scene.replace(normal_map=nm, mesh=dataclasses.replace(scene.mesh,
                                                                    positions=positions),
-                           camera=cam)
+                           camera=cam, lights=lights)
         return jnp.sum(jaxnm.render(sc)["color"] * jnp.linspace(0.5, 1.5, 3)[None, None])
 
-    grads = jax.grad(loss, argnums=(0, 1, 2))(jnp.asarray(scene.normal_map),
-                                              scene.mesh.positions, scene.camera)
+    grads = jax.grad(loss, argnums=(0, 1, 2, 3))(jnp.asarray(scene.normal_map),
+                                                 scene.mesh.positions, scene.camera,
+                                                 scene.lights)
     rec["finite_gradients"] = all(bool(np.isfinite(np.asarray(g)).all())
                                   for g in jax.tree_util.tree_leaves(grads))
     ok = finite and rec["finite_gradients"] and rec["covered_pixels"] > 0
