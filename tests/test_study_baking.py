@@ -84,3 +84,22 @@ def test_a_bake_decodes_back_at_texel_centres(frame):
                   np.round(uv[:, 1] * 16 - 0.5) / 16 + 1 / 32)
     assert m.sum() > 200
     assert B._angle(np.asarray(out["perturbed_normal"])[m], want).max() < 0.01
+
+
+def test_bake_refuses_what_it_cannot_bake():
+    mesh = B.jaxnm.procedural.plane(2.0, 2)
+    field = lambda u, v: np.tile([0.0, 0.0, 1.0], (np.size(u), 1))  # noqa: E731
+    with pytest.raises(ValueError, match="cannot bake for frame 'nonperspective'.*camera"):
+        B.jaxnm.bake_normal_map(mesh, field, (4, 4), frame="nonperspective")
+    with pytest.raises(ValueError, match="frame 'vertex' needs the mesh's MikkTSpace"):
+        B.jaxnm.bake_normal_map(mesh, field, (4, 4), frame="vertex")
+    import dataclasses
+
+    with pytest.raises(ValueError, match="no texture coordinates"):
+        B.jaxnm.bake_normal_map(dataclasses.replace(mesh, uv=None), field, (4, 4),
+                                frame="cotangent")
+    # texels outside every uv triangle keep the fill value
+    small = dataclasses.replace(mesh, uv=mesh.uv * 0.5)  # the mesh covers uv [0, 0.5]^2
+    out = B.jaxnm.bake_normal_map(small, field, (4, 4), frame="cotangent",
+                                  fill=(0.0, 1.0, 0.0))
+    assert np.allclose(out[0, 3], [0.0, 1.0, 0.0]) and np.allclose(out[3, 0], [0.0, 0.0, 1.0])
