@@ -157,21 +157,23 @@ def _low_precision(dtype) -> bool:
     return jnp.dtype(dtype) in (jnp.float16, jnp.bfloat16)
 
 
+def _scaled_pair(a: Array, b: Array) -> tuple[Array, Array]:
+    """``a`` and ``b`` divided by their largest absolute component (a constant for AD)."""
+    m = jnp.maximum(jnp.max(jnp.abs(a), -1, keepdims=True),
+                    jnp.max(jnp.abs(b), -1, keepdims=True))
+    m = jax.lax.stop_gradient(jnp.where(m > 0, m, jnp.ones_like(m)))
+    return a / m, b / m
+
+
 def _prescaled(dp1: Array, dp2: Array, duv1: Array, duv2: Array):
-    """``dp`` and ``duv`` each divided by their largest absolute component (constants for AD).
+    """``dp`` and ``duv`` each scaled by `_scaled_pair`.
 
-    For the max-normalised frames (and the face normal) only, and only in half precision:
-    there ``T`` and ``B`` are products of a position and a uv difference, and for per-pixel
-    differences (say 0.02 and 0.005) that product is a float16 subnormal or zero; ``T`` and
-    ``B`` are bilinear in ``(dp, duv)``, so the max-normalised frame does not change, and
-    every product stays a normal number. (float32 keeps the published arithmetic.)"""
-    def unit(a, b):
-        m = jnp.maximum(jnp.max(jnp.abs(a), -1, keepdims=True),
-                        jnp.max(jnp.abs(b), -1, keepdims=True))
-        m = jax.lax.stop_gradient(jnp.where(m > 0, m, jnp.ones_like(m)))
-        return a / m, b / m
-
-    return (*unit(dp1, dp2), *unit(duv1, duv2))
+    For the max-normalised frames only, and only in half precision: there ``T`` and ``B``
+    are products of a position and a uv difference, and for per-pixel differences (say
+    0.02 and 0.005) that product is a float16 subnormal or zero; ``T`` and ``B`` are
+    bilinear in ``(dp, duv)``, so the max-normalised frame does not change, and every
+    product stays a normal number. (float32 keeps the published arithmetic.)"""
+    return (*_scaled_pair(dp1, dp2), *_scaled_pair(duv1, duv2))
 
 
 def _cotangent_TB(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Array,
@@ -342,8 +344,7 @@ def exact_frame(tri_p: Array, tri_uv: Array, N: Array | None = None, *,
     face_n = None
     if N is None or use_face_normal:
         # in half precision a small triangle's |dp1 x dp2|^2 underflows: scale the edges first
-        e1, e2 = _prescaled(dp1, dp2, duv1, duv2)[:2] if _low_precision(dp1.dtype) else (
-            dp1, dp2)
+        e1, e2 = _scaled_pair(dp1, dp2) if _low_precision(dp1.dtype) else (dp1, dp2)
         face_n = safe_normalize(_cross(e1, e2))
     n = N if face_n is None else face_n
     T, B = _cotangent_TB(n, dp1, dp2, duv1, duv2, normalize)
