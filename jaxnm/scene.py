@@ -203,15 +203,22 @@ def _check_near_plane(scene: Scene) -> None:
     if scene.model is not None and not _is_concrete(scene.model):
         return
     cam = scene.camera  # float64 NumPy, as `jaxnm.camera.to_clip` (no traced op inside jit)
-    world = np.asarray(scene.mesh.positions, np.float64)
-    if scene.model is not None:
-        m64 = np.asarray(scene.model, np.float64)
-        world = world @ m64[:3, :3].T + m64[:3, 3]
-    eye_space = ((world - np.asarray(cam.eye, np.float64))
-                 @ np.asarray(cam.view, np.float64)[:3, :3].T)
+    positions = np.asarray(scene.mesh.positions)
+    m64 = None if scene.model is None else np.asarray(scene.model, np.float64)
+    eye = np.asarray(cam.eye, np.float64)
+    rot = np.asarray(cam.view, np.float64)[:3, :3]
     proj = np.asarray(cam.projection, np.float64)
-    clip = eye_space @ proj[:, :3].T + proj[None, :, 3]
-    if not np.any(clip[:, 2] >= -clip[:, 3]):
+
+    def any_in_front(p):
+        world = p.astype(np.float64)
+        if m64 is not None:
+            world = world @ m64[:3, :3].T + m64[:3, 3]
+        clip = ((world - eye) @ rot.T) @ proj[:, :3].T + proj[None, :, 3]
+        return bool(np.any(clip[:, 2] >= -clip[:, 3]))
+
+    # a few hundred vertices usually settle it; all of them only when none of those is seen
+    stride = max(1, positions.shape[0] // 256)
+    if not (any_in_front(positions[::stride]) or any_in_front(positions)):
         raise ValueError(f"{scene.source}: every vertex of the mesh is behind the camera's near "
                          "plane (is the camera inside the object, or looking away from it?)")
 

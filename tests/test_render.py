@@ -14,7 +14,7 @@ from jaxnm.config import load_scene, scene_from_dict
 from jaxnm.maps import height_to_normal_map
 from jaxnm.procedural import default_scene
 from jaxnm.render import render
-from jaxnm.scene import Scene
+from jaxnm.scene import Scene, validate_scene
 from jaxnm.shading import DirectionalLight, Lights, Material, stack_lights
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "scripts" / "scenes" / "torus" / "scene.json"
@@ -330,3 +330,42 @@ def test_cli_uses_the_persistent_compilation_cache(tmp_path):
     assert run(env=dict(env, JAXNM_COMPILATION_CACHE="off")) == (0, 0)
     run("--nondeterministic")
     assert deterministic == [True, True, True, True, False]
+
+
+def test_value_checks_run_once_per_jax_array_and_always_for_numpy(monkeypatch):
+    """A JAX mesh that passed the NaN/index checks is not rescanned on the next render (it
+    cannot change); a NumPy mesh is rescanned every time, so an in-place NaN is caught."""
+    from jaxnm import geometry
+
+    calls = []
+    real = geometry._check_values
+    monkeypatch.setattr(geometry, "_check_values", lambda *a: (calls.append(1), real(*a)))
+    mesh = procedural.plane(1.0, 2)
+    pos = jnp.asarray(mesh.positions)
+    for _ in range(3):
+        geometry.validate_arrays(pos, mesh.faces, mesh.uv, mesh.normals, source="m")
+    assert len(calls) == 1
+    geometry.validate_arrays(pos + 0.0, mesh.faces, mesh.uv, mesh.normals, source="m")
+    assert len(calls) == 2  # a new array is checked
+    host = np.array(mesh.positions)
+    geometry.validate_arrays(host, mesh.faces, mesh.uv, mesh.normals, source="m")
+    host[1, 0] = np.nan
+    with pytest.raises(ValueError, match="m: 1 vertex positions are NaN"):
+        geometry.validate_arrays(host, mesh.faces, mesh.uv, mesh.normals, source="m")
+
+
+def test_near_plane_check_finds_the_one_vertex_in_front():
+    """The near-plane check looks at a sample of vertices first; a mesh whose only visible
+    vertex is outside the sample still renders, and one with none is refused."""
+    n = 4000
+    rng = np.random.default_rng(0)
+    pos = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), np.full(n, 5.0)])
+    pos[1237] = [0.0, 0.0, -2.0]  # the camera at z = 3 looks down -z: only this one is seen
+    faces = np.array([[1236, 1237, 1238]])
+    mesh = jaxnm.Mesh(jnp.asarray(pos, jnp.float32), jnp.asarray(faces))
+    cam = jaxnm.Camera.look_at([0, 0, 3], [0, 0, 0])
+    validate_scene(Scene(mesh=mesh, camera=cam, width=8, height=8))
+    mesh_behind = jaxnm.Mesh(jnp.asarray(np.where(np.arange(n)[:, None] == 1237, pos + [0, 0, 7],
+                                                  pos), jnp.float32), jnp.asarray(faces))
+    with pytest.raises(ValueError, match="behind the camera's near plane"):
+        validate_scene(Scene(mesh=mesh_behind, camera=cam, width=8, height=8))
