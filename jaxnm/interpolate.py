@@ -363,7 +363,8 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
     - `frags`: from `jaxnm.rasterize`.
     - `derivatives`: one of `DERIVATIVE_MODES`, or None for values only
       (keyword-only, static).
-    - `bary`: precomputed `barycentrics(frags, derivatives=...)` to reuse.
+    - `bary`: precomputed `barycentrics(frags, derivatives=...)` to reuse (of the same
+      mode, or of any mode for ``derivatives=None``).
 
     **Returns:** an `Attribute` (or a dict of them). The value is
     ``A_0 + b_1 (A_1 - A_0) + b_2 (A_2 - A_0)``, and derivatives are formed from
@@ -394,7 +395,7 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
         # materialised once: fused into the (H, W, C) consumers below, XLA would recompute
         # the barycentrics for every attribute channel
         bary = materialize(barycentrics(frags, derivatives=derivatives))
-    elif bary.mode != derivatives:
+    elif derivatives is not None and bary.mode != derivatives:  # values: any mode will do
         raise ValueError(f"interpolate: `bary` was computed for derivatives={bary.mode!r}, "
                          f"not {derivatives!r}")
     corners = _corners(attr, frags)  # (H, W, 3, C)

@@ -33,6 +33,7 @@ from .geometry import Mesh
 from .interpolate import (
     Attribute,
     at_precision,
+    barycentrics,
     check_derivatives,
     check_precision,
     interpolate,
@@ -200,8 +201,13 @@ def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOpti
         attrs["view"] = mesh.positions - camera.eye[None, :]  # camera-relative: precise far out
     if need_uv:
         attrs["uv"] = mesh.uv
+    # one evaluation of the barycentrics (the per-pixel corner gather and edge functions)
+    # for every attribute interpolated below
+    needs_bary = attrs or need_n or (need_tb and opts.frame in ("vertex", "vertex_area"))
+    bary = (materialize(barycentrics(frags, derivatives=mode if attrs else None)) if needs_bary
+            else None)
     if attrs:
-        out = interpolate(attrs, frags, derivatives=mode)
+        out = interpolate(attrs, frags, derivatives=mode, bary=bary)
         if need_p:
             gb["view"] = out["view"]
             gb["position"] = jnp.where(mask[..., None], out["view"].value + camera.eye[None, None],
@@ -209,11 +215,11 @@ def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOpti
         if need_uv:
             gb["uv"] = out["uv"]
     if need_n:
-        n = interpolate(mesh.normals, frags, derivatives=None).value
+        n = interpolate(mesh.normals, frags, derivatives=None, bary=bary).value
         gb["normal"] = materialize(safe_normalize(n))
     if need_frame:
         frame_opts = opts if need_tb else dataclasses.replace(opts, frame="none")
-        gb["frame"] = materialize(_frame(frame_opts, mesh, frags, gb))
+        gb["frame"] = materialize(_frame(frame_opts, mesh, frags, gb, bary))
     if has_map:
         nm = opts.normal_map
         gb["plan"] = _tex.plan_sample(gb["uv"], size_hw=opts.normal_map_shape, levels=opts.levels,
@@ -228,7 +234,7 @@ def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOpti
     return GBuffer(**gb)
 
 
-def _frame(opts: RenderOptions, mesh: Mesh, frags, gb) -> _frames.Frame:
+def _frame(opts: RenderOptions, mesh: Mesh, frags, gb, bary) -> _frames.Frame:
     """The tangent frame named by ``opts.frame`` (face-forwarded when double-sided), computed
     at ``opts.precision`` from inputs rounded to it (`jaxnm.interpolate.at_precision`)."""
     kind, prec, mode = opts.frame, opts.precision, opts.derivatives
@@ -247,13 +253,14 @@ def _frame(opts: RenderOptions, mesh: Mesh, frags, gb) -> _frames.Frame:
                       tri_uv=low(triangle_corners(mesh.uv, frags)))
     elif kind == "vertex":  # MikkTSpace: per-corner tangents, the normal as interpolated
         at = interpolate({"t": mesh.tangents, "n": mesh.normals[mesh.faces]}, frags,
-                         derivatives=None)
+                         derivatives=None, bary=bary)
         return _frames.compute_frame(kind, N=low(at["n"].value), tangent=low(at["t"].value),
                                      front_facing=frags.front_facing,
                                      double_sided=opts.double_sided)
     elif kind == "vertex_area":
         tangents = _frames.vertex_tangents(mesh.positions, mesh.normals, mesh.uv, mesh.faces)
-        inputs = dict(tangent=low(interpolate(tangents, frags, derivatives=None).value))
+        inputs = dict(tangent=low(interpolate(tangents, frags, derivatives=None,
+                                              bary=bary).value))
     return _frames.compute_frame(kind, N=n, front_facing=frags.front_facing,
                                  double_sided=opts.double_sided, **inputs)
 
