@@ -1,7 +1,8 @@
 """jaxnm beside Mitsuba 3 on the CPU, in one run: forward frames, gradients, the fit benchmark.
 
     python scripts/bench.py [--out bench_out] [--quick] [--no-mitsuba] [--budget 30]
-                            [--repeats 10] [--no-cli] [--parts forward,fit,cli] [--devices N]
+                            [--repeats 10] [--no-cli] [--parts forward,fit,cli,views]
+                            [--devices N]
 
 The problem is ``shared/benchmarks/fit_vs_mitsuba.md`` (`bench_problem.py`); Mitsuba's side
 is `bench_mitsuba.py` (``pip install 'jaxnm[bench]'`` and a system libLLVM; without them
@@ -21,6 +22,8 @@ machine. Compilation is reported separately *and* included:
   seen and the well-observed texels, and the held-out-light PSNR.
 - ``cli``: ``jaxnm fit`` (no arguments) as a user runs it: wall time and peak RSS, with an
   empty and with a warm compilation cache.
+- ``views``: peak RSS and LM step time of fits from 4, 16 and 64 cameras (two lights
+  each, 128 x 128 renders), each in a fresh process: memory against the number of views.
 - ``--devices N``: the built-in 2-view problem's steady LM step with its views on one and
   on N devices (`jaxnm.fit.shard_views`; on a CPU-only machine, N forced host devices).
 
@@ -238,6 +241,63 @@ def bench_devices(args) -> dict:
     return out
 
 
+def _ring_eyes(n: int, radius: float = 3.0) -> list[tuple[float, float, float]]:
+    """``n`` eyes spread over the upper hemisphere around the origin (a Fibonacci spiral)."""
+    eyes = []
+    for i in range(n):
+        z = 0.25 + 0.7 * (i + 0.5) / n
+        phi = i * np.pi * (3.0 - np.sqrt(5.0))
+        r = np.sqrt(1.0 - z * z)
+        eyes.append((radius * r * np.cos(phi), radius * r * np.sin(phi), radius * z))
+    return eyes
+
+
+def views_worker(args) -> None:
+    """In a fresh process: an LM fit of the built-in torus and rivet map from ``--views``
+    cameras (two lights each, 128 x 128 renders, a 128 x 128 map, 3 steps); JSON on stdout.
+    The parent reads this process's peak RSS."""
+    from jaxnm.camera import eye_to_world
+    from jaxnm.procedural.builtin import _fit_camera, _fit_scene
+    from jaxnm.shading import directional_light
+
+    scene = _fit_scene(128, 128)
+    targets = []
+    for eye in _ring_eyes(args.views):
+        cam = _fit_camera(eye)
+        for d in ((-0.4, 0.5, 1.0), (0.6, -0.2, 1.0)):
+            lights = directional_light(eye_to_world(cam, np.array(d)))
+            sc = scene.replace(camera=cam, lights=lights)
+            targets.append(F.FitTarget(cam, 128, 128, lights,
+                                       np.asarray(jaxnm.render(sc)["color"])))
+    problem = F.problem_from_scene(scene, targets, (128, 128), source="<views>")
+    t = time.perf_counter()
+    prep = F.prepare(problem)
+    res = F.fit_normal_map(problem, F.FitOptions(max_steps=3, lsmr_steps=10, ftol=0.0),
+                           prepared=prep, progress=False)
+    secs = [h["seconds"] for h in res.history]
+    print("RESULT " + json.dumps({
+        "views": args.views, "targets": len(targets),
+        "pixels": int(sum(int(np.prod(b.images.shape[:1] + b.images.shape[2:3]))
+                          for b in prep.batches)),
+        "fit_s": round(time.perf_counter() - t, 2),
+        "s_per_step": round(statistics.median(np.diff(secs[1:])), 3)}))
+
+
+def bench_views(args) -> list[dict]:
+    """Peak RSS and LM step time of a fit against its number of views (fresh processes)."""
+    rows = []
+    for n in (4, 16, 64) if not args.quick else (2, 8):
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--views-worker", "--views",
+               str(n)]
+        env = dict(os.environ, JAXNM_COMPILATION_CACHE="off")
+        child = _timed_child(cmd, env, keep_output=True)
+        row = json.loads(child["output"].split("RESULT ", 1)[1])
+        row.update(wall_s=child["wall_s"], peak_rss_mb=child["peak_rss_mb"])
+        rows.append(row)
+        print(json.dumps(row), file=sys.stderr, flush=True)
+    return rows
+
+
 def _run_worker(cache: str | None, args) -> dict:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--fit-worker", "--budget",
            str(args.budget)] + (["--quick"] if args.quick else [])
@@ -278,8 +338,9 @@ def bench_fit(args, mitsuba) -> dict:
 # --------------------------------------------------------------------------------------
 
 
-def _timed_child(cmd, env) -> dict:
-    """Run ``cmd``; its wall time, its own peak RSS (``wait4``) and its first output line."""
+def _timed_child(cmd, env, keep_output: bool = False) -> dict:
+    """Run ``cmd``; its wall time, its own peak RSS (``wait4``) and its first output line
+    (all of it with ``keep_output``)."""
     with tempfile.TemporaryFile() as out:
         t = time.perf_counter()
         # close_fds=False lets CPython use posix_spawn: a forked copy of this (large)
@@ -293,8 +354,11 @@ def _timed_child(cmd, env) -> dict:
         text = out.read().decode().strip()
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} exited with {proc.returncode}")
-    return {"wall_s": round(wall, 1), "peak_rss_mb": round(usage.ru_maxrss / 1024),
-            "summary": text.splitlines()[0] if text else ""}
+    res = {"wall_s": round(wall, 1), "peak_rss_mb": round(usage.ru_maxrss / 1024),
+           "summary": text.splitlines()[0] if text else ""}
+    if keep_output:
+        res["output"] = text
+    return res
 
 
 def bench_cli(args) -> dict:
@@ -349,6 +413,13 @@ def markdown(res: dict) -> str:
         for k in ("cold", "warm"):
             lines.append(f"| {k} cache | {c[k]['wall_s']} | {c[k]['peak_rss_mb']} | "
                          f"{c[k]['summary']} |")
+    v = res.get("views")
+    if v:
+        lines += ["", "| views (x2 lights, 128x128) | pixels fitted | LM s / step | "
+                  "fit s (3 steps, compile included) | peak RSS MB |", "|---|---|---|---|---|"]
+        for r in v:
+            lines.append(f"| {r['views']} | {r['pixels']} | {r['s_per_step']} | {r['fit_s']} | "
+                         f"{r['peak_rss_mb']} |")
     d = res.get("devices")
     if d:
         lines += ["", "| devices | platform | views per device | LM s / step |",
@@ -375,9 +446,13 @@ def main(argv=None) -> None:
     ap.add_argument("--fit-worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--devices-worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--cache", help=argparse.SUPPRESS)
+    ap.add_argument("--views-worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--views", type=int, default=4, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.fit_worker:
         return fit_worker(args)
+    if args.views_worker:
+        return views_worker(args)
     if args.devices_worker:
         return devices_worker(args)
     mitsuba, why = None, "Mitsuba not run (--no-mitsuba)"
@@ -400,6 +475,8 @@ def main(argv=None) -> None:
         res["fit"] = bench_fit(args, mitsuba)
     if "cli" in parts and not args.no_cli:
         res["cli"] = bench_cli(args)
+    if "views" in parts:
+        res["views"] = bench_views(args)
     if args.devices > 1:
         res["devices"] = bench_devices(args)
     out = Path(args.out)

@@ -1,0 +1,28 @@
+"""scripts/bench.py: the views benchmark's cameras and its report (the timings themselves live
+in the script, never in tests)."""
+
+import numpy as np
+from helpers import load_script
+
+
+def test_ring_eyes_are_distinct_cameras_above_the_torus():
+    bench = load_script("bench")
+    eyes = np.array(bench._ring_eyes(64, radius=3.0))
+    assert eyes.shape == (64, 3)
+    np.testing.assert_allclose(np.linalg.norm(eyes, axis=1), 3.0, rtol=1e-12)
+    assert np.all(eyes[:, 2] > 0.7)  # above the torus's plane: every view sees its top
+    gaps = np.linalg.norm(eyes[:, None] - eyes[None], axis=-1) + np.eye(64) * 10
+    assert gaps.min() > 0.2  # no two views coincide
+    az = np.arctan2(eyes[:, 1], eyes[:, 0])
+    assert np.ptp(az) > 1.8 * np.pi  # all around
+
+
+def test_markdown_reports_the_views_rows():
+    bench = load_script("bench")
+    res = {"machine": "m", "jax": "j", "mitsuba": "none", "date": "d",
+           "views": [{"views": 4, "pixels": 1000, "s_per_step": 0.1, "fit_s": 2.0,
+                      "peak_rss_mb": 500}, {"views": 64, "pixels": 16000, "s_per_step": 1.5,
+                                            "fit_s": 9.0, "peak_rss_mb": 900}]}
+    md = bench.markdown(res)
+    assert "| 4 | 1000 | 0.1 | 2.0 | 500 |" in md
+    assert "| 64 | 16000 | 1.5 | 9.0 | 900 |" in md
