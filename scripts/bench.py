@@ -256,14 +256,15 @@ def views_worker(args) -> None:
     """In a fresh process: an LM fit of the built-in torus and rivet map from ``--views``
     cameras (two lights each, 128 x 128 renders, a 128 x 128 map, 3 steps); JSON on stdout.
     The parent reads this process's peak RSS."""
-    from jaxnm.camera import eye_to_world
-    from jaxnm.procedural.builtin import _fit_camera, _fit_scene
+    from jaxnm.camera import Camera, eye_to_world, look_at, perspective
+    from jaxnm.procedural import default_problem
     from jaxnm.shading import directional_light
 
-    scene = _fit_scene(128, 128)
+    scene = default_problem(render_size=128, map_size=128, n_lights=1, views=1)[2]
     targets = []
     for eye in _ring_eyes(args.views):
-        cam = _fit_camera(eye)
+        cam = Camera.from_matrices(look_at(eye, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+                                   perspective(45.0, 1.0, 0.1, 50.0))
         for d in ((-0.4, 0.5, 1.0), (0.6, -0.2, 1.0)):
             lights = directional_light(eye_to_world(cam, np.array(d)))
             sc = scene.replace(camera=cam, lights=lights)
