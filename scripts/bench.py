@@ -339,23 +339,33 @@ def bench_fit(args, mitsuba) -> dict:
 # --------------------------------------------------------------------------------------
 
 
+# Runs a command, waits for it and writes "exit-code peak-RSS-KiB" to the file named first.
+# The peak is read with wait4 *from this small process*: Linux carries the memory high-water
+# mark of the process image that exec replaces into the child's ru_maxrss, and a child
+# spawned straight from the benchmark (vfork + exec) would report the benchmark's own peak.
+_RUNNER = """
+import os, subprocess, sys
+proc = subprocess.Popen(sys.argv[2:], stderr=subprocess.DEVNULL)
+_, status, usage = os.wait4(proc.pid, 0)
+with open(sys.argv[1], "w") as f:
+    f.write(f"{os.waitstatus_to_exitcode(status)} {usage.ru_maxrss}")
+"""
+
+
 def _timed_child(cmd, env, keep_output: bool = False) -> dict:
-    """Run ``cmd``; its wall time, its own peak RSS (``wait4``) and its first output line
-    (all of it with ``keep_output``)."""
-    with tempfile.TemporaryFile() as out:
+    """Run ``cmd``; its wall time, its own peak RSS and its first output line (all of it
+    with ``keep_output``)."""
+    with tempfile.TemporaryFile() as out, tempfile.NamedTemporaryFile("r") as stat:
         t = time.perf_counter()
-        # close_fds=False lets CPython use posix_spawn: a forked copy of this (large)
-        # process would count its pages in the child's peak RSS
-        proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.DEVNULL,
-                                close_fds=False)
-        _, status, usage = os.wait4(proc.pid, 0)
+        subprocess.run([sys.executable, "-c", _RUNNER, stat.name, *cmd], env=env, stdout=out,
+                       check=True)
         wall = time.perf_counter() - t
-        proc.returncode = os.waitstatus_to_exitcode(status)
+        code, maxrss_kib = (int(v) for v in stat.read().split())
         out.seek(0)
         text = out.read().decode().strip()
-    if proc.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} exited with {proc.returncode}")
-    res = {"wall_s": round(wall, 1), "peak_rss_mb": round(usage.ru_maxrss / 1024),
+    if code != 0:
+        raise RuntimeError(f"{' '.join(cmd)} exited with {code}")
+    res = {"wall_s": round(wall, 1), "peak_rss_mb": round(maxrss_kib / 1024),
            "summary": text.splitlines()[0] if text else ""}
     if keep_output:
         res["output"] = text

@@ -26,3 +26,19 @@ def test_markdown_reports_the_views_rows():
     md = bench.markdown(res)
     assert "| 4 | 1000 | 0.1 | 2.0 | 500 |" in md
     assert "| 64 | 16000 | 1.5 | 9.0 | 900 |" in md
+
+
+def test_child_peak_memory_is_the_childs_not_the_benchmarks():
+    """Spawned straight from a large process, a child's ru_maxrss starts at the parent's
+    high-water mark (Linux keeps it across vfork + exec); `_timed_child` must report the
+    child's own peak."""
+    import os
+    import sys
+
+    bench = load_script("bench")
+    ballast = np.ones(200_000_000 // 8)  # the benchmark process, 200 MB larger
+    ballast[::4096] = 2.0  # touched: resident
+    child = bench._timed_child([sys.executable, "-c", "print('ok')"], dict(os.environ))
+    assert child["summary"] == "ok"
+    assert child["peak_rss_mb"] < 100, child
+    del ballast
