@@ -166,11 +166,10 @@ def validate_arrays(positions, faces, uv=None, normals=None, *, source: str = "m
         if arr is not None and jnp.shape(arr) != (shape[0], c):
             raise ValueError(f"{source}: {name} must have shape ({shape[0]}, {c}), "
                              f"got {jnp.shape(arr)}")
-    if not all(_is_concrete(x) for x in (positions, faces, uv, normals)):
-        _check_values(positions, faces, uv, normals, shape[0], source)
-    elif not checked_before(positions, faces, uv, normals):
-        _check_values(positions, faces, uv, normals, shape[0], source)
-        remember_checked(positions, faces, uv, normals)
+    arrays = (positions, faces, uv, normals)
+    if not _checked_before(arrays):
+        _check_values(*arrays, shape[0], source)
+        _remember_checked(arrays)
 
 
 def _check_values(positions, faces, uv, normals, num_vertices: int, source: str) -> None:
@@ -199,12 +198,13 @@ _CHECKED_MAX = 256
 
 
 def _key(arrays) -> tuple[int, ...] | None:
-    if not all(x is None or isinstance(x, jax.Array) for x in arrays):
+    """The identities of ``arrays`` if all are concrete JAX arrays (or None), else None."""
+    if not all(x is None or (isinstance(x, jax.Array) and _is_concrete(x)) for x in arrays):
         return None
     return tuple(id(x) for x in arrays)
 
 
-def checked_before(*arrays) -> bool:
+def _checked_before(arrays) -> bool:
     """Whether these exact (immutable JAX) arrays passed a value check before."""
     key = _key(arrays)
     refs = None if key is None else _CHECKED.get(key)
@@ -212,8 +212,8 @@ def checked_before(*arrays) -> bool:
         (r is None and x is None) or (r is not None and r() is x) for r, x in zip(refs, arrays))
 
 
-def remember_checked(*arrays) -> None:
-    """Record that these arrays passed a value check (no-op unless all are JAX arrays)."""
+def _remember_checked(arrays) -> None:
+    """Record that these arrays passed a value check (no-op unless `_key` has them)."""
     key = _key(arrays)
     if key is None:
         return

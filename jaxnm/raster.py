@@ -220,11 +220,12 @@ def _triangle_setup(tri: Array, width: int, height: int, block: int, cull_back: 
         t = jnp.where(crosses, di / jnp.where(crosses, di - dj, 1.0), 0.0)
         pts.append([pi + t * (pj - pi) for pi, pj in zip(v[i], v[j])])
         ok.append(crosses)
+    # a kept point not in front of the eye
     bad_w = functools.reduce(jnp.logical_or, [k & ~(p[3] > 0.0) for k, p in zip(ok, pts)])
     big = jnp.asarray(np.finfo(np.float32).max, tri.dtype)
     xmin = ymin = big
     xmax = ymax = -big
-    for k, p in zip(ok, pts):  # a kept point not in front of the eye sets bad_w
+    for k, p in zip(ok, pts):
         w_safe = jnp.where(k & (p[3] > 0.0), p[3], 1.0)
         px, py = p[0] / w_safe, p[1] / w_safe
         xmin, xmax = jnp.minimum(xmin, jnp.where(k, px, big)), jnp.maximum(xmax, jnp.where(
@@ -456,17 +457,17 @@ def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_
     # triangle (F,), then gathered (per-pixel work here would fuse badly with the depth below)
     sigma = setup[0]
     front = covered & (sigma[jnp.maximum(tid, 0)] > 0)
-    h_unsnapped = window_homogeneous(jax.lax.stop_gradient(clip), width, height)
-    depth = jnp.where(covered, _pixel_depth(h_unsnapped, faces, tid), 1.0)
+    depth = jnp.where(covered, _pixel_depth(tri_depth, tid), 1.0)
     return tid, depth, front
 
 
-def _pixel_depth(h: Array, faces: Array, tid: Array) -> Array:
-    """Window depth of each pixel's triangle at the pixel centre, from unsnapped vertices."""
+def _pixel_depth(tri_depth: Array, tid: Array) -> Array:
+    """Window depth of each pixel's triangle at the pixel centre, from its unsnapped corners
+    ``tri_depth`` (F, 3, 4)."""
     height, width = tid.shape
-    hv = h[faces[jnp.maximum(tid, 0)]]  # (H, W, 3, 4)
-    x = jnp.arange(width, dtype=h.dtype)[None, :, None] + 0.5
-    y = (height - 1 - jnp.arange(height, dtype=h.dtype))[:, None, None] + 0.5
+    hv = tri_depth[jnp.maximum(tid, 0)]  # (H, W, 3, 4)
+    x = jnp.arange(width, dtype=hv.dtype)[None, :, None] + 0.5
+    y = (height - 1 - jnp.arange(height, dtype=hv.dtype))[:, None, None] + 0.5
     hx = hv[..., 0] - x * hv[..., 3]
     hy = hv[..., 1] - y * hv[..., 3]
     e = roll_last(hx, 1) * roll_last(hy, 2) - roll_last(hy, 1) * roll_last(hx, 2)
