@@ -238,19 +238,66 @@ def sample_split(plan: _tex.SamplePlan, mips, split: int) -> Array:
 
 
 def _shade_view(gb: GBuffer, mips, lights: Lights, material: Material, opts: RenderOptions,
-                strength, split: int = 0) -> Array:
+                strength) -> Array:
     """(T, K, 3): the pixels of ``gb`` under each stacked light, with the map's mip chain
     ``mips``."""
-    # materialised: fused into the shading, the 8-tap gather would be recomputed per use
-    m = materialize(sample_split(gb.plan, mips, split))
+    m = _sample(gb.plan, mips, None)
     return _pixel_model(m, gb, lights, material, opts.shading, jnp.asarray(strength, m.dtype))
+
+
+def _over_chunks(batch: ViewBatch, fn, pixel_axis: int) -> Array:
+    """``fn(gbuffer, lights, images, weights, taps)`` of one view's pixel chunk, run over every
+    chunk of every view of ``batch`` (``vmap`` over views, a loop over the chunks of
+    `ViewBatch.chunks`), and put together along its output's ``pixel_axis`` in the batch's
+    pixel order: (V, ..., K, ...).
+
+    ``taps`` is 4 for the pixels that read one mip level (the first `ViewBatch.split`), None
+    (the plan's own) for the rest. A loop iteration holds one chunk's intermediates, so
+    the working memory of a step stays bounded however many views and pixels there are."""
+    k = batch.pixels.shape[1]
+    parts = []
+    for start, stop, n, taps in ((0, batch.split, batch.chunks[0], 4),
+                                 (batch.split, k, batch.chunks[1], None)):
+        if stop == start:
+            continue
+        size = (stop - start) // n
+
+        def chunk(c, start=start, size=size, taps=taps):
+            def cut(x, axis):
+                return jax.lax.dynamic_slice_in_dim(x, start + c * size, size, axis)
+
+            gb = batch.gbuffer
+            gb = dataclasses.replace(jax.tree_util.tree_map(
+                lambda x: cut(x, 1), dataclasses.replace(gb, eye=None)), eye=gb.eye)
+            return jax.vmap(lambda *a: fn(*a, taps))(gb, batch.lights, cut(batch.images, 2),
+                                                     cut(batch.weights, 2))
+
+        if n == 1:
+            parts.append(chunk(0))
+            continue
+        out = jnp.moveaxis(jax.lax.map(chunk, jnp.arange(n)), 0, pixel_axis)  # n, size adjacent
+        parts.append(out.reshape(out.shape[:pixel_axis] + (n * size,)
+                                 + out.shape[pixel_axis + 2:]))
+    return parts[0] if len(parts) == 1 else jnp.concatenate(parts, pixel_axis)
+
+
+def _sample(plan: _tex.SamplePlan, mips, taps: int | None) -> Array:
+    """The pixels' map vectors (K, 3) from the first ``taps`` taps of ``plan`` (None: all),
+    materialised: fused into the shading, the gather would be recomputed per use."""
+    if taps is not None:
+        plan = dataclasses.replace(plan, index=plan.index[:, :taps],
+                                   weight=plan.weight[:, :taps])
+    return materialize(_tex.apply_plan(plan, mips))
 
 
 def _shade_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions,
                  strength) -> Array:
-    """(V, T, K, 3): every view of ``batch`` under each of its lights (``vmap`` over views)."""
-    return jax.vmap(lambda gb, lt: _shade_view(gb, mips, lt, material, opts, strength,
-                                               batch.split))(batch.gbuffer, batch.lights)
+    """(V, T, K, 3): every view of ``batch`` under each of its lights."""
+    def one(gb, lights, images, weights, taps):
+        return _pixel_model(_sample(gb.plan, mips, taps), gb, lights, material, opts.shading,
+                            jnp.asarray(strength, mips[0].dtype))
+
+    return _over_chunks(batch, one, 2)
 
 
 def render_with_map(prep: Prepared, normals: Array, *, strength: float = 1.0,
@@ -280,13 +327,13 @@ def _render_view(gb, normals, lights, material, strength, *, opts):
 def _reduced_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions,
                    strength) -> Array:
     """Every view of ``batch`` as `reduced_pixel_residuals`, flat."""
-    def one(gb, lt, images, weights):
-        m = materialize(sample_split(gb.plan, mips, batch.split))
-        rho, e = reduced_pixel_residuals(m, gb, lt, material, opts.shading,
+    def one(gb, lights, images, weights, taps):
+        m = _sample(gb.plan, mips, taps)
+        rho, e = reduced_pixel_residuals(m, gb, lights, material, opts.shading,
                                          jnp.asarray(strength, m.dtype), images, weights)
         return jnp.concatenate([rho, e[:, None]], -1)
 
-    return jax.vmap(one)(batch.gbuffer, batch.lights, batch.images, batch.weights).reshape(-1)
+    return _over_chunks(batch, one, 1).reshape(-1)
 
 
 def residuals(z: Array, args: ModelArgs) -> tuple[Array, ...]:

@@ -24,7 +24,15 @@ from ..shading import Lights, Material
 from .problem import FitProblem, FitTarget, validate_problem
 
 __all__ = ["ViewBatch", "Prepared", "View", "prepare", "with_map_size", "view_key",
-           "shard_views"]
+           "shard_views", "CHUNK"]
+
+#: Default of `prepare`'s ``chunk``: at most this many pixel-targets (a pixel under one
+#: light) are evaluated at once by a fit step. A step's working memory (the shading, its
+#: forward-mode tangents and the per-pixel Jacobian blocks: ~170 B per pixel-target on the
+#: CPU) grows with this, not with the number of views or their size. Problems smaller than
+#: this (``jaxnm fit``'s built-in one has 1.2 M) run in one piece: a loop over chunks costs
+#: ~0.9 s more compilation and ~10 % per step.
+CHUNK = 1 << 21
 
 
 @jax.tree_util.register_dataclass
@@ -51,6 +59,9 @@ class ViewBatch:
       mip level (4 non-zero filter taps: magnified texels, or the coarsest
       level), the rest two (8 taps); the step gathers each group with only the
       taps it needs.
+    - `chunks` (static): how many equal chunks each of the two groups is cut
+      into; a step evaluates one chunk of every view at a time (see
+      `prepare`'s ``chunk``). Each group is padded to a multiple of its count.
     """
 
     gbuffer: GBuffer
@@ -61,6 +72,7 @@ class ViewBatch:
     views: tuple[int, ...] = dataclasses.field(metadata=dict(static=True))
     targets: tuple[int, ...] = dataclasses.field(metadata=dict(static=True))
     split: int = dataclasses.field(metadata=dict(static=True), default=0)
+    chunks: tuple[int, int] = dataclasses.field(metadata=dict(static=True), default=(1, 1))
 
 
 @jax.tree_util.register_dataclass
@@ -72,12 +84,13 @@ class Prepared:
     image under one (stacked) light. ``batches`` group the views into
     `ViewBatch` stacks; ``options[v]`` are view ``v``'s render options (they
     differ only in image size). `target_images`, `target_mask` and `view`
-    give per-view, image-layout access.
+    give per-view, image-layout access. ``chunk`` is `prepare`'s.
     """
 
     batches: tuple[ViewBatch, ...]
     material: Material
     options: tuple[RenderOptions, ...] = dataclasses.field(metadata=dict(static=True))
+    chunk: int | None = dataclasses.field(metadata=dict(static=True), default=CHUNK)
 
     @property
     def num_views(self) -> int:
@@ -145,8 +158,18 @@ def view_key(t: FitTarget) -> tuple:
             np.asarray(t.camera.projection).tobytes())
 
 
-def prepare(problem: FitProblem) -> Prepared:
-    """Rasterize every view once and stack its targets (see `Prepared`)."""
+def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
+    """Rasterize every view once and stack its targets (see `Prepared`).
+
+    ``chunk`` bounds the memory of a fit step: the step evaluates at most about this many
+    pixel-targets at once (`CHUNK` by default; at least 256 pixels of each view of a batch),
+    looping over chunks of every view's pixels, so a fit from many or large views needs
+    memory for its prepared G-buffers and targets (~0.2 KB per pixel-target) plus a bounded
+    working set. None evaluates every pixel at once (fewer, larger kernels: on a GPU with
+    memory to spare)."""
+    if chunk is not None and chunk < 1:
+        raise ValueError(f"prepare: chunk must be a positive number of pixel-targets or None, "
+                         f"got {chunk}")
     validate_problem(problem)
     if problem.frame == "vertex" and problem.mesh.tangents is None:  # MikkTSpace, once
         problem = dataclasses.replace(problem, mesh=problem.mesh.with_tangents())
@@ -183,7 +206,8 @@ def prepare(problem: FitProblem) -> Prepared:
                           np.stack([flat(w) for w in ws]),
                           _host(_stack_lights([t.lights for t in ts]))))
         opts_all.append(opts)
-    return _assemble(views, tuple(opts_all), problem.material)
+        del gb  # the whole image's G-buffer: only the covered pixels are kept
+    return _assemble(views, tuple(opts_all), problem.material, chunk)
 
 
 def _fit_fields(gb: GBuffer) -> GBuffer:
@@ -210,8 +234,17 @@ def _light_key(lights: Lights):
     return tree, tuple(x.shape[1:] for x in leaves)
 
 
-def _assemble(views: Sequence[View], options: tuple[RenderOptions, ...],
-              material: Material) -> Prepared:
+def _chunking(count: int, per_chunk: int | None) -> tuple[int, int]:
+    """(chunks, padded count): ``count`` pixels cut into chunks of at most ``per_chunk``,
+    padded to a multiple of the number of chunks (fewer than one extra pixel per chunk)."""
+    if count == 0:
+        return 1, 0
+    n = 1 if per_chunk is None else -(-count // per_chunk)
+    return n, n * -(-count // n)
+
+
+def _assemble(views: list[View], options: tuple[RenderOptions, ...],
+              material: Material, chunk: int | None) -> Prepared:
     """Order each view's pixels by the taps they need, pad, and stack views into batches.
 
     A trilinear plan always has 8 taps, but where the level of detail is
@@ -220,7 +253,10 @@ def _assemble(views: Sequence[View], options: tuple[RenderOptions, ...],
     once; gathering those pixels with 4 taps halves their gather and its
     transpose (the scatter-add that dominates the backward pass). Views whose
     lights have the same structure share one batch (see `ViewBatch`), unless
-    padding a view to the batch's largest would more than double its pixels.
+    padding a view to the batch's largest would more than double its pixels. Each tap
+    group is cut into equal chunks of at most ``chunk`` pixel-targets over the batch's
+    views (see `prepare`). Takes ``views`` over: each entry is set to None once copied
+    (the caller's list must hold the only references, so the memory is returned as it goes).
     """
     by_lights: dict = {}
     for v, view in enumerate(views):
@@ -245,31 +281,43 @@ def _assemble(views: Sequence[View], options: tuple[RenderOptions, ...],
             w = np.asarray(views[v].gbuffer.plan.weight)
             one = np.all(w[:, 4:] == 0, axis=-1) if eight else np.zeros(len(w), bool)
             parts.append((np.flatnonzero(one), np.flatnonzero(~one)))
-        ka = max(len(a) for a, _ in parts)
-        kb = max(len(b) for _, b in parts)
         t_max = max(views[v].images.shape[0] for v in members)
-        rows = []
-        for v, (a, b) in zip(members, parts):
-            view = views[v]
+        per_chunk = None if chunk is None else max(256, chunk // (len(members) * t_max))
+        na, ka = _chunking(max(len(a) for a, _ in parts), per_chunk)
+        nb, kb = _chunking(max(len(b) for _, b in parts), per_chunk)
+        targets = tuple(views[v].images.shape[0] for v in members)
+        stacked = None  # filled view by view, each view released once copied
+        for i, (v, (a, b)) in enumerate(zip(members, parts)):
+            view, views[v] = views[v], None
             fill = int(a[0] if len(a) else b[0])  # a real pixel, copied into the padding
             order = np.concatenate([a, np.full(ka - len(a), fill), b, np.full(kb - len(b), fill)])
             real = np.concatenate([np.ones(len(a), bool), np.zeros(ka - len(a), bool),
                                    np.ones(len(b), bool), np.zeros(kb - len(b), bool)])
-            t = view.images.shape[0]
+            t = targets[i]
             tsel = np.minimum(np.arange(t_max), t - 1)  # padded targets repeat the last one
             used = real[None, :, None] & (np.arange(t_max) < t)[:, None, None]
-            weights = view.weights[tsel][:, order] * used.astype(np.float32)
-            rows.append(dict(
-                gbuffer=_map_pixels(view.gbuffer, lambda x: x[order]),
-                pixels=np.where(real, view.pixels[order], -1).astype(np.int32),
-                images=view.images[tsel][:, order], weights=weights,
-                lights=jax.tree_util.tree_map(lambda x: x[tsel], view.lights)))
-        # stacked on the host, moved to the device once
-        stacked = jax.device_put(jax.tree_util.tree_map(lambda *x: np.stack(x), *rows))
-        batches.append(ViewBatch(**stacked, views=tuple(members),
-                                 targets=tuple(views[v].images.shape[0] for v in members),
-                                 split=ka if eight else 0))
-    return Prepared(tuple(batches), material, options)
+            row = dict(gbuffer=_map_pixels(view.gbuffer, lambda x: x[order]),
+                       pixels=np.where(real, view.pixels[order], -1).astype(np.int32),
+                       images=view.images[np.ix_(tsel, order)],
+                       weights=view.weights[np.ix_(tsel, order)] * used.astype(np.float32),
+                       lights=jax.tree_util.tree_map(lambda x: x[tsel], view.lights))
+            del view
+            if stacked is None:
+                stacked = jax.tree_util.tree_map(
+                    lambda x: np.empty((len(members),) + x.shape, x.dtype), row)
+            jax.tree_util.tree_map(lambda out, x: out.__setitem__(i, x), stacked, row)
+            del row
+        # moved to the device one array at a time, each host copy dropped once moved: the
+        # peak holds the batch about twice, not four times (views, rows, stack, device)
+        leaves, tree = jax.tree_util.tree_flatten(stacked)
+        del stacked
+        for j in range(len(leaves)):
+            leaves[j] = jax.device_put(leaves[j])
+        stacked = jax.tree_util.tree_unflatten(tree, leaves)
+        del leaves
+        batches.append(ViewBatch(**stacked, views=tuple(members), targets=targets,
+                                 split=ka if eight else 0, chunks=(na, nb)))
+    return Prepared(tuple(batches), material, options, chunk)
 
 
 def with_map_size(prep: Prepared, size) -> Prepared:
@@ -285,9 +333,7 @@ def with_map_size(prep: Prepared, size) -> Prepared:
         views.append(dataclasses.replace(view, gbuffer=dataclasses.replace(view.gbuffer,
                                                                            plan=plan)))
         opts_all.append(o)
-    return _assemble(views, tuple(opts_all), prep.material)
-
-
+    return _assemble(views, tuple(opts_all), prep.material, prep.chunk)
 
 
 def shard_views(prep: Prepared, devices=None) -> Prepared:
@@ -327,4 +373,4 @@ def shard_views(prep: Prepared, devices=None) -> Prepared:
                 views=b.views + (-1,) * pad, targets=b.targets + (0,) * pad)
         batches.append(jax.device_put(b, split))
     material = jax.device_put(prep.material, NamedSharding(mesh, PartitionSpec()))
-    return Prepared(tuple(batches), material, prep.options)
+    return Prepared(tuple(batches), material, prep.options, prep.chunk)
