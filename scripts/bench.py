@@ -254,13 +254,15 @@ def _ring_eyes(n: int, radius: float = 3.0) -> list[tuple[float, float, float]]:
 
 def views_worker(args) -> None:
     """In a fresh process: an LM fit of the built-in torus and rivet map from ``--views``
-    cameras (two lights each, 128 x 128 renders, a 128 x 128 map, 3 steps); JSON on stdout.
-    The parent reads this process's peak RSS."""
+    cameras (two lights each, ``--view-size`` square renders, a 128 x 128 map, 3 steps),
+    prepared with ``--chunk`` pixel-targets per piece of a step ("none": whole); JSON on
+    stdout. The parent reads this process's peak RSS."""
     from jaxnm.camera import Camera, eye_to_world, look_at, perspective
     from jaxnm.procedural import default_problem
     from jaxnm.shading import directional_light
 
-    scene = default_problem(render_size=128, map_size=128, n_lights=1, views=1)[2]
+    size = args.view_size
+    scene = default_problem(render_size=size, map_size=128, n_lights=1, views=1)[2]
     targets = []
     for eye in _ring_eyes(args.views):
         cam = Camera.from_matrices(look_at(eye, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
@@ -268,16 +270,18 @@ def views_worker(args) -> None:
         for d in ((-0.4, 0.5, 1.0), (0.6, -0.2, 1.0)):
             lights = directional_light(eye_to_world(cam, np.array(d)))
             sc = scene.replace(camera=cam, lights=lights)
-            targets.append(F.FitTarget(cam, 128, 128, lights,
+            targets.append(F.FitTarget(cam, size, size, lights,
                                        np.asarray(jaxnm.render(sc)["color"])))
     problem = F.problem_from_scene(scene, targets, (128, 128), source="<views>")
+    chunk = None if args.chunk == "none" else int(args.chunk)
     t = time.perf_counter()
-    prep = F.prepare(problem)
+    prep = F.prepare(problem, chunk=chunk)
     res = F.fit_normal_map(problem, F.FitOptions(max_steps=3, lsmr_steps=10, ftol=0.0),
                            prepared=prep, progress=False)
     secs = [h["seconds"] for h in res.history]
     print("RESULT " + json.dumps({
-        "views": args.views, "targets": len(targets),
+        "views": args.views, "size": size, "chunk": args.chunk, "targets": len(targets),
+        "prepared_mb": round(sum(x.nbytes for x in jax.tree_util.tree_leaves(prep)) / 2**20, 1),
         "pixels": int(sum(int(np.prod(b.images.shape[:1] + b.images.shape[2:3]))
                           for b in prep.batches)),
         "fit_s": round(time.perf_counter() - t, 2),
@@ -285,11 +289,17 @@ def views_worker(args) -> None:
 
 
 def bench_views(args) -> list[dict]:
-    """Peak RSS and LM step time of a fit against its number of views (fresh processes)."""
+    """Peak RSS and LM step time of a fit against its number of views and their size (fresh
+    processes): 4, 16, 64 views of 128 x 128 and 16 of 256 x 256 with `prepare`'s default
+    chunking, and 64 views evaluated whole and in chunks of 2^17 pixel-targets."""
     rows = []
-    for n in (4, 16, 64) if not args.quick else (2, 8):
+    runs = ([(4, 128, "default"), (16, 128, "default"), (64, 128, "default"),
+             (64, 128, "none"), (64, 128, str(1 << 17)), (16, 256, "default")]
+            if not args.quick else [(2, 128, "default"), (8, 128, str(1 << 12))])
+    for n, size, chunk in runs:
+        chunk = str(F.CHUNK) if chunk == "default" else chunk
         cmd = [sys.executable, str(Path(__file__).resolve()), "--views-worker", "--views",
-               str(n)]
+               str(n), "--view-size", str(size), "--chunk", chunk]
         env = dict(os.environ, JAXNM_COMPILATION_CACHE="off")
         child = _timed_child(cmd, env, keep_output=True)
         row = json.loads(child["output"].split("RESULT ", 1)[1])
@@ -426,11 +436,13 @@ def markdown(res: dict) -> str:
                          f"{c[k]['summary']} |")
     v = res.get("views")
     if v:
-        lines += ["", "| views (x2 lights, 128x128) | pixels fitted | LM s / step | "
-                  "fit s (3 steps, compile included) | peak RSS MB |", "|---|---|---|---|---|"]
+        lines += ["", "| views (x2 lights) | size | chunk (pixel-targets) | pixel-targets | "
+                  "prepared MB | LM s / step | fit s (3 steps, compile included) | "
+                  "peak RSS MB |", "|---|---|---|---|---|---|---|---|"]
         for r in v:
-            lines.append(f"| {r['views']} | {r['pixels']} | {r['s_per_step']} | {r['fit_s']} | "
-                         f"{r['peak_rss_mb']} |")
+            lines.append(f"| {r['views']} | {r.get('size', 128)} | {r.get('chunk', '-')} | "
+                         f"{r['pixels']} | {r.get('prepared_mb', '-')} | {r['s_per_step']} | "
+                         f"{r['fit_s']} | {r['peak_rss_mb']} |")
     d = res.get("devices")
     if d:
         lines += ["", "| devices | platform | views per device | LM s / step |",
@@ -459,6 +471,8 @@ def main(argv=None) -> None:
     ap.add_argument("--cache", help=argparse.SUPPRESS)
     ap.add_argument("--views-worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--views", type=int, default=4, help=argparse.SUPPRESS)
+    ap.add_argument("--view-size", type=int, default=128, help=argparse.SUPPRESS)
+    ap.add_argument("--chunk", default=str(F.CHUNK), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.fit_worker:
         return fit_worker(args)

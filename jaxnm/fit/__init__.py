@@ -56,6 +56,7 @@ from .model import render_with_map as render_with_map
 from .model import residuals as residuals
 from .model import sample_split as sample_split
 from .model import slopes_to_normals as slopes_to_normals
+from .prepare import CHUNK as CHUNK
 from .prepare import Prepared as Prepared
 from .prepare import View as View
 from .prepare import ViewBatch as ViewBatch
@@ -87,5 +88,5 @@ __all__ = [
     "preconditioner", "prepare", "problem_from_scene", "psnr", "render_with_map", "residuals",
     "sample_split", "seen_texels", "slopes_to_normals", "texel_influence", "validate_problem",
     "view_key", "with_map_size", "shard_views", "FitJob", "FitOutputs", "fit_outputs",
-    "score_held_out",
+    "score_held_out", "CHUNK",
 ]
