@@ -20,12 +20,14 @@ def test_ring_eyes_are_distinct_cameras_above_the_torus():
 def test_markdown_reports_the_views_rows():
     bench = load_script("bench")
     res = {"machine": "m", "jax": "j", "mitsuba": "none", "date": "d",
-           "views": [{"views": 4, "pixels": 1000, "s_per_step": 0.1, "fit_s": 2.0,
-                      "peak_rss_mb": 500}, {"views": 64, "pixels": 16000, "s_per_step": 1.5,
-                                            "fit_s": 9.0, "peak_rss_mb": 900}]}
+           "views": [{"views": 4, "size": 128, "chunk": "2097152", "pixels": 1000,
+                      "prepared_mb": 1.5, "s_per_step": 0.1, "fit_s": 2.0, "peak_rss_mb": 500},
+                     {"views": 64, "size": 256, "chunk": "none", "pixels": 16000,
+                      "prepared_mb": 20.0, "s_per_step": 1.5, "fit_s": 9.0,
+                      "peak_rss_mb": 900}]}
     md = bench.markdown(res)
-    assert "| 4 | 1000 | 0.1 | 2.0 | 500 |" in md
-    assert "| 64 | 16000 | 1.5 | 9.0 | 900 |" in md
+    assert "| 4 | 128 | 2097152 | 1000 | 1.5 | 0.1 | 2.0 | 500 |" in md
+    assert "| 64 | 256 | none | 16000 | 20.0 | 1.5 | 9.0 | 900 |" in md
 
 
 def test_child_peak_memory_is_the_childs_not_the_benchmarks():

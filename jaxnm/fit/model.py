@@ -9,7 +9,9 @@ preconditioned variables ``z = slopes / scale`` (`ModelArgs.scale`).
 `Prepared` problem: build the mip chain of the current map (once, for all
 views), one gather and weighted sum per pixel (4 taps where the fixed level of
 detail reads a single mip level, 8 elsewhere), perturb, shade, subtract the
-target. Views and their lights are batched with ``vmap``.
+target. Views and their lights are batched with ``vmap``; a big problem is evaluated in
+chunks of every view's pixels, one after another (`ViewBatch.chunks`), so the step's
+working memory stays bounded.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from ..frames import perturb_normal
 from ..numerics import materialize, safe_normalize, safe_sqrt, tiny
 from ..render import GBuffer, RenderOptions
 from ..shading import Lights, Material, shade
-from .prepare import Prepared, ViewBatch
+from .prepare import Prepared, ViewBatch, map_pixels
 
 __all__ = ["ModelArgs", "slopes_to_normals", "normals_to_slopes", "residuals", "loss",
            "render_with_map", "sample_split", "reduced_pixel_residuals", "GRAM_REGULARISATION"]
@@ -225,16 +227,20 @@ def _reduced_jvp(shading, primals, tangents):
 reduced_pixel_residuals.defjvp(_reduced_jvp, symbolic_zeros=True)
 
 
+def _first_taps(plan: _tex.SamplePlan, taps: int | None) -> _tex.SamplePlan:
+    """``plan`` with only its first ``taps`` filter taps (None: all of them)."""
+    if taps is None:
+        return plan
+    return dataclasses.replace(plan, index=plan.index[..., :taps], weight=plan.weight[..., :taps])
+
+
 def sample_split(plan: _tex.SamplePlan, mips, split: int) -> Array:
     """`jaxnm.textures.apply_plan` of the texels of ``mips``, with the first ``split`` pixels
     gathered from their 4 non-zero taps (see `ViewBatch.split`)."""
-    if split == 0:
-        return _tex.apply_plan(plan, mips)
-    head = dataclasses.replace(plan, index=plan.index[:split, :4], weight=plan.weight[:split, :4])
-    if split == plan.index.shape[0]:  # every pixel reads one mip level
-        return _tex.apply_plan(head, mips)
-    tail = dataclasses.replace(plan, index=plan.index[split:], weight=plan.weight[split:])
-    return jnp.concatenate([_tex.apply_plan(head, mips), _tex.apply_plan(tail, mips)], 0)
+    head = jax.tree_util.tree_map(lambda x: x[:split], _first_taps(plan, 4))
+    tail = jax.tree_util.tree_map(lambda x: x[split:], plan)
+    parts = [_tex.apply_plan(p, mips) for p in (head, tail) if p.index.shape[0]]
+    return parts[0] if len(parts) == 1 else jnp.concatenate(parts, 0)
 
 
 def _shade_view(gb: GBuffer, mips, lights: Lights, material: Material, opts: RenderOptions,
@@ -266,9 +272,7 @@ def _over_chunks(batch: ViewBatch, fn, pixel_axis: int) -> Array:
             def cut(x, axis):
                 return jax.lax.dynamic_slice_in_dim(x, start + c * size, size, axis)
 
-            gb = batch.gbuffer
-            gb = dataclasses.replace(jax.tree_util.tree_map(
-                lambda x: cut(x, 1), dataclasses.replace(gb, eye=None)), eye=gb.eye)
+            gb = map_pixels(batch.gbuffer, lambda x: cut(x, 1))
             return jax.vmap(lambda *a: fn(*a, taps))(gb, batch.lights, cut(batch.images, 2),
                                                      cut(batch.weights, 2))
 
@@ -284,10 +288,7 @@ def _over_chunks(batch: ViewBatch, fn, pixel_axis: int) -> Array:
 def _sample(plan: _tex.SamplePlan, mips, taps: int | None) -> Array:
     """The pixels' map vectors (K, 3) from the first ``taps`` taps of ``plan`` (None: all),
     materialised: fused into the shading, the gather would be recomputed per use."""
-    if taps is not None:
-        plan = dataclasses.replace(plan, index=plan.index[:, :taps],
-                                   weight=plan.weight[:, :taps])
-    return materialize(_tex.apply_plan(plan, mips))
+    return materialize(_tex.apply_plan(_first_taps(plan, taps), mips))
 
 
 def _shade_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions,

@@ -105,7 +105,7 @@ class Prepared:
                 pixels = np.asarray(b.pixels)[i]
                 keep = np.flatnonzero(pixels >= 0)
                 t = b.targets[i]
-                gb = _map_pixels(_host(b.gbuffer), lambda x: x[i][keep], eye=lambda x: x[i])
+                gb = map_pixels(_host(b.gbuffer), lambda x: x[i][keep], eye=lambda x: x[i])
                 return View(gb, pixels[keep], np.asarray(b.images)[i, :t][:, keep],
                             np.asarray(b.weights)[i, :t][:, keep],
                             jax.tree_util.tree_map(lambda x: np.asarray(x)[i, :t], b.lights))
@@ -201,7 +201,7 @@ def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
             ws.append(m[..., None].astype(np.float32))
         pix = np.flatnonzero(cover).astype(np.int32)
         flat = lambda x: x.reshape((-1,) + x.shape[2:])[pix]  # noqa: E731
-        views.append(View(_map_pixels(gb, flat), pix,
+        views.append(View(map_pixels(gb, flat), pix,
                           np.stack([flat(np.asarray(t.image, np.float32)) for t in ts]),
                           np.stack([flat(w) for w in ws]),
                           _host(_stack_lights([t.lights for t in ts]))))
@@ -223,7 +223,7 @@ def _host(tree):
     return jax.tree_util.tree_map(np.asarray, tree)
 
 
-def _map_pixels(gb: GBuffer, fn, eye=lambda x: x) -> GBuffer:
+def map_pixels(gb: GBuffer, fn, eye=lambda x: x) -> GBuffer:
     """Apply ``fn`` to every per-pixel field of ``gb`` and ``eye`` to the eye position."""
     out = jax.tree_util.tree_map(fn, dataclasses.replace(gb, eye=None))
     return dataclasses.replace(out, eye=None if gb.eye is None else eye(gb.eye))
@@ -296,7 +296,7 @@ def _assemble(views: list[View], options: tuple[RenderOptions, ...],
             t = targets[i]
             tsel = np.minimum(np.arange(t_max), t - 1)  # padded targets repeat the last one
             used = real[None, :, None] & (np.arange(t_max) < t)[:, None, None]
-            row = dict(gbuffer=_map_pixels(view.gbuffer, lambda x: x[order]),
+            row = dict(gbuffer=map_pixels(view.gbuffer, lambda x: x[order]),
                        pixels=np.where(real, view.pixels[order], -1).astype(np.int32),
                        images=view.images[np.ix_(tsel, order)],
                        weights=view.weights[np.ix_(tsel, order)] * used.astype(np.float32),
