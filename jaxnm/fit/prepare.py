@@ -281,11 +281,11 @@ def _assemble(views: list[View], options: tuple[RenderOptions, ...],
             w = np.asarray(views[v].gbuffer.plan.weight)
             one = np.all(w[:, 4:] == 0, axis=-1) if eight else np.zeros(len(w), bool)
             parts.append((np.flatnonzero(one), np.flatnonzero(~one)))
-        t_max = max(views[v].images.shape[0] for v in members)
+        targets = tuple(views[v].images.shape[0] for v in members)
+        t_max = max(targets)
         per_chunk = None if chunk is None else max(256, chunk // (len(members) * t_max))
         na, ka = _chunking(max(len(a) for a, _ in parts), per_chunk)
         nb, kb = _chunking(max(len(b) for _, b in parts), per_chunk)
-        targets = tuple(views[v].images.shape[0] for v in members)
         stacked = None  # filled view by view, each view released once copied
         for i, (v, (a, b)) in enumerate(zip(members, parts)):
             view, views[v] = views[v], None
