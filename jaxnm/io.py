@@ -29,16 +29,18 @@ import struct
 import warnings
 import zlib
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import imageio.v3 as iio
 import jax
 import jax.numpy as jnp
 import numpy as np
 import png
-import trimesh
 
 from .geometry import Mesh, validate_arrays, vertex_normals
+
+if TYPE_CHECKING:  # trimesh (with scipy, ~45 MB) is imported when a mesh file is read
+    import trimesh
 
 __all__ = [
     "JaxnmWarning",
@@ -202,6 +204,8 @@ def load_mesh(path: PathLike, *, require_uv: bool = False,
 
 def _load_scene(p: Path, ext: str) -> trimesh.Scene:
     """Parse ``p`` with trimesh into a Scene, with errors naming the file."""
+    import trimesh
+
     data = p.read_bytes()
     kwargs: dict[str, Any] = {"process": False}
     if ext == ".obj":
@@ -228,6 +232,8 @@ def _concatenate_scene(scene: trimesh.Scene, src: str):
     """(positions f64, faces i64, uv f64 | None, file normals f64, bool mask of the
     vertices that have file normals) of all triangle meshes in ``scene``, in world
     space."""
+    import trimesh
+
     parts, skipped = [], 0
     for node in scene.graph.nodes_geometry:
         transform, name = scene.graph[node]

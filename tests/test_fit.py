@@ -593,3 +593,29 @@ def test_chunked_steps_equal_the_whole_step(small):
         for got, want in zip(products(a_cut), products(a_whole)):
             scale = float(jnp.max(jnp.abs(want)))
             np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-5 * scale)
+
+
+def test_the_fit_follows_optimistix_own_steps(small):
+    """The fit loop keeps one linearisation in the state it carries between steps (optimistix's
+    LM holds it twice); its path must still be optimistix's: the same map as the solver's own
+    ``init`` and ``step`` on the whole state, from the same start, for as many steps."""
+    import equinox as eqx
+
+    problem, _, _, prep, _ = small
+    opts = F.FitOptions(solver="lm", max_steps=4, lsmr_steps=5, ftol=0.0, init_noise=0.05)
+    res = F.fit_normal_map(problem, opts, prepared=prep, progress=False)
+    scale = F.preconditioner(prep)
+    args = F.ModelArgs.create(prep, scale=scale, reduce=True)
+    z = opts.init_noise * jax.random.normal(jax.random.PRNGKey(opts.seed),
+                                            problem.map_size + (2,), jnp.float32) / scale
+    solver = F.make_solver(opts)
+    fn = lambda z, a: (F.residuals(z, a), None)  # noqa: E731
+    state = solver.init(fn, z, args, {}, jax.eval_shape(F.residuals, z, args), None,
+                        frozenset())
+    step = eqx.filter_jit(lambda z, s: solver.step(fn, z, args, {}, s, frozenset())[:2])
+    start = np.asarray(z * scale)
+    for _ in range(opts.max_steps + 1):  # the fit's first step evaluates the start
+        z, state = step(z, state)
+    assert res.stopped == "max_steps" and len(res.history) == opts.max_steps + 1
+    np.testing.assert_allclose(res.slopes, np.asarray(z * scale), rtol=1e-4, atol=1e-5)
+    assert np.abs(res.slopes - start).max() > 0.5  # the fit moved

@@ -71,20 +71,46 @@ def _init(solver, z, args: ModelArgs):
     return solver.init(fn, z, args, {}, f_struct, aux_struct, frozenset())
 
 
+def _holds_two_linearisations(solver) -> bool:
+    """Whether ``solver``'s state keeps the linearisation twice: optimistix's Gauss-Newton
+    family with the damped-Newton descent (Levenberg-Marquardt) stores it as the state's
+    ``f_info`` and as the descent state's, and after every step, accepted or rejected,
+    the two are the same value."""
+    return (isinstance(solver, optx.AbstractGaussNewton)
+            and isinstance(solver.descent, optx.DampedNewtonDescent))
+
+
+def _shed(solver, state):
+    """``state`` with the descent's copy of the linearisation dropped: out of a compiled
+    step, two references to one value are two buffers (38 MB each for the built-in
+    problem, and again in the step's output)."""
+    if not _holds_two_linearisations(solver):
+        return state
+    return eqx.tree_at(lambda s: s.descent_state.f_info, state, None)
+
+
+def _restore(solver, state):
+    """The inverse of `_shed`: the descent's linearisation is the state's."""
+    if not _holds_two_linearisations(solver):
+        return state
+    return eqx.tree_at(lambda s: s.descent_state.f_info, state, state.f_info,
+                       is_leaf=lambda x: x is None)
+
+
 @eqx.filter_jit(donate="all-except-first")
 def _step(kept, z, state):
-    """One solver step; ``kept = (args, solver)``. Returns the accepted point, the state,
-    whether to stop, the solver's result code, and the loss at the accepted point (from the
-    solver's own evaluation).
+    """One solver step; ``kept = (args, solver)``. Returns the accepted point, the state
+    (`_shed`), whether to stop, the solver's result code, and the loss at the accepted point
+    (from the solver's own evaluation).
 
     ``z`` and ``state`` are donated (the new state reuses their buffers instead of
     doubling them); ``kept`` is not (the solver too may hold arrays, e.g. Gauss-Newton's
     learning rate), and `_unaliased` makes sure no state array is one of ``args``."""
     args, solver = kept
     fn = _objective(solver)
-    z, state, _ = solver.step(fn, z, args, {}, state, frozenset())
+    z, state, _ = solver.step(fn, z, args, {}, _restore(solver, state), frozenset())
     done, result = solver.terminate(fn, z, args, {}, state, frozenset())
-    return z, state, done, result, state.f_info.as_min()
+    return z, _shed(solver, state), done, result, state.f_info.as_min()
 
 
 def _buffers(x) -> tuple:
@@ -263,7 +289,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                 # (optimistix's result codes), which donating it to `_step` would free
                 state = jax.tree_util.tree_map(
                     lambda x: jnp.copy(x) if isinstance(x, jax.Array) else x,
-                    _init(solver, z, args))
+                    _shed(solver, _init(solver, z, args)))
                 # optimistix's first step evaluates the start and proposes the first move,
                 # so the start's loss arrives with it: record it as step 0
                 for k in range(options.max_steps + 1):
