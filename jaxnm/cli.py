@@ -120,30 +120,6 @@ def _render(args) -> int:
     return 0
 
 
-def _release_memory(*, drop_compiled: bool = False) -> None:
-    """Hand freed memory back to the system between the phases of a command: XLA's compiler
-    frees hundreds of megabytes that glibc's allocator would otherwise keep in its arenas,
-    and the next phase's peak would stack on them (no-op where glibc is not the allocator).
-    ``drop_compiled`` also drops every compiled program (after a phase whose programs are
-    not run again: ~130 MB for the built-in problem's target renders)."""
-    import ctypes
-    import ctypes.util
-    import gc
-
-    if drop_compiled:
-        import jax
-
-        jax.clear_caches()
-    gc.collect()
-    name = ctypes.util.find_library("c")
-    try:
-        libc = ctypes.CDLL(name) if name else None
-        if libc is not None and hasattr(libc, "malloc_trim"):
-            libc.malloc_trim(0)
-    except OSError:
-        pass
-
-
 def _add_fit(sub) -> None:
     from .fit import SOLVERS
 
@@ -174,6 +150,7 @@ def _fit(args) -> int:
     from .config import load_fit
     from .fit import fit_normal_map, fit_outputs, prepare
     from .procedural import default_fit_job
+    from .runtime import release_memory
 
     say = (lambda msg: None) if args.no_progress else (  # noqa: E731
         lambda msg: print(msg, file=sys.stderr, flush=True))
@@ -190,7 +167,7 @@ def _fit(args) -> int:
     else:
         say("rendering the built-in problem's targets ...")
         job = default_fit_job(quick=args.quick)
-        _release_memory(drop_compiled=True)  # the target renders' programs are done with
+        release_memory(drop_compiled=True)  # the target renders' programs are done with
     if overrides:
         try:
             job = dataclasses.replace(job, options=dataclasses.replace(job.options, **overrides))
@@ -198,17 +175,17 @@ def _fit(args) -> int:
             raise ValueError(f"command line: {str(e).removeprefix('FitOptions: ')}") from None
     if args.time_limit is not None:
         job = dataclasses.replace(job, time_limit=args.time_limit)
-    _release_memory()
+    release_memory()
     say(f"preparing {len(job.problem.targets)} targets (rasterizing each view once) ...")
     t0 = time.perf_counter()
     prep = prepare(job.problem)
     t_prep = time.perf_counter() - t0
-    _release_memory()
+    release_memory()
     say("fitting (the first step includes compilation) ...")
     result = fit_normal_map(job.problem, job.options, ground_truth=job.ground_truth,
                             progress=not args.no_progress, prepared=prep,
                             time_limit=job.time_limit)
-    _release_memory()
+    release_memory(drop_compiled=True)  # the solver's programs are done with
     say("writing outputs ...")
     outputs = fit_outputs(job, prep, result, prepare_seconds=t_prep)
     written = io.write_fit_outputs(args.output, outputs)
@@ -240,7 +217,7 @@ def main(argv=None) -> int:
                        help="allow run-to-run differences on a GPU (faster scatter-adds); "
                        "by default results are reproducible on every backend")
     args = parser.parse_args(argv)
-    from .config import use_compilation_cache, use_deterministic_ops
+    from .runtime import use_compilation_cache, use_deterministic_ops
 
     if not args.nondeterministic:
         use_deterministic_ops()  # before JAX initialises a backend

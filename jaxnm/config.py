@@ -63,7 +63,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 from pathlib import Path
 from typing import Any
 
@@ -81,7 +80,6 @@ from .textures import NormalMapOptions, decode_normal_map, srgb_to_linear
 
 __all__ = ["load_scene", "scene_from_dict", "load_fit", "fit_from_dict", "parse_camera",
            "parse_lights", "parse_material", "load_normal_map", "load_height_map",
-           "use_compilation_cache", "compilation_cache_dir", "use_deterministic_ops",
            "SCENE_KEYS", "FIT_KEYS"]
 
 SCENE_KEYS = ("mesh", "model", "camera", "width", "height", "normal_map", "height_map",
@@ -537,70 +535,3 @@ def fit_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> FitJob
     except ValueError as e:
         raise ValueError(str(e)) from None
 
-
-# --------------------------------------------------------------------------------------
-# the persistent compilation cache
-# --------------------------------------------------------------------------------------
-
-#: Environment variable naming the cache folder; ``off`` (or empty) turns the cache off.
-CACHE_ENV = "JAXNM_COMPILATION_CACHE"
-
-
-def compilation_cache_dir() -> Path | None:
-    """Where `use_compilation_cache` keeps compiled programs: ``$JAXNM_COMPILATION_CACHE``
-    if set (``off`` or empty: nowhere), else ``$XDG_CACHE_HOME/jaxnm/xla`` (by default
-    ``~/.cache/jaxnm/xla``)."""
-    env = os.environ.get(CACHE_ENV)
-    if env is not None:
-        return None if env.strip().lower() in ("", "off", "0", "false", "no") else Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "jaxnm" / "xla"
-
-
-def use_compilation_cache(directory=None, *, min_compile_seconds: float = 0.05) -> Path | None:
-    """Turn on JAX's persistent compilation cache, so a second run of the same program (a
-    repeated ``jaxnm fit``, a script, a notebook) loads its compiled XLA programs from disk
-    instead of compiling them again. The command line and the scripts call this; a library
-    user opts in.
-
-    **Arguments:**
-    - `directory`: the cache folder; None for `compilation_cache_dir` (which honours
-      ``$JAXNM_COMPILATION_CACHE``, ``off`` to disable).
-    - `min_compile_seconds`: programs that compile faster than this are not stored.
-
-    **Returns:** the folder in use, or None when the cache is off. Does nothing (and
-    returns the folder already in use) if JAX's cache was configured elsewhere.
-    """
-    import jax
-
-    current = jax.config.jax_compilation_cache_dir
-    if current:
-        return Path(current)
-    path = compilation_cache_dir() if directory is None else Path(directory)
-    if path is None:
-        return None
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return None  # read-only home, etc.: run without the cache
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_seconds))
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    return path
-
-
-#: The XLA flag that makes GPU scatter-adds (the texture gather's transpose in a fit's
-#: gradient) and reductions run in a fixed order.
-DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
-
-
-def use_deterministic_ops() -> None:
-    """Ask XLA for run-to-run identical results on a GPU: two identical fits then give
-    bit-identical maps (on the CPU they already do). Adds `DETERMINISTIC_FLAG` to
-    ``XLA_FLAGS``, which JAX reads when it first initialises a backend: the command line
-    calls this before any JAX computation; from Python, call it first thing (or set the
-    flag yourself). The cost on a GPU is slower scatter-adds, hence slower gradients.
-    """
-    flags = os.environ.get("XLA_FLAGS", "")
-    if DETERMINISTIC_FLAG not in flags.split():
-        os.environ["XLA_FLAGS"] = f"{flags} {DETERMINISTIC_FLAG}".strip()

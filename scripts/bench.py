@@ -184,7 +184,7 @@ def _jaxnm_fit_once(p: B.BenchProblem, targets, well, budget: float) -> dict:
 
 def fit_worker(args) -> None:
     """In a fresh process: the jaxnm fit (then again, steady), JSON on stdout."""
-    from jaxnm.config import use_compilation_cache
+    from jaxnm.runtime import use_compilation_cache
 
     use_compilation_cache(args.cache)
     p = _problem(args.quick)
