@@ -75,7 +75,6 @@ __all__ = [
     "COARSE_REFERENCE",
     "barycentrics",
     "interpolate",
-    "pixel_centers",
     "triangle_corners",
 ]
 
@@ -129,14 +128,6 @@ class Barycentrics:
     mode: str | None = dataclasses.field(metadata=dict(static=True), default="fine")
 
 
-def pixel_centers(height: int, width: int, dtype=jnp.float32) -> tuple[Array, Array]:
-    """Window coordinates (x, y), each (H, W), of the pixel centres in image layout."""
-    x = jnp.arange(width, dtype=dtype) + 0.5
-    y = (height - 1 - jnp.arange(height, dtype=dtype)) + 0.5
-    return jnp.broadcast_to(x[None, :], (height, width)), jnp.broadcast_to(y[:, None],
-                                                                           (height, width))
-
-
 def check_derivatives(derivatives: str | None, *, allow_none: bool = True) -> None:
     """Raise a `ValueError` unless ``derivatives`` is one of `DERIVATIVE_MODES` (or None,
     values only, where ``allow_none``)."""
@@ -163,7 +154,8 @@ def require_x64(what: str) -> None:
 
 
 def at_precision(attr: Attribute, precision: str, mask: Array, *,
-                 derivatives: str | None) -> Attribute:
+                 derivatives: str | None, pixels: tuple[Array, Array] | None = None
+                 ) -> Attribute:
     """``attr`` as a shader running at ``precision`` sees it (a model of GLSL ``mediump``).
 
     The rasterizer's interpolators stay float32 (fixed-function hardware); the shader
@@ -184,6 +176,10 @@ def at_precision(attr: Attribute, precision: str, mask: Array, *,
 
     - ``float64``: value and derivatives converted exactly (nothing to round).
 
+    ``mask`` is an image's coverage (H, W), or that of packed fragments with their window
+    pixels ``pixels = Fragments.window_pixels()`` (which say which quad partner a pixel
+    has).
+
     Returns an `Attribute` whose arrays have ``precision``'s dtype (0 on background).
     """
     check_precision(precision)
@@ -201,9 +197,12 @@ def at_precision(attr: Attribute, precision: str, mask: Array, *,
         return Attribute(lo)
     if derivatives == "analytic":
         return Attribute(lo, attr.ddx.astype(dt), attr.ddy.astype(dt))
-    height, width = mask.shape
-    first_x = (jnp.arange(width) % 2 == 0)[None, :, None]  # left pixel of its quad
-    first_y = ((height - 1 - jnp.arange(height)) % 2 == 0)[:, None, None]  # lower pixel
+    if pixels is None:
+        height, width = mask.shape
+        first_x = (jnp.arange(width) % 2 == 0)[None, :, None]  # left pixel of its quad
+        first_y = ((height - 1 - jnp.arange(height)) % 2 == 0)[:, None, None]  # lower pixel
+    else:
+        first_x, first_y = ((q % 2 == 0)[..., None] for q in pixels)
 
     def diff(d, first):
         partner = jnp.where(first, v + d, v - d).astype(dt)
@@ -216,13 +215,13 @@ def at_precision(attr: Attribute, precision: str, mask: Array, *,
 
 
 def _pixel_setup(frags: Fragments):
-    """Per pixel: edge functions E (H,W,3) at the centre, their gradients a, b, and the mask."""
-    height, width = frags.shape
+    """Per pixel: edge functions E (..., 3) at the centre, their gradients a, b, and the mask."""
+    height, width = frags.image_shape
     mask = frags.mask
     tri = jnp.maximum(frags.triangle_id, 0)
     h = xyw(window_homogeneous(frags.clip, width, height))  # (V, 3): x, y, w
-    hv = h[frags.faces[tri]]  # (H, W, 3 vertices, 3)
-    x, y = pixel_centers(height, width, h.dtype)
+    hv = h[frags.faces[tri]]  # (..., 3 vertices, 3)
+    x, y = frags.window_centers(h.dtype)
     # translate so the pixel centre is the origin, and normalise the scale: b = E / sum(E)
     # is invariant to both, and the smaller numbers keep E well conditioned
     hx = hv[..., 0] - x[..., None] * hv[..., 2]
@@ -255,7 +254,6 @@ def barycentrics(frags: Fragments, *, derivatives: str | None = "fine") -> Baryc
     see `interpolate`.
     """
     check_derivatives(derivatives)
-    height, width = frags.shape
     e, a, b, mask = _pixel_setup(frags)
     m = mask[..., None]
     s = sum_last(e, keepdims=True)
@@ -270,9 +268,7 @@ def barycentrics(frags: Fragments, *, derivatives: str | None = "fine") -> Baryc
         ddx = (a * s - e * a_s) / (s * s)
         ddy = (b * s - e * b_s) / (s * s)
     else:
-        x, y = pixel_centers(height, width, jnp.float32)
-        xi = jnp.floor(x).astype(jnp.int32)[..., None]
-        yi = jnp.floor(y).astype(jnp.int32)[..., None]
+        xi, yi = (q[..., None] for q in frags.window_pixels())
         if derivatives == "fine":
             # G at the pixel itself; partner at x ^ 1 (same row) and y ^ 1 (same column)
             ex, sx = e, s
@@ -410,6 +406,9 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
     if derivatives is None:
         return materialize(Attribute(value))
     if derivatives == "gbuffer":
+        if frags.pixels is not None:
+            raise ValueError("interpolate: 'gbuffer' derivatives difference the stored "
+                             "neighbours, which packed fragments (`compact`) do not have")
         return materialize(Attribute(value, *_gbuffer_derivatives(value, frags.mask)))
     # materialised: consumers (frames, shading) read each channel many times, and a fused
     # consumer would redo the corner gathers for every read

@@ -52,7 +52,8 @@ from jax import Array
 
 from .numerics import dot, materialize, roll_last, xyw
 
-__all__ = ["Fragments", "rasterize", "window_homogeneous", "TIE_RULE"]
+__all__ = ["Fragments", "rasterize", "window_homogeneous", "pixel_centers", "compact",
+           "expand", "TIE_RULE"]
 
 #: A pixel centre exactly on an edge belongs to the triangle whose inward edge
 #: normal ``n`` (window coordinates, y up) has ``n.x > 0``, or ``n.x == 0`` and
@@ -67,6 +68,14 @@ SUBPIXEL_BITS = 8
 _NO_TRIANGLE = np.iinfo(np.int32).max
 
 
+def pixel_centers(height: int, width: int, dtype=jnp.float32) -> tuple[Array, Array]:
+    """Window coordinates (x, y), each (H, W), of the pixel centres in image layout."""
+    x = jnp.arange(width, dtype=dtype) + 0.5
+    y = (height - 1 - jnp.arange(height, dtype=dtype)) + 0.5
+    return jnp.broadcast_to(x[None, :], (height, width)), jnp.broadcast_to(y[:, None],
+                                                                           (height, width))
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Fragments:
@@ -78,6 +87,11 @@ class Fragments:
     - `front_facing`: (H, W) bool, counter-clockwise in the window (y up).
     - `clip`: (V, 4) the clip-space vertices that were rasterized.
     - `faces`: (F, 3) int32 triangle vertex indices.
+    - `pixels`: None for a whole image; for fragments packed by `compact`, each
+      fragment's window pixel ``(i, j)`` (int32, ``(..., 2)``; its centre is
+      ``(i + 1/2, j + 1/2)``), and the other per-pixel fields have its leading shape.
+    - `packed_from`: static; the ``(height, width)`` of the image packed fragments
+      come from (None for a whole image).
 
     ``clip`` and ``faces`` are kept so that later stages can evaluate *the
     pixel's own triangle* anywhere on screen (helper pixels), and so that
@@ -89,16 +103,75 @@ class Fragments:
     front_facing: Array
     clip: Array
     faces: Array
+    pixels: Array | None = None
+    packed_from: tuple[int, int] | None = dataclasses.field(default=None,
+                                                            metadata=dict(static=True))
 
     @property
     def mask(self) -> Array:
-        """(H, W) bool, True where a triangle covers the pixel."""
+        """True where a triangle covers the pixel."""
         return self.triangle_id >= 0
 
     @property
-    def shape(self) -> tuple[int, int]:
-        """``(height, width)``."""
+    def shape(self) -> tuple[int, ...]:
+        """``(height, width)`` (a whole image), or the packed fragments' shape."""
         return self.triangle_id.shape
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        """``(height, width)`` of the image (for packed fragments, the one they come from)."""
+        return self.shape if self.packed_from is None else self.packed_from
+
+    def window_pixels(self) -> tuple[Array, Array]:
+        """Window pixel indices (i, j) of each fragment (int32, of `shape`; j counts up)."""
+        if self.pixels is not None:
+            return self.pixels[..., 0], self.pixels[..., 1]
+        height, width = self.shape
+        i = jnp.arange(width, dtype=jnp.int32)
+        j = height - 1 - jnp.arange(height, dtype=jnp.int32)
+        return (jnp.broadcast_to(i[None, :], (height, width)),
+                jnp.broadcast_to(j[:, None], (height, width)))
+
+    def window_centers(self, dtype=jnp.float32) -> tuple[Array, Array]:
+        """Window coordinates (x, y) of each fragment's pixel centre, of `shape`."""
+        if self.pixels is None:
+            return pixel_centers(*self.shape, dtype)
+        i, j = self.window_pixels()
+        return i.astype(dtype) + 0.5, j.astype(dtype) + 0.5
+
+
+def compact(frags: Fragments, capacity: int) -> tuple[Fragments, Array]:
+    """The covered pixels of a whole image's `Fragments`, packed into ``capacity`` slots.
+
+    Every per-pixel stage evaluates a pixel from its own triangle and its window position
+    only, so it can run on the packed fragments (whose `Fragments.pixels` say where they
+    are) and skip the background; `expand` puts its results back in image layout. Unused
+    slots are background (triangle -1). Covered pixels beyond ``capacity`` are dropped:
+    take ``capacity >= frags.mask.sum()``.
+
+    **Returns:** the packed `Fragments` (per-pixel fields of shape (capacity,)) and the
+    (capacity,) flat image index of each slot (``H * W`` for unused slots).
+    """
+    height, width = frags.shape
+    n = height * width
+    tid = frags.triangle_id.reshape(-1)
+    index = jnp.nonzero(tid >= 0, size=capacity, fill_value=n)[0].astype(jnp.int32)
+    used = index < n
+    at = jnp.minimum(index, n - 1)
+    row, col = at // width, at % width
+    return Fragments(triangle_id=jnp.where(used, tid[at], -1),
+                     depth=jnp.where(used, frags.depth.reshape(-1)[at], 1.0),
+                     front_facing=used & frags.front_facing.reshape(-1)[at],
+                     clip=frags.clip, faces=frags.faces,
+                     pixels=jnp.stack([col, height - 1 - row], -1),
+                     packed_from=(height, width)), index
+
+
+def expand(values: Array, index: Array, height: int, width: int) -> Array:
+    """Per-slot ``values`` (capacity, ...) of `compact`'s fragments as an image
+    (H, W, ...), 0 where no slot writes."""
+    out = jnp.zeros((height * width,) + values.shape[1:], values.dtype)
+    return out.at[index].set(values, mode="drop").reshape((height, width) + values.shape[1:])
 
 
 def window_homogeneous(clip: Array, width: int, height: int) -> Array:

@@ -41,12 +41,13 @@ from .interpolate import (
     triangle_corners,
 )
 from .numerics import materialize, safe_normalize
-from .raster import rasterize
+from .raster import Fragments, compact, expand, rasterize
 from .scene import Scene, validate_scene
 from .shading import Lights, Material, check_shading_model, shade
 from .textures import NormalMapOptions
 
-__all__ = ["OUTPUTS", "GBuffer", "RenderOptions", "build_gbuffer", "shade_gbuffer", "render",
+__all__ = ["OUTPUTS", "GBuffer", "RenderOptions", "build_gbuffer", "gbuffer_from_fragments",
+           "shade_gbuffer", "render",
            "with_tangents_if_needed", "camera_relative"]
 
 #: Every output `render` can produce (image layout, row 0 = top, float32 (H, W, C)).
@@ -187,10 +188,20 @@ def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOpti
     - `opts`: a `RenderOptions` (static).
     """
     check_mesh(mesh, opts)
+    return gbuffer_from_fragments(mesh, camera, albedo, _visibility(mesh, camera, opts),
+                                  opts=opts)
+
+
+def _visibility(mesh: Mesh, camera: Camera, opts: RenderOptions):
+    return rasterize(to_clip(mesh.positions, camera), mesh.faces, width=opts.width,
+                     height=opts.height, cull_back=opts.cull_back)
+
+
+def gbuffer_from_fragments(mesh: Mesh, camera: Camera, albedo: Array, frags: Fragments, *,
+                           opts: RenderOptions) -> GBuffer:
+    """`build_gbuffer` after visibility: the per-pixel stages for ``frags``, a whole
+    image's or packed ones (`jaxnm.raster.compact`; the G-buffer then has their shape)."""
     has_map, need_frame, need_tb, need_uv, need_p, need_n = _needs(opts)
-    clip = to_clip(mesh.positions, camera)
-    frags = rasterize(clip, mesh.faces, width=opts.width, height=opts.height,
-                      cull_back=opts.cull_back)
     mask = frags.mask
     gb = dict(mask=mask, triangle_id=frags.triangle_id, depth=frags.depth,
               front_facing=frags.front_facing, eye=camera.eye)
@@ -210,8 +221,8 @@ def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOpti
         out = interpolate(attrs, frags, derivatives=mode, bary=bary)
         if need_p:
             gb["view"] = out["view"]
-            gb["position"] = jnp.where(mask[..., None], out["view"].value + camera.eye[None, None],
-                                       0.0)
+            view = out["view"].value
+            gb["position"] = jnp.where(mask[..., None], view + _like(camera.eye, view), 0.0)
         if need_uv:
             gb["uv"] = out["uv"]
     if need_n:
@@ -227,11 +238,16 @@ def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOpti
     if "color" in opts.outputs:
         if opts.albedo_shape is None:
             gb["albedo"] = jnp.broadcast_to(jnp.asarray(albedo, jnp.float32),
-                                            (opts.height, opts.width, 3))
+                                            frags.shape + (3,))
         else:
             mips = _tex.build_mipmaps(albedo)
             gb["albedo"] = _tex.sample(mips, gb["uv"], filter="trilinear", wrap="repeat")
     return GBuffer(**gb)
+
+
+def _like(v: Array, x: Array) -> Array:
+    """A (3,) vector with leading axes to broadcast against the per-pixel array ``x``."""
+    return jnp.asarray(v)[(None,) * (x.ndim - 1)]
 
 
 def _frame(opts: RenderOptions, mesh: Mesh, frags, gb, bary) -> _frames.Frame:
@@ -245,8 +261,11 @@ def _frame(opts: RenderOptions, mesh: Mesh, frags, gb, bary) -> _frames.Frame:
     inputs = {}
     n = low(gb["normal"])
     if kind in ("cotangent", "cotangent_unnormalized", "nonperspective"):
-        inputs = dict(p_attr=at_precision(gb["view"], prec, frags.mask, derivatives=mode),
-                      uv_attr=at_precision(gb["uv"], prec, frags.mask, derivatives=mode),
+        quads = None if frags.pixels is None else frags.window_pixels()
+        inputs = dict(p_attr=at_precision(gb["view"], prec, frags.mask, derivatives=mode,
+                                          pixels=quads),
+                      uv_attr=at_precision(gb["uv"], prec, frags.mask, derivatives=mode,
+                                           pixels=quads),
                       ddy_sign=opts.ddy_sign)
     elif kind in ("exact", "exact_face"):
         inputs = dict(tri_p=low(triangle_corners(mesh.positions, frags)),
@@ -319,13 +338,20 @@ def shade_gbuffer(gb: GBuffer, normal_map: Array | None, lights: Lights, materia
 
 
 def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
-           frame: str | None = None, precision: str | None = None) -> dict[str, Array]:
+           frame: str | None = None, precision: str | None = None,
+           pack: bool = True) -> dict[str, Array]:
     """Render ``scene`` and return the requested outputs as float32 (H, W, C) arrays.
 
     **Arguments:**
     - `scene`: a `Scene` (`jaxnm.config.load_scene`, `jaxnm.procedural.default_scene`).
     - `outputs`: any of `OUTPUTS`; only the stages they need are run.
     - `derivatives`, `frame`, `precision`: override the scene's choices.
+    - `pack`: run the per-pixel stages on the covered pixels only, packed into
+      image / 2^k slots (`jaxnm.raster.compact`), where at most half the image is
+      covered. This needs the coverage count on the host, so it applies when the
+      mesh and camera are concrete (not traced; the map, lights and material may
+      be); "gbuffer" derivatives (stored neighbours) always run on the whole image.
+      The results are the same either way.
 
     Row 0 is the top of the image. ``color`` is linear RGB (see
     `jaxnm.shading.to_display` for an sRGB PNG); ``triangle_id`` is -1 on the
@@ -350,8 +376,15 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     check_mesh(scene.mesh, opts, scene.source)
     scene, origin = camera_relative(scene)
     nm = None if scene.normal_map is None else jnp.asarray(scene.normal_map)
-    return _render(scene.mesh, scene.camera, nm, jnp.asarray(scene.albedo), scene.lights,
-                   scene.material, jnp.asarray(origin, jnp.float32), opts=opts)
+    args = (scene.mesh, scene.camera, nm, jnp.asarray(scene.albedo), scene.lights,
+            scene.material, jnp.asarray(origin, jnp.float32))
+    if pack and opts.derivatives != "gbuffer" and _concrete(scene.mesh, scene.camera):
+        frags, count = _visible(scene.mesh, scene.camera, opts=opts)
+        # inside a caller's jit the count is traced even for a concrete mesh: no packing
+        capacity = (None if isinstance(count, jax.core.Tracer)
+                    else _capacity(int(count), opts.width * opts.height))
+        return _render(*args, frags, opts=opts, capacity=capacity)
+    return _render(*args, opts=opts)
 
 
 def _concrete(*xs) -> bool:
@@ -417,21 +450,44 @@ def with_tangents_if_needed(scene: Scene, opts: RenderOptions) -> Scene:
     return dataclasses.replace(scene, mesh=m.with_tangents())
 
 
+def _capacity(count: int, pixels: int) -> int | None:
+    """Slots for ``count`` covered pixels of a ``pixels``-pixel image: the smallest of
+    pixels / 2, / 4, ..., / 64 that holds them, or None (no packing) when more than half
+    the image is covered. Few sizes, because each is one compilation."""
+    capacity = None
+    for k in range(1, 7):
+        if (pixels >> k) < max(count, 1):
+            break
+        capacity = pixels >> k
+    return capacity
+
+
 @functools.partial(jax.jit, static_argnames=("opts",))
-def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, origin, *,
-            opts: RenderOptions) -> dict[str, Array]:
-    """`render` as one XLA program (one compilation per scene shape and options); the scene
-    is camera-relative (`camera_relative`), ``origin`` the camera's world position."""
-    gb = build_gbuffer(mesh, camera, albedo, opts=opts)
+def _visible(mesh: Mesh, camera: Camera, *, opts: RenderOptions):
+    frags = _visibility(mesh, camera, opts)
+    return frags, jnp.count_nonzero(frags.mask)
+
+
+@functools.partial(jax.jit, static_argnames=("opts", "capacity"))
+def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, origin,
+            frags: Fragments | None = None, *, opts: RenderOptions,
+            capacity: int | None = None) -> dict[str, Array]:
+    """`render` as one XLA program (one compilation per scene shape, options and capacity);
+    the scene is camera-relative (`camera_relative`), ``origin`` the camera's world
+    position. With ``capacity``, the per-pixel stages run on the image's covered pixels
+    (``frags``, packed by `compact`) and their results are put back in image layout."""
+    if frags is None:
+        frags = _visibility(mesh, camera, opts)
+    packed, index = (frags, None) if capacity is None else compact(frags, capacity)
+    gb = gbuffer_from_fragments(mesh, camera, albedo, packed, opts=opts)
     res = {}
     if set(opts.outputs) & _NEEDS_FRAME:
         res.update(shade_gbuffer(gb, normal_map, lights, material, opts=opts))
-    geo = {
-        "mask": lambda: gb.mask,
-        "triangle_id": lambda: gb.triangle_id,
-        "depth": lambda: gb.depth,
-        "front_facing": lambda: gb.front_facing,
-        "position": lambda: jnp.where(gb.mask[..., None], gb.position + origin[None, None], 0.0),
+    image = {"mask": frags.mask, "triangle_id": frags.triangle_id, "depth": frags.depth,
+             "front_facing": frags.front_facing}
+    per_pixel = {
+        "position": lambda: jnp.where(gb.mask[..., None],
+                                      gb.position + _like(origin, gb.position), 0.0),
         "view": lambda: gb.view.value,
         "uv": lambda: gb.uv.value,
         "normal": lambda: jnp.where(gb.mask[..., None], gb.normal, 0.0),
@@ -442,7 +498,12 @@ def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, or
     }
     result = {}
     for name in opts.outputs:
-        v = res[name] if name in res else geo[name]()
+        if name in image:
+            v = image[name]
+        else:
+            v = res[name] if name in res else per_pixel[name]()
+            if index is not None:
+                v = expand(v, index, opts.height, opts.width)
         if v.ndim == 2:
             v = v[..., None]
         result[name] = v.astype(jnp.float32)

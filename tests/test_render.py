@@ -369,3 +369,55 @@ def test_near_plane_check_finds_the_one_vertex_in_front():
                                                   pos), jnp.float32), jnp.asarray(faces))
     with pytest.raises(ValueError, match="behind the camera's near plane"):
         validate_scene(Scene(mesh=mesh_behind, camera=cam, width=8, height=8))
+
+
+@pytest.mark.parametrize("frame,derivatives,precision", [
+    ("cotangent", "fine", "float32"), ("exact", "coarse", "float16"),
+    ("vertex", "analytic", "float32")])
+def test_packed_pixels_render_what_the_whole_image_renders(frame, derivatives, precision):
+    """`render` runs the per-pixel stages on the covered pixels only (packed) when they are at
+    most half the image: every output must be what the whole-image pipeline gives, the
+    geometry bit for bit (each pixel sees its own triangle and its own window position,
+    quad partners included), the shaded colour to float32 rounding."""
+    from jaxnm.camera import Camera, look_at, perspective
+    from jaxnm.render import OUTPUTS
+
+    sc = default_scene(width=96, height=64)
+    sc = sc.replace(mesh=sc.mesh.with_tangents(), camera=Camera.from_matrices(
+        look_at((0.5, -4.5, 3.0), (0.3, 0.0, -0.1), (0.0, 0.0, 1.0)),
+        perspective(45.0, 1.5, 0.1, 50.0)))
+    kw = dict(outputs=OUTPUTS, frame=frame, derivatives=derivatives, precision=precision)
+    packed, whole = render(sc, **kw), render(sc, pack=False, **kw)
+    covered = np.asarray(whole["mask"][..., 0]) > 0
+    assert 0.05 < covered.mean() < 0.25  # packed into a quarter of the image's slots
+    for name in OUTPUTS:
+        if name == "color":
+            np.testing.assert_allclose(packed[name], whole[name], rtol=0, atol=1e-5)
+        else:
+            np.testing.assert_array_equal(packed[name], whole[name], err_msg=name)
+    assert np.abs(np.asarray(whole["duvdx"])[covered]).min() >= 0  # derivatives are there
+    assert np.abs(np.asarray(whole["duvdx"])[covered]).max() > 0
+
+
+def test_compact_and_expand_round_trip():
+    """`compact` packs the covered pixels with their window positions; `expand` puts per-slot
+    values back; unused slots are background and write nothing; 'gbuffer' derivatives
+    (stored neighbours) are refused on packed fragments."""
+    from jaxnm.raster import compact, expand
+
+    sc = default_scene(width=16, height=12)
+    frags = jaxnm.rasterize(jaxnm.to_clip(sc.mesh.positions, sc.camera), sc.mesh.faces,
+                            width=16, height=12)
+    n = int(frags.mask.sum())
+    packed, index = compact(frags, n + 5)
+    assert packed.shape == (n + 5,) and packed.image_shape == (12, 16)
+    assert int(packed.mask.sum()) == n and np.all(np.asarray(index[n:]) == 16 * 12)
+    x, y = frags.window_centers()
+    px, py = packed.window_centers()
+    for whole, part in ((x, px), (y, py), (frags.depth, packed.depth),
+                        (frags.triangle_id, packed.triangle_id)):
+        back = expand(part, index, 12, 16)
+        np.testing.assert_array_equal(np.where(frags.mask, back, 0), np.where(frags.mask,
+                                                                              whole, 0))
+    with pytest.raises(ValueError, match="packed fragments"):
+        jaxnm.interpolate(sc.mesh.uv, packed, derivatives="gbuffer")

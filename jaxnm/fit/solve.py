@@ -114,15 +114,15 @@ def _step(kept, z, state):
     return z, _shed(solver, state), done, result, state.f_info.as_min()
 
 
-def _compiled_step(kept, z, state):
-    """`_step` compiled for these arguments' shapes before it first runs, and the memory the
-    compiler used handed back before it does (`release_memory`): the first step's
-    execution then no longer stacks on the compiler's leftovers (for the built-in
-    problem, a peak of 1.12 GB becomes 0.89 GB). Compiled once per shape: a second call
-    for the same shapes finds the program in JAX's cache."""
-    compiled = _step.lower(kept, z, state).compile()
+def _compile_ahead(kept, z, state) -> None:
+    """Compile `_step` for these arguments before it first runs, and hand the memory the
+    compiler used back before it does (`release_memory`): the first step's execution then
+    no longer stacks on the compiler's leftovers (for the built-in problem, a peak of
+    1.12 GB becomes 0.89 GB). The program lands in `_step`'s own cache, which the steps
+    then call (and which recompiles, as ever, if a later state comes back with other
+    shardings, as it does for views spread over devices)."""
+    _step.lower(kept, z, state).compile()
     release_memory()
-    return compiled
 
 
 def _buffers(x) -> tuple:
@@ -302,12 +302,12 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                 state = jax.tree_util.tree_map(
                     lambda x: jnp.copy(x) if isinstance(x, jax.Array) else x,
                     _shed(solver, _init(solver, z, args)))
-                step = _compiled_step((args, solver), z, state)
+                _compile_ahead((args, solver), z, state)
                 # optimistix's first step evaluates the start and proposes the first move,
                 # so the start's loss arrives with it: record it as step 0
                 for k in range(options.max_steps + 1):
-                    z, state, done, result, loss_value = step((args, solver), z,
-                                                              _unaliased(state, (args, solver)))
+                    z, state, done, result, loss_value = _step((args, solver), z,
+                                                               _unaliased(state, (args, solver)))
                     slopes = z * scale
                     rec = {"level": level, "size": list(size), "step": k,
                            "loss": float(loss_value), "seconds": time.perf_counter() - t_start}
