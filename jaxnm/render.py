@@ -46,14 +46,19 @@ from .scene import Scene, validate_scene
 from .shading import Lights, Material, check_shading_model, shade
 from .textures import NormalMapOptions
 
-__all__ = ["OUTPUTS", "GBuffer", "RenderOptions", "build_gbuffer", "gbuffer_from_fragments",
-           "shade_gbuffer", "render",
-           "with_tangents_if_needed", "camera_relative"]
+__all__ = ["OUTPUTS", "PACK_MIN_PIXELS", "GBuffer", "RenderOptions", "build_gbuffer",
+           "gbuffer_from_fragments", "shade_gbuffer", "render", "with_tangents_if_needed",
+           "camera_relative"]
 
 #: Every output `render` can produce (image layout, row 0 = top, float32 (H, W, C)).
 OUTPUTS = ("mask", "triangle_id", "depth", "front_facing", "position", "view", "uv", "normal",
            "dpdx", "dpdy", "duvdx", "duvdy", "tangent", "bitangent", "perturbed_normal",
            "color")
+
+#: `render` packs the covered pixels of images at least this big by default (256x256):
+#: below it, a frame's per-pixel stages take about a millisecond, less than one more
+#: compilation's worth over any realistic number of frames.
+PACK_MIN_PIXELS = 1 << 16
 
 _GEOMETRY_OUTPUTS = {"mask", "triangle_id", "depth", "front_facing"}
 _NEEDS_P = {"position", "view", "dpdx", "dpdy", "color", "tangent", "bitangent",
@@ -339,7 +344,7 @@ def shade_gbuffer(gb: GBuffer, normal_map: Array | None, lights: Lights, materia
 
 def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
            frame: str | None = None, precision: str | None = None,
-           pack: bool = True) -> dict[str, Array]:
+           pack: bool | None = None) -> dict[str, Array]:
     """Render ``scene`` and return the requested outputs as float32 (H, W, C) arrays.
 
     **Arguments:**
@@ -348,10 +353,13 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     - `derivatives`, `frame`, `precision`: override the scene's choices.
     - `pack`: run the per-pixel stages on the covered pixels only, packed into
       image / 2^k slots (`jaxnm.raster.compact`), where at most half the image is
-      covered. This needs the coverage count on the host, so it applies when the
-      mesh and camera are concrete (not traced; the map, lights and material may
-      be); "gbuffer" derivatives (stored neighbours) always run on the whole image.
-      The results are the same either way.
+      covered. Each slot count is one more compilation, so by default (None) only
+      images of at least `PACK_MIN_PIXELS` pixels are packed, where the time saved
+      per frame is worth it; True packs any image, False none. Packing needs the
+      coverage count on the host, so it applies when the mesh and camera are
+      concrete (not traced; the map, lights and material may be); "gbuffer"
+      derivatives (stored neighbours) always run on the whole image. The results
+      are the same either way (geometry bit for bit, colour to float32 rounding).
 
     Row 0 is the top of the image. ``color`` is linear RGB (see
     `jaxnm.shading.to_display` for an sRGB PNG); ``triangle_id`` is -1 on the
@@ -378,11 +386,14 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     nm = None if scene.normal_map is None else jnp.asarray(scene.normal_map)
     args = (scene.mesh, scene.camera, nm, jnp.asarray(scene.albedo), scene.lights,
             scene.material, jnp.asarray(origin, jnp.float32))
+    pixels = opts.width * opts.height
+    if pack is None:
+        pack = pixels >= PACK_MIN_PIXELS
     if pack and opts.derivatives != "gbuffer" and _concrete(scene.mesh, scene.camera):
         frags, count = _visible(scene.mesh, scene.camera, opts=opts)
         # inside a caller's jit the count is traced even for a concrete mesh: no packing
         capacity = (None if isinstance(count, jax.core.Tracer)
-                    else _capacity(int(count), opts.width * opts.height))
+                    else _capacity(int(count), pixels))
         return _render(*args, frags, opts=opts, capacity=capacity)
     return _render(*args, opts=opts)
 

@@ -387,7 +387,7 @@ def test_packed_pixels_render_what_the_whole_image_renders(frame, derivatives, p
         look_at((0.5, -4.5, 3.0), (0.3, 0.0, -0.1), (0.0, 0.0, 1.0)),
         perspective(45.0, 1.5, 0.1, 50.0)))
     kw = dict(outputs=OUTPUTS, frame=frame, derivatives=derivatives, precision=precision)
-    packed, whole = render(sc, **kw), render(sc, pack=False, **kw)
+    packed, whole = render(sc, pack=True, **kw), render(sc, pack=False, **kw)
     covered = np.asarray(whole["mask"][..., 0]) > 0
     assert 0.05 < covered.mean() < 0.25  # packed into a quarter of the image's slots
     for name in OUTPUTS:
