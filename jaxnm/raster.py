@@ -140,37 +140,47 @@ class Fragments:
         return i.astype(dtype) + 0.5, j.astype(dtype) + 0.5
 
 
-def compact(frags: Fragments, capacity: int) -> tuple[Fragments, Array]:
-    """The covered pixels of a whole image's `Fragments`, packed into ``capacity`` slots.
+def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
+            subpixel_bits: int | None = SUBPIXEL_BITS) -> tuple[Fragments, Array]:
+    """The covered pixels of a whole image, packed into ``capacity`` slots as `Fragments`.
 
     Every per-pixel stage evaluates a pixel from its own triangle and its window position
     only, so it can run on the packed fragments (whose `Fragments.pixels` say where they
-    are) and skip the background; `expand` puts its results back in image layout. Unused
-    slots are background (triangle -1). Covered pixels beyond ``capacity`` are dropped:
-    take ``capacity >= frags.mask.sum()``.
+    are) and skip the background; `expand` puts its results back in image layout.
 
-    **Returns:** the packed `Fragments` (per-pixel fields of shape (capacity,)) and the
-    (capacity,) flat image index of each slot (``H * W`` for unused slots).
+    **Arguments:**
+    - `triangle_id`: (H, W) from `rasterize` (-1: background); only the ids are needed,
+      so the image's depth and facing need not have been computed.
+    - `clip`, `faces`, `subpixel_bits`: as given to `rasterize`.
+    - `capacity`: slots; covered pixels beyond it are dropped: take at least the number
+      of covered pixels. Unused slots are background (triangle -1, depth 1).
+
+    **Returns:** the packed `Fragments` (per-pixel fields of shape (capacity,); depth and
+    facing as `rasterize` computes them) and the (capacity,) flat image index of each
+    slot (``H * W`` for unused slots).
     """
-    height, width = frags.shape
+    height, width = triangle_id.shape
     n = height * width
-    tid = frags.triangle_id.reshape(-1)
-    index = jnp.nonzero(tid >= 0, size=capacity, fill_value=n)[0].astype(jnp.int32)
+    ids = triangle_id.reshape(-1)
+    index = jnp.nonzero(ids >= 0, size=capacity, fill_value=n)[0].astype(jnp.int32)
     used = index < n
     at = jnp.minimum(index, n - 1)
     row, col = at // width, at % width
-    return Fragments(triangle_id=jnp.where(used, tid[at], -1),
-                     depth=jnp.where(used, frags.depth.reshape(-1)[at], 1.0),
-                     front_facing=used & frags.front_facing.reshape(-1)[at],
-                     clip=frags.clip, faces=frags.faces,
-                     pixels=jnp.stack([col, height - 1 - row], -1),
-                     packed_from=(height, width)), index
+    tid = jnp.where(used, ids[at], -1)
+    pixels = jnp.stack([col, height - 1 - row], -1)
+    tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
+                                     subpixel_bits=subpixel_bits)
+    sigma = jnp.sign(_orientation(_corner_components(tri)))
+    x, y = (q.astype(tri_depth.dtype) + 0.5 for q in (col, height - 1 - row))
+    depth, front = _depth_and_facing(tri_depth, sigma, tid, x, y)
+    return Fragments(triangle_id=tid, depth=depth, front_facing=front, clip=clip, faces=faces,
+                     pixels=pixels, packed_from=(height, width)), index
 
 
-def expand(values: Array, index: Array, height: int, width: int) -> Array:
+def expand(values: Array, index: Array, height: int, width: int, fill=0) -> Array:
     """Per-slot ``values`` (capacity, ...) of `compact`'s fragments as an image
-    (H, W, ...), 0 where no slot writes."""
-    out = jnp.zeros((height * width,) + values.shape[1:], values.dtype)
+    (H, W, ...), ``fill`` where no slot writes."""
+    out = jnp.full((height * width,) + values.shape[1:], fill, values.dtype)
     return out.at[index].set(values, mode="drop").reshape((height, width) + values.shape[1:])
 
 
@@ -526,21 +536,30 @@ def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_
     shape = (height, width)
     covered = (ids != _NO_TRIANGLE).reshape(shape)
     tid = jnp.where(covered, ids.reshape(shape), -1)
-    # facing from the coverage (snapped) vertices, as the rasterizer saw the triangle: per
-    # triangle (F,), then gathered (per-pixel work here would fuse badly with the depth below)
-    sigma = setup[0]
-    front = covered & (sigma[jnp.maximum(tid, 0)] > 0)
-    depth = jnp.where(covered, _pixel_depth(tri_depth, tid), 1.0)
+    # facing from the coverage (snapped) vertices, as the rasterizer saw the triangle
+    x = jnp.arange(width, dtype=tri_depth.dtype)[None, :] + 0.5
+    y = (height - 1 - jnp.arange(height, dtype=tri_depth.dtype))[:, None] + 0.5
+    depth, front = _depth_and_facing(tri_depth, setup[0], tid, x, y)
     return tid, depth, front
 
 
-def _pixel_depth(tri_depth: Array, tid: Array) -> Array:
-    """Window depth of each pixel's triangle at the pixel centre, from its unsnapped corners
-    ``tri_depth`` (F, 3, 4)."""
-    height, width = tid.shape
-    hv = tri_depth[jnp.maximum(tid, 0)]  # (H, W, 3, 4)
-    x = jnp.arange(width, dtype=hv.dtype)[None, :, None] + 0.5
-    y = (height - 1 - jnp.arange(height, dtype=hv.dtype))[:, None, None] + 0.5
+def _depth_and_facing(tri_depth: Array, sigma: Array, tid: Array, x: Array, y: Array):
+    """Window depth (1 on background) and front-facing of each pixel's triangle ``tid`` (-1:
+    background) at the pixel centres ``x``, ``y`` (broadcastable to ``tid``), from the
+    unsnapped corners ``tri_depth`` (F, 3, 4) and the snapped orientation ``sigma`` (F,)."""
+    covered = tid >= 0
+    t = jnp.maximum(tid, 0)
+    # facing per triangle (F,), then gathered (per-pixel work here would fuse badly with
+    # the depth below)
+    front = covered & (sigma[t] > 0)
+    return jnp.where(covered, _pixel_depth(tri_depth, t, x, y), 1.0), front
+
+
+def _pixel_depth(tri_depth: Array, tid: Array, x: Array, y: Array) -> Array:
+    """Window depth of each pixel's triangle at the pixel centre (x, y), from its unsnapped
+    corners ``tri_depth`` (F, 3, 4)."""
+    hv = tri_depth[tid]  # (..., 3, 4)
+    x, y = x[..., None], y[..., None]
     hx = hv[..., 0] - x * hv[..., 3]
     hy = hv[..., 1] - y * hv[..., 3]
     e = roll_last(hx, 1) * roll_last(hy, 2) - roll_last(hy, 1) * roll_last(hx, 2)

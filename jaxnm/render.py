@@ -359,7 +359,8 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
       coverage count on the host, so it applies when the mesh and camera are
       concrete (not traced; the map, lights and material may be); "gbuffer"
       derivatives (stored neighbours) always run on the whole image. The results
-      are the same either way (geometry bit for bit, colour to float32 rounding).
+      are the same either way (coverage, ids and facing exactly, the rest to float32
+      rounding).
 
     Row 0 is the top of the image. ``color`` is linear RGB (see
     `jaxnm.shading.to_display` for an sRGB PNG); ``triangle_id`` is -1 on the
@@ -390,11 +391,10 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     if pack is None:
         pack = pixels >= PACK_MIN_PIXELS
     if pack and opts.derivatives != "gbuffer" and _concrete(scene.mesh, scene.camera):
-        frags, count = _visible(scene.mesh, scene.camera, opts=opts)
+        tid, count = _visible(scene.mesh, scene.camera, opts=opts)
         # inside a caller's jit the count is traced even for a concrete mesh: no packing
-        capacity = (None if isinstance(count, jax.core.Tracer)
-                    else _capacity(int(count), pixels))
-        return _render(*args, frags, opts=opts, capacity=capacity)
+        if not isinstance(count, jax.core.Tracer):
+            return _render(*args, tid, opts=opts, capacity=_capacity(int(count), pixels))
     return _render(*args, opts=opts)
 
 
@@ -461,11 +461,12 @@ def with_tangents_if_needed(scene: Scene, opts: RenderOptions) -> Scene:
     return dataclasses.replace(scene, mesh=m.with_tangents())
 
 
-def _capacity(count: int, pixels: int) -> int | None:
+def _capacity(count: int, pixels: int) -> int:
     """Slots for ``count`` covered pixels of a ``pixels``-pixel image: the smallest of
-    pixels / 2, / 4, ..., / 64 that holds them, or None (no packing) when more than half
-    the image is covered. Few sizes, because each is one compilation."""
-    capacity = None
+    pixels / 2, / 4, ..., / 64 that holds them, or all of them when more than half the
+    image is covered (packing then only saves rasterizing again). Few sizes, because each
+    is one compilation."""
+    capacity = pixels
     for k in range(1, 7):
         if (pixels >> k) < max(count, 1):
             break
@@ -475,27 +476,37 @@ def _capacity(count: int, pixels: int) -> int | None:
 
 @functools.partial(jax.jit, static_argnames=("opts",))
 def _visible(mesh: Mesh, camera: Camera, *, opts: RenderOptions):
-    frags = _visibility(mesh, camera, opts)
-    return frags, jnp.count_nonzero(frags.mask)
+    """Each pixel's triangle (-1: background) and how many pixels are covered; the depth
+    and facing are left to the packed pixels (`compact`)."""
+    tid = _visibility(mesh, camera, opts).triangle_id
+    return tid, jnp.count_nonzero(tid >= 0)
 
 
 @functools.partial(jax.jit, static_argnames=("opts", "capacity"))
 def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, origin,
-            frags: Fragments | None = None, *, opts: RenderOptions,
+            triangle_id: Array | None = None, *, opts: RenderOptions,
             capacity: int | None = None) -> dict[str, Array]:
     """`render` as one XLA program (one compilation per scene shape, options and capacity);
     the scene is camera-relative (`camera_relative`), ``origin`` the camera's world
-    position. With ``capacity``, the per-pixel stages run on the image's covered pixels
-    (``frags``, packed by `compact`) and their results are put back in image layout."""
-    if frags is None:
-        frags = _visibility(mesh, camera, opts)
-    packed, index = (frags, None) if capacity is None else compact(frags, capacity)
+    position. With ``capacity``, the per-pixel stages run on the covered pixels of
+    ``triangle_id`` (from `_visible`), packed by `compact`, and their results are put back
+    in image layout."""
+    if capacity is None:
+        packed = frags = _visibility(mesh, camera, opts)
+        index = None
+        image = {"mask": frags.mask, "triangle_id": frags.triangle_id, "depth": frags.depth,
+                 "front_facing": frags.front_facing}
+    else:
+        packed, index = compact(triangle_id, to_clip(mesh.positions, camera),
+                                mesh.faces.astype(jnp.int32), capacity)
+        image = {"mask": lambda: triangle_id >= 0, "triangle_id": lambda: triangle_id,
+                 "depth": lambda: expand(packed.depth, index, opts.height, opts.width, 1.0),
+                 "front_facing": lambda: expand(packed.front_facing, index, opts.height,
+                                                opts.width)}
     gb = gbuffer_from_fragments(mesh, camera, albedo, packed, opts=opts)
     res = {}
     if set(opts.outputs) & _NEEDS_FRAME:
         res.update(shade_gbuffer(gb, normal_map, lights, material, opts=opts))
-    image = {"mask": frags.mask, "triangle_id": frags.triangle_id, "depth": frags.depth,
-             "front_facing": frags.front_facing}
     per_pixel = {
         "position": lambda: jnp.where(gb.mask[..., None],
                                       gb.position + _like(origin, gb.position), 0.0),
@@ -510,7 +521,7 @@ def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, or
     result = {}
     for name in opts.outputs:
         if name in image:
-            v = image[name]
+            v = image[name] if index is None else image[name]()
         else:
             v = res[name] if name in res else per_pixel[name]()
             if index is not None:

@@ -371,53 +371,60 @@ def test_near_plane_check_finds_the_one_vertex_in_front():
         validate_scene(Scene(mesh=mesh_behind, camera=cam, width=8, height=8))
 
 
-@pytest.mark.parametrize("frame,derivatives,precision", [
-    ("cotangent", "fine", "float32"), ("exact", "coarse", "float16"),
-    ("vertex", "analytic", "float32")])
-def test_packed_pixels_render_what_the_whole_image_renders(frame, derivatives, precision):
+@pytest.mark.parametrize("frame,derivatives,precision,eye", [
+    ("cotangent", "fine", "float32", (0.5, -4.5, 3.0)),
+    ("exact", "coarse", "float16", (0.5, -4.5, 3.0)),
+    ("vertex", "analytic", "float32", (0.5, -4.5, 3.0)),
+    ("cotangent", "fine", "float32", (0.0, -2.35, 1.75))])  # over half covered: all slots
+def test_packed_pixels_render_what_the_whole_image_renders(frame, derivatives, precision, eye):
     """`render` runs the per-pixel stages on the covered pixels only (packed) when they are at
-    most half the image: every output must be what the whole-image pipeline gives, the
-    geometry bit for bit (each pixel sees its own triangle and its own window position,
-    quad partners included), the shaded colour to float32 rounding."""
+    most half the image (or into all slots): every output must be what the whole-image
+    pipeline gives (each pixel sees its own triangle and its own window position, quad
+    partners included): coverage, ids and facing exactly, the rest to float32 rounding."""
     from jaxnm.camera import Camera, look_at, perspective
     from jaxnm.render import OUTPUTS
 
     sc = default_scene(width=96, height=64)
     sc = sc.replace(mesh=sc.mesh.with_tangents(), camera=Camera.from_matrices(
-        look_at((0.5, -4.5, 3.0), (0.3, 0.0, -0.1), (0.0, 0.0, 1.0)),
+        look_at(eye, (0.3, 0.0, -0.1), (0.0, 0.0, 1.0)),
         perspective(45.0, 1.5, 0.1, 50.0)))
     kw = dict(outputs=OUTPUTS, frame=frame, derivatives=derivatives, precision=precision)
     packed, whole = render(sc, pack=True, **kw), render(sc, pack=False, **kw)
     covered = np.asarray(whole["mask"][..., 0]) > 0
-    assert 0.05 < covered.mean() < 0.25  # packed into a quarter of the image's slots
+    assert 0.05 < covered.mean() < 0.25 or covered.mean() > 0.5  # 1/4 of the slots, or all
     for name in OUTPUTS:
-        if name == "color":
-            np.testing.assert_allclose(packed[name], whole[name], rtol=0, atol=1e-5)
-        else:
+        if name in ("mask", "triangle_id", "front_facing"):
             np.testing.assert_array_equal(packed[name], whole[name], err_msg=name)
+        else:  # the same arithmetic, fused differently by XLA: a few float32 ulps of the terms
+            scale = float(np.abs(np.asarray(whole[name])).max())
+            np.testing.assert_allclose(packed[name], whole[name], rtol=0,
+                                       atol=2e-6 * max(scale, 1e-3), err_msg=name)
     assert np.abs(np.asarray(whole["duvdx"])[covered]).min() >= 0  # derivatives are there
     assert np.abs(np.asarray(whole["duvdx"])[covered]).max() > 0
 
 
 def test_compact_and_expand_round_trip():
-    """`compact` packs the covered pixels with their window positions; `expand` puts per-slot
-    values back; unused slots are background and write nothing; 'gbuffer' derivatives
-    (stored neighbours) are refused on packed fragments."""
+    """`compact` packs the covered pixels with their window positions, depth and facing (as
+    `rasterize` gives them); `expand` puts per-slot values back; unused slots are background
+    and write nothing; 'gbuffer' derivatives (stored neighbours) are refused on packed
+    fragments."""
     from jaxnm.raster import compact, expand
 
     sc = default_scene(width=16, height=12)
     frags = jaxnm.rasterize(jaxnm.to_clip(sc.mesh.positions, sc.camera), sc.mesh.faces,
                             width=16, height=12)
     n = int(frags.mask.sum())
-    packed, index = compact(frags, n + 5)
+    packed, index = compact(frags.triangle_id, frags.clip, frags.faces, n + 5)
     assert packed.shape == (n + 5,) and packed.image_shape == (12, 16)
     assert int(packed.mask.sum()) == n and np.all(np.asarray(index[n:]) == 16 * 12)
     x, y = frags.window_centers()
     px, py = packed.window_centers()
-    for whole, part in ((x, px), (y, py), (frags.depth, packed.depth),
+    for whole, part in ((x, px), (y, py), (frags.front_facing, packed.front_facing),
                         (frags.triangle_id, packed.triangle_id)):
         back = expand(part, index, 12, 16)
         np.testing.assert_array_equal(np.where(frags.mask, back, 0), np.where(frags.mask,
                                                                               whole, 0))
+    np.testing.assert_allclose(expand(packed.depth, index, 12, 16, 1.0), frags.depth,
+                               rtol=0, atol=4e-7)  # the same plane, fused differently
     with pytest.raises(ValueError, match="packed fragments"):
         jaxnm.interpolate(sc.mesh.uv, packed, derivatives="gbuffer")
