@@ -8,6 +8,7 @@ a result.
 
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 
@@ -78,25 +79,36 @@ def use_deterministic_ops() -> None:
         os.environ["XLA_FLAGS"] = f"{flags} {DETERMINISTIC_FLAG}".strip()
 
 
-def release_memory(*, drop_compiled: bool = False) -> None:
+def release_memory(*, drop_compiled: bool = False, collect: bool = True) -> None:
     """Hand freed memory back to the system between the phases of a job: XLA's compiler
     frees hundreds of megabytes that glibc's allocator would otherwise keep in its arenas,
     and the next phase's peak would stack on them (a no-op where glibc is not the
-    allocator; ~30 ms). ``drop_compiled`` also drops every compiled program (after a phase
-    whose programs are not run again: ~130 MB for the built-in problem's target renders)."""
-    import ctypes
-    import ctypes.util
+    allocator; ~40 ms). ``drop_compiled`` also drops every compiled program (after a phase
+    whose programs are not run again: ~130 MB for the built-in problem's target renders);
+    ``collect`` first runs Python's garbage collector (~80 ms: needed where Python objects
+    hold the memory, not after a compilation)."""
     import gc
 
     if drop_compiled:
         import jax
 
         jax.clear_caches()
-    gc.collect()
+    if collect or drop_compiled:
+        gc.collect()
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
+@functools.cache
+def _malloc_trim():
+    """glibc's ``malloc_trim``, or None (another C library); looked up once (finding the
+    library runs ``ldconfig``)."""
+    import ctypes
+    import ctypes.util
+
     name = ctypes.util.find_library("c")
     try:
-        libc = ctypes.CDLL(name) if name else None
-        if libc is not None and hasattr(libc, "malloc_trim"):
-            libc.malloc_trim(0)
+        return getattr(ctypes.CDLL(name), "malloc_trim", None) if name else None
     except OSError:
-        pass
+        return None

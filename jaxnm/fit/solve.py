@@ -132,7 +132,7 @@ def _compile_ahead(kept, z, state) -> None:
     if key in _COMPILED_AHEAD:
         return
     _step.lower(kept, z, state).compile()
-    release_memory()
+    release_memory(collect=False)
     _COMPILED_AHEAD.add(key)
 
 
