@@ -167,14 +167,15 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
     at = jnp.minimum(index, n - 1)
     row, col = at // width, at % width
     tid = jnp.where(used, ids[at], -1)
-    pixels = jnp.stack([col, height - 1 - row], -1)
+    placed = Fragments(triangle_id=tid, depth=None, front_facing=None, clip=clip, faces=faces,
+                       pixels=jnp.stack([col, height - 1 - row], -1),
+                       packed_from=(height, width))
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     sigma = jnp.sign(_orientation(_corner_components(tri)))
-    x, y = (q.astype(tri_depth.dtype) + 0.5 for q in (col, height - 1 - row))
-    depth, front = _depth_and_facing(tri_depth, sigma, tid, x, y)
-    return Fragments(triangle_id=tid, depth=depth, front_facing=front, clip=clip, faces=faces,
-                     pixels=pixels, packed_from=(height, width)), index
+    depth, front = _depth_and_facing(tri_depth, sigma, tid,
+                                     *placed.window_centers(tri_depth.dtype))
+    return dataclasses.replace(placed, depth=depth, front_facing=front), index
 
 
 def expand(values: Array, index: Array, height: int, width: int, fill=0) -> Array:

@@ -494,8 +494,8 @@ def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, or
     if capacity is None:
         packed = frags = _visibility(mesh, camera, opts)
         index = None
-        image = {"mask": frags.mask, "triangle_id": frags.triangle_id, "depth": frags.depth,
-                 "front_facing": frags.front_facing}
+        image = {"mask": lambda: frags.mask, "triangle_id": lambda: frags.triangle_id,
+                 "depth": lambda: frags.depth, "front_facing": lambda: frags.front_facing}
     else:
         packed, index = compact(triangle_id, to_clip(mesh.positions, camera),
                                 mesh.faces.astype(jnp.int32), capacity)
@@ -521,7 +521,7 @@ def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, or
     result = {}
     for name in opts.outputs:
         if name in image:
-            v = image[name] if index is None else image[name]()
+            v = image[name]()
         else:
             v = res[name] if name in res else per_pixel[name]()
             if index is not None:

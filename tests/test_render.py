@@ -428,3 +428,28 @@ def test_compact_and_expand_round_trip():
                                rtol=0, atol=4e-7)  # the same plane, fused differently
     with pytest.raises(ValueError, match="packed fragments"):
         jaxnm.interpolate(sc.mesh.uv, packed, derivatives="gbuffer")
+
+
+def test_packing_under_a_callers_jit_and_grad():
+    """Inside a caller's `jax.jit` (the scene closed over, so the mesh is concrete but the
+    coverage count is traced) `render` falls back to the whole image; under `jax.grad` with
+    respect to the map alone it packs. Both give the eager packed image and a gradient."""
+    import jax
+
+    from jaxnm.camera import Camera, look_at, perspective
+
+    sc = default_scene(width=48, height=32)
+    sc = sc.replace(camera=Camera.from_matrices(
+        look_at((0.5, -4.5, 3.0), (0.3, 0.0, -0.1), (0.0, 0.0, 1.0)),
+        perspective(45.0, 1.5, 0.1, 50.0)))
+    texels = jnp.asarray(sc.normal_map)
+    eager = render(sc, pack=True)["color"]
+    jitted = jax.jit(lambda t: render(sc.replace(normal_map=t), pack=True)["color"])(texels)
+    np.testing.assert_allclose(jitted, eager, rtol=0, atol=1e-5)
+    grad = jax.grad(lambda t: jnp.sum(render(sc.replace(normal_map=t), pack=True)["color"]))
+    g_packed = grad(texels)
+    g_whole = jax.grad(lambda t: jnp.sum(render(sc.replace(normal_map=t),
+                                                pack=False)["color"]))(texels)
+    assert float(jnp.abs(g_whole).max()) > 0
+    np.testing.assert_allclose(g_packed, g_whole, rtol=1e-4,
+                               atol=1e-5 * float(jnp.abs(g_whole).max()))
