@@ -391,7 +391,8 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     if pack is None:
         pack = pixels >= PACK_MIN_PIXELS
     if pack and opts.derivatives != "gbuffer" and _concrete(scene.mesh, scene.camera):
-        tid, count = _visible(scene.mesh, scene.camera, opts=opts)
+        tid, count = _visible(scene.mesh, scene.camera, width=opts.width, height=opts.height,
+                              cull_back=opts.cull_back)
         # inside a caller's jit the count is traced even for a concrete mesh: no packing
         if not isinstance(count, jax.core.Tracer):
             return _render(*args, tid, opts=opts, capacity=_capacity(int(count), pixels))
@@ -474,11 +475,13 @@ def _capacity(count: int, pixels: int) -> int:
     return capacity
 
 
-@functools.partial(jax.jit, static_argnames=("opts",))
-def _visible(mesh: Mesh, camera: Camera, *, opts: RenderOptions):
+@functools.partial(jax.jit, static_argnames=("width", "height", "cull_back"))
+def _visible(mesh: Mesh, camera: Camera, *, width: int, height: int, cull_back: bool):
     """Each pixel's triangle (-1: background) and how many pixels are covered; the depth
-    and facing are left to the packed pixels (`compact`)."""
-    tid = _visibility(mesh, camera, opts).triangle_id
+    and facing are left to the packed pixels (`compact`). Only the options visibility
+    depends on are static: one compilation serves every output, frame and map."""
+    tid = rasterize(to_clip(mesh.positions, camera), mesh.faces, width=width, height=height,
+                    cull_back=cull_back).triangle_id
     return tid, jnp.count_nonzero(tid >= 0)
 
 

@@ -280,8 +280,10 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
         raise ValueError(f"{problem.source}: `prepared` was made for a "
                          f"{prep.options[0].normal_map_shape} map, not {(h, w)}")
     sizes = level_sizes((h, w), options.coarse_to_fine)
-    key = jax.random.PRNGKey(options.seed)
-    slopes = options.init_noise * jax.random.normal(key, sizes[0] + (2,), jnp.float32)
+    slopes = jnp.zeros(sizes[0] + (2,), jnp.float32)  # the flat map (no random program)
+    if options.init_noise > 0:
+        key = jax.random.PRNGKey(options.seed)
+        slopes = options.init_noise * jax.random.normal(key, sizes[0] + (2,), jnp.float32)
     seen = gt = None
     if ground_truth is not None:
         gt = np.asarray(ground_truth, np.float64)
