@@ -537,10 +537,9 @@ def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_
     shape = (height, width)
     covered = (ids != _NO_TRIANGLE).reshape(shape)
     tid = jnp.where(covered, ids.reshape(shape), -1)
-    # facing from the coverage (snapped) vertices, as the rasterizer saw the triangle
-    x = jnp.arange(width, dtype=tri_depth.dtype)[None, :] + 0.5
-    y = (height - 1 - jnp.arange(height, dtype=tri_depth.dtype))[:, None] + 0.5
-    depth, front = _depth_and_facing(tri_depth, setup[0], tid, x, y)
+    # facing from the coverage (snapped) orientation, as the rasterizer saw the triangle
+    depth, front = _depth_and_facing(tri_depth, setup[0], tid,
+                                     *pixel_centers(height, width, tri_depth.dtype))
     return tid, depth, front
 
 

@@ -601,13 +601,14 @@ def test_the_fit_follows_optimistix_own_steps(small):
     ``init`` and ``step`` on the whole state, from the same start, for as many steps."""
     import equinox as eqx
 
+    from jaxnm.fit.solve import start_slopes
+
     problem, _, _, prep, _ = small
     opts = F.FitOptions(solver="lm", max_steps=4, lsmr_steps=5, ftol=0.0, init_noise=0.05)
     res = F.fit_normal_map(problem, opts, prepared=prep, progress=False)
     scale = F.preconditioner(prep)
     args = F.ModelArgs.create(prep, scale=scale, reduce=True)
-    z = opts.init_noise * jax.random.normal(jax.random.PRNGKey(opts.seed),
-                                            problem.map_size + (2,), jnp.float32) / scale
+    z = jnp.asarray(start_slopes(problem.map_size, opts)) / scale
     solver = F.make_solver(opts)
     fn = lambda z, a: (F.residuals(z, a), None)  # noqa: E731
     state = solver.init(fn, z, args, {}, jax.eval_shape(F.residuals, z, args), None,

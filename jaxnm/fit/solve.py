@@ -39,7 +39,7 @@ from .model import ModelArgs, loss, residuals, slopes_to_normals
 from .prepare import Prepared, prepare, shard_views, with_map_size
 from .problem import FitOptions, FitProblem, FitResult
 
-__all__ = ["fit_normal_map", "make_solver", "preconditioner", "level_sizes"]
+__all__ = ["fit_normal_map", "make_solver", "preconditioner", "level_sizes", "start_slopes"]
 
 
 def make_solver(options: FitOptions):
@@ -164,6 +164,17 @@ def preconditioner(prep: Prepared) -> Array:
     return jnp.asarray(np.sqrt(c_ref / (c + 0.01 * c_ref))[..., None], jnp.float32)
 
 
+def start_slopes(size: tuple[int, int], options: FitOptions) -> np.ndarray:
+    """The slopes a fit starts from, (h, w, 2) float32: the flat map, jittered by
+    ``options.init_noise`` (standard deviation) from NumPy's generator seeded with
+    ``options.seed`` — on the host, so no XLA program is compiled for it."""
+    z = np.zeros(tuple(size) + (2,), np.float32)
+    if options.init_noise > 0:
+        rng = np.random.default_rng(options.seed)
+        z = (options.init_noise * rng.standard_normal(z.shape)).astype(np.float32)
+    return z
+
+
 def level_sizes(map_size: tuple[int, int], coarse_to_fine: int) -> list[tuple[int, int]]:
     """The map sizes solved in turn: each coarser level halves the previous one (at least 2)."""
     h, w = map_size
@@ -280,10 +291,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
         raise ValueError(f"{problem.source}: `prepared` was made for a "
                          f"{prep.options[0].normal_map_shape} map, not {(h, w)}")
     sizes = level_sizes((h, w), options.coarse_to_fine)
-    slopes = jnp.zeros(sizes[0] + (2,), jnp.float32)  # the flat map (no random program)
-    if options.init_noise > 0:
-        key = jax.random.PRNGKey(options.seed)
-        slopes = options.init_noise * jax.random.normal(key, sizes[0] + (2,), jnp.float32)
+    slopes = jnp.asarray(start_slopes(sizes[0], options))
     seen = gt = None
     if ground_truth is not None:
         gt = np.asarray(ground_truth, np.float64)
