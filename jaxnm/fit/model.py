@@ -244,10 +244,10 @@ def sample_split(plan: _tex.SamplePlan, mips, split: int) -> Array:
 
 
 def _shade_view(gb: GBuffer, mips, lights: Lights, material: Material, opts: RenderOptions,
-                strength) -> Array:
+                strength, taps: int | None = None) -> Array:
     """(T, K, 3): the pixels of ``gb`` under each stacked light, with the map's mip chain
-    ``mips``."""
-    m = _sample(gb.plan, mips, None)
+    ``mips`` read through the first ``taps`` taps of the sample plan (None: all)."""
+    m = _sample(gb.plan, mips, taps)
     return _pixel_model(m, gb, lights, material, opts.shading, jnp.asarray(strength, m.dtype))
 
 
@@ -295,8 +295,7 @@ def _shade_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions
                  strength) -> Array:
     """(V, T, K, 3): every view of ``batch`` under each of its lights."""
     def one(gb, lights, images, weights, taps):
-        return _pixel_model(_sample(gb.plan, mips, taps), gb, lights, material, opts.shading,
-                            jnp.asarray(strength, mips[0].dtype))
+        return _shade_view(gb, mips, lights, material, opts, strength, taps)
 
     return _over_chunks(batch, one, 2)
 
