@@ -355,8 +355,10 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
       image / 2^k slots (`jaxnm.raster.compact`), where at most half the image is
       covered. Each slot count is one more compilation, so by default (None) only
       images of at least `PACK_MIN_PIXELS` pixels are packed, where the time saved
-      per frame is worth it; True packs any image, False none. Packing needs the
-      coverage count on the host, so it applies when the mesh and camera are
+      per frame is worth it, and only on the CPU: on a GPU the wait for the count
+      and the second program cost more than the per-pixel work they save
+      (measured on an H100: README, GPU); True packs any image, False none.
+      Packing needs the coverage count on the host, so it applies when the mesh and camera are
       concrete (not traced; the map, lights and material may be); "gbuffer"
       derivatives (stored neighbours) always run on the whole image. The results
       are the same either way (coverage, ids and facing exactly, the rest to float32
@@ -389,7 +391,7 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
             scene.material, jnp.asarray(origin, jnp.float32))
     pixels = opts.width * opts.height
     if pack is None:
-        pack = pixels >= PACK_MIN_PIXELS
+        pack = pixels >= PACK_MIN_PIXELS and jax.default_backend() == "cpu"
     if pack and opts.derivatives != "gbuffer" and _concrete(scene.mesh, scene.camera):
         tid, count = _visible(scene.mesh, scene.camera, width=opts.width, height=opts.height,
                               cull_back=opts.cull_back)

@@ -430,6 +430,28 @@ def test_compact_and_expand_round_trip():
         jaxnm.interpolate(sc.mesh.uv, packed, derivatives="gbuffer")
 
 
+@pytest.mark.parametrize("backend, size, packs", [("cpu", 256, True), ("cpu", 128, False),
+                                                   ("gpu", 256, False)])
+def test_packing_is_the_default_only_for_large_images_on_the_cpu(monkeypatch, backend, size,
+                                                                  packs):
+    """`render(pack=None)` packs images of at least `PACK_MIN_PIXELS` pixels on the CPU only
+    (on an H100 the count's trip to the host and the second program cost more than they
+    save: README, GPU). The stages are stubbed: only the decision is under test."""
+    import importlib
+
+    import jax
+
+    R = importlib.import_module("jaxnm.render")  # the module (jaxnm.render is the function)
+    assert (size * size >= R.PACK_MIN_PIXELS) == (packs or backend != "cpu")
+    calls = []
+    monkeypatch.setattr(jax, "default_backend", lambda: backend)
+    monkeypatch.setattr(R, "_visible", lambda *a, **k: calls.append("visible")
+                        or (jnp.zeros((size, size), jnp.int32), 10))
+    monkeypatch.setattr(R, "_render", lambda *a, **k: calls.append(k.get("capacity")) or {})
+    render(default_scene(width=size, height=size))
+    assert calls == (["visible", R._capacity(10, size * size)] if packs else [None])
+
+
 def test_packing_under_a_callers_jit_and_grad():
     """Inside a caller's `jax.jit` (the scene closed over, so the mesh is concrete but the
     coverage count is traced) `render` falls back to the whole image; under `jax.grad` with
