@@ -1,0 +1,180 @@
+"""Where `render` and the fit's LM step spend their time, on whatever backend JAX runs on.
+
+    python scripts/profile_render.py [--out profile_out] [--trace] [--fit] [--repeats 50]
+
+For the bench scenes (20k torus at 512x512, 200k torus at 1024x1024, the fit benchmark's
+camera) it times, medians of ``--repeats`` runs, each forced to completion:
+
+- ``render``: `jaxnm.render` as a user calls it (the default packing for this backend),
+  then with ``pack=False`` and ``pack=True``, and the host's part of a call (until the
+  outputs are dispatched);
+- ``whole_jit``: the whole frame as one program, the scene an argument of the caller's jit;
+- ``visibility``: `jaxnm.rasterize`'s triangle ids alone.
+
+``--trace`` also records a profiler trace of the whole-frame program (and, with ``--fit``,
+of LM steps of the fit benchmark) and prints the kernels that take the most device time
+per frame (per step): on a GPU, its kernels and copies; on the CPU, XLA's thunks, which nest
+(an executor's span holds its kernels'). JSON on stdout, one object per line; the traces
+(``perfetto_trace.json.gz``, for https://ui.perfetto.dev) stay in ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import gzip
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+import bench_problem as B  # noqa: E402
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+
+import jaxnm  # noqa: E402
+from jaxnm import fit as F  # noqa: E402
+from jaxnm import procedural  # noqa: E402
+
+SCENES = {"20k torus 512": ((128, 80), 512), "200k torus 1024": ((500, 200), 1024)}
+
+
+def median_ms(fn, repeats: int) -> float:
+    jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t)
+    return round(statistics.median(times) * 1e3, 3)
+
+
+def host_ms(fn, repeats: int) -> float:
+    """Median time until ``fn`` returns (its device work dispatched, not finished)."""
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t)
+        jax.block_until_ready(out)
+    return round(statistics.median(times) * 1e3, 3)
+
+
+def scene_for(grid, size) -> jaxnm.Scene:
+    p = B.make_problem(render_size=size)
+    torus = procedural.torus(1.0, 0.4, *grid)
+    mesh = jaxnm.Mesh(torus.positions, torus.faces, torus.uv, torus.normals)
+    # on the device, as a user's scene after its first use (NumPy leaves would be copied in
+    # on every call)
+    return jax.device_put(B.jaxnm_scene(p, p.light_dirs[0]).replace(mesh=mesh))
+
+
+def kernel_table(trace_dir: Path, per: int, top: int = 15) -> list[dict]:
+    """The device kernels of the newest trace under ``trace_dir``, by total time / ``per``."""
+    path = sorted(trace_dir.rglob("perfetto_trace.json.gz"), key=lambda q: q.stat().st_mtime)[-1]
+    with gzip.open(path) as f:
+        events = json.load(f)["traceEvents"]
+    names = {e["pid"]: e["args"]["name"] for e in events
+             if e.get("ph") == "M" and e.get("name") == "process_name"}
+    threads = {(e["pid"], e["tid"]): e["args"]["name"] for e in events
+               if e.get("ph") == "M" and e.get("name") == "thread_name"}
+    device = {pid for pid, n in names.items() if "GPU" in n or "TPU" in n}
+    if not device:  # the CPU backend: XLA's thunks on the host threads
+        device = {pid for pid, n in names.items() if "Host" in n or "CPU" in n}
+    total = collections.Counter()
+    count = collections.Counter()
+    for e in events:
+        # (Python frames, "$file:line name", are the host's: not device work)
+        if e.get("ph") == "X" and e.get("pid") in device and not e["name"].startswith("$"):
+            key = f'{e["name"]} @ {threads.get((e["pid"], e.get("tid")), "?")}'
+            total[key] += e.get("dur", 0.0)
+            count[key] += 1
+    allk = sum(total.values())
+    rows = [{"kernel": k[:120], "us": round(us / per, 1), "calls": count[k] // per,
+             "share": round(us / allk, 3)} for k, us in total.most_common(top)]
+    return [{"kernel": "(all device events)", "us": round(allk / per, 1)}] + rows
+
+
+def profile_render(name, grid, size, args) -> dict:
+    scene = scene_for(grid, size)
+    row = {"scene": name, "backend": jax.default_backend()}
+    row["render_ms"] = median_ms(lambda: jaxnm.render(scene)["color"], args.repeats)
+    row["render_host_ms"] = host_ms(lambda: jaxnm.render(scene)["color"], args.repeats)
+    for pack in (False, True):
+        row[f"render_pack_{pack}_ms"] = median_ms(
+            lambda pack=pack: jaxnm.render(scene, pack=pack)["color"], args.repeats)
+
+    whole = jax.jit(lambda s: jaxnm.render(s)["color"])
+    row["whole_jit_ms"] = median_ms(lambda: whole(scene), args.repeats)
+    row["whole_jit_host_ms"] = host_ms(lambda: whole(scene), args.repeats)
+
+    cam = scene.camera
+    clip = jaxnm.to_clip(scene.mesh.positions, cam)
+
+    @jax.jit
+    def ids(clip, faces):
+        return jaxnm.rasterize(clip, faces, width=size, height=size).triangle_id
+
+    row["visibility_ms"] = median_ms(lambda: ids(clip, scene.mesh.faces), args.repeats)
+    if args.trace:
+        d = Path(args.out) / f"trace_{name.replace(' ', '_')}"
+        frames = 20
+        with jax.profiler.trace(str(d), create_perfetto_trace=True):
+            for _ in range(frames):
+                jax.block_until_ready(whole(scene))
+        row["kernels"] = kernel_table(d, frames)
+    return row
+
+
+def profile_fit(args) -> dict:
+    p = B.make_problem()
+    targets = []
+    for d in p.light_dirs:
+        sc = B.jaxnm_scene(p, d)
+        targets.append(F.FitTarget(B.jaxnm_camera(p), p.width, p.height, sc.lights,
+                                   np.asarray(jaxnm.render(sc)["color"])))
+    problem = F.problem_from_scene(B.jaxnm_scene(p, p.light_dirs[0]), targets,
+                                   p.gt_texels.shape[:2], source="<benchmark>")
+    prep = F.prepare(problem)
+    steps = 10
+    opts = F.FitOptions(solver="lm", max_steps=steps, lsmr_steps=10)
+
+    def run():
+        return F.fit_normal_map(problem, opts, prepared=prep, progress=False)
+
+    run()  # compiles
+    t = time.perf_counter()
+    res = run()
+    row = {"fit": "benchmark LM", "backend": jax.default_backend(),
+           "s_per_step": round((time.perf_counter() - t) / steps, 4),
+           "history_steps": len(res.history) - 1}
+    if args.trace:
+        d = Path(args.out) / "trace_fit"
+        with jax.profiler.trace(str(d), create_perfetto_trace=True):
+            run()
+        row["kernels"] = kernel_table(d, steps)
+    return row
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="profile_out")
+    ap.add_argument("--repeats", type=int, default=50)
+    ap.add_argument("--trace", action="store_true")
+    ap.add_argument("--fit", action="store_true", help="also the fit benchmark's LM steps")
+    ap.add_argument("--scenes", default=",".join(SCENES))
+    args = ap.parse_args(argv)
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    for name in args.scenes.split(","):
+        if name:
+            print(json.dumps(profile_render(name, *SCENES[name], args)), flush=True)
+    if args.fit:
+        print(json.dumps(profile_fit(args)), flush=True)
+
+
+if __name__ == "__main__":
+    main()
