@@ -285,8 +285,10 @@ def _triangle_setup(tri: Array, width: int, height: int, block: int, cull_back: 
     """Per-triangle sign, block bounding box and validity.
 
     ``tri``: (F, 3, 4) homogeneous window coordinates of the corners. Returns ``sigma`` (F,) sign of
-    det M and the block ranges ``bx0, by0, nbx, nby`` (F,); ``nbx = nby = 0`` for
-    triangles that cannot cover a pixel.
+    det M, the first pixel of the bounding box ``x0, y0`` and its size in blocks ``nbx, nby``
+    (F,); ``nbx = nby = 0`` for triangles that cannot cover a pixel. The blocks tile the
+    box from its corner (not a grid fixed to the image): a box of w x h pixels takes
+    ceil(w / block) x ceil(h / block) blocks wherever it lies.
     """
     v = _corner_components(tri)
     sigma = jnp.sign(_orientation(v))
@@ -348,10 +350,9 @@ def _triangle_setup(tri: Array, width: int, height: int, block: int, cull_back: 
     )
     if cull_back:
         valid = valid & (sigma > 0)
-    bx0, by0 = i0 // block, j0 // block
-    nbx = jnp.where(valid, i1 // block - bx0 + 1, 0)
-    nby = jnp.where(valid, j1 // block - by0 + 1, 0)
-    return sigma, bx0, by0, nbx, nby
+    nbx = jnp.where(valid, (i1 - i0) // block + 1, 0)
+    nby = jnp.where(valid, (j1 - j0) // block + 1, 0)
+    return sigma, i0, j0, nbx, nby
 
 
 # --------------------------------------------------------------------------------------
@@ -389,10 +390,10 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, bx0, by0, nbx, starts, ends,
     t = jnp.minimum(t, tri_h.shape[0] - 1)
     local = s - starts[t]
     nx = jnp.maximum(nbx[t], 1)
-    bx = bx0[t] + local % nx
-    by = by0[t] + local // nx
-    x0 = (bx * block).astype(tri_h.dtype) + 0.5
-    y0 = (by * block).astype(tri_h.dtype) + 0.5
+    bx = bx0[t] + (local % nx) * block  # the block's first pixel
+    by = by0[t] + (local // nx) * block
+    x0 = bx.astype(tri_h.dtype) + 0.5
+    y0 = by.astype(tri_h.dtype) + 0.5
 
     th = tri_h[t]  # (S, 3, 4)
     sg = sigma[t][:, None]
@@ -430,7 +431,7 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, bx0, by0, nbx, starts, ends,
             e = ec[i] + ea[i] * fx + eb[i] * fy  # (S, block)
             inside = inside & jnp.where(et[i], e >= 0, e > 0)
         depth = dz_c[:, None] + dz_a[:, None] * fx + dz_b[:, None] * fy
-        pi, pj = bx[:, None] * block + ix, by[:, None] * block + dy
+        pi, pj = bx[:, None] + ix, by[:, None] + dy
         inside = inside & (depth >= 0.0) & (depth <= 1.0) & (pi < width) & (pj < height)
         flat = jnp.where(inside, (height - 1 - pj) * width + pi, n_pix)
         return (out[0].at[dy].set(flat.T), out[1].at[dy].set(depth.T))
