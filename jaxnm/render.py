@@ -344,7 +344,7 @@ def shade_gbuffer(gb: GBuffer, normal_map: Array | None, lights: Lights, materia
 
 def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
            frame: str | None = None, precision: str | None = None,
-           pack: bool | None = None) -> dict[str, Array]:
+           pack: bool | int | None = None) -> dict[str, Array]:
     """Render ``scene`` and return the requested outputs as float32 (H, W, C) arrays.
 
     **Arguments:**
@@ -358,11 +358,16 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
       per frame is worth it, and only on the CPU: on a GPU the wait for the count
       and the second program cost more than the per-pixel work they save
       (measured on an H100: README, GPU); True packs any image, False none.
-      Packing needs the coverage count on the host, so it applies when the mesh and camera are
-      concrete (not traced; the map, lights and material may be); "gbuffer"
-      derivatives (stored neighbours) always run on the whole image. The results
-      are the same either way (coverage, ids and facing exactly, the rest to float32
-      rounding).
+      The slot count is read on the host where the mesh and camera are concrete (the
+      map, lights and material may be traced). Inside the caller's `jax.jit` (or with
+      a traced mesh or camera) the count is not known when tracing: there the default
+      runs the whole image, and ``pack=True`` (or an int, the slot count) compiles
+      both a packed program of image / 4 slots (or that many) and an all-pixel one
+      and runs the first when the covered pixels fit (`jax.lax.cond`): a faster
+      step for a jitted loop, for about twice the per-pixel stages' compile time.
+      "gbuffer" derivatives (stored neighbours) always run on the whole image. The
+      results are the same either way (coverage, ids and facing exactly, the rest to
+      float32 rounding).
 
     Row 0 is the top of the image. ``color`` is linear RGB (see
     `jaxnm.shading.to_display` for an sRGB PNG); ``triangle_id`` is -1 on the
@@ -390,15 +395,35 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     args = (scene.mesh, scene.camera, nm, jnp.asarray(scene.albedo), scene.lights,
             scene.material, jnp.asarray(origin, jnp.float32))
     pixels = opts.width * opts.height
+    slots = _traced_capacity(pack, pixels, scene.source)
     if pack is None:
         pack = pixels >= PACK_MIN_PIXELS and jax.default_backend() == "cpu"
-    if pack and opts.derivatives != "gbuffer" and _concrete(scene.mesh, scene.camera):
-        tid, count = _visible(scene.mesh, scene.camera, width=opts.width, height=opts.height,
-                              cull_back=opts.cull_back)
-        # inside a caller's jit the count is traced even for a concrete mesh: no packing
-        if not isinstance(count, jax.core.Tracer):
-            return _render(*args, tid, opts=opts, capacity=_capacity(int(count), pixels))
-    return _render(*args, opts=opts)
+    if (pack is False or opts.derivatives == "gbuffer"
+            or (slots is None and not _concrete(scene.mesh, scene.camera))):
+        return _render(*args, opts=opts)
+    tid, count = _visible(scene.mesh, scene.camera, width=opts.width, height=opts.height,
+                          cull_back=opts.cull_back)
+    if not isinstance(count, jax.core.Tracer):
+        return _render(*args, tid, opts=opts, capacity=_capacity(int(count), pixels))
+    if slots is None:  # the count is traced (the caller's jit): the whole image
+        return _render(*args, opts=opts)
+    # packed when the covered pixels fit, else every pixel (the ids are reused either way)
+    return jax.lax.cond(count <= slots,
+                        lambda a, t: _render(*a, t, opts=opts, capacity=slots),
+                        lambda a, t: _render(*a, t, opts=opts, capacity=pixels), args, tid)
+
+
+def _traced_capacity(pack, pixels: int, source: str) -> int | None:
+    """The packed slot count for a traced coverage count: image / 4 for ``pack=True``, the
+    int itself, or None (no packing where the count is traced)."""
+    if pack is None or pack is False:
+        return None
+    if pack is True:
+        return max(1, pixels // 4)
+    if not isinstance(pack, int) or not 0 < pack <= pixels:
+        raise ValueError(f"{source}: pack must be None, a bool or a slot count in 1..{pixels} "
+                         f"(the image's pixels), got {pack!r}")
+    return pack
 
 
 def _concrete(*xs) -> bool:

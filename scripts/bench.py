@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import platform
@@ -105,16 +106,22 @@ def jaxnm_forward(p: B.BenchProblem, repeats: int) -> dict:
 
     # the scene is an argument, not a closure: closed-over arrays are compile-time constants,
     # and XLA would constant-fold the rasterizer over them (47 s compiles at 200k triangles)
-    @jax.jit
-    def loss_and_grad(scene, texels, target):
+    # pack=True: `render` packs the covered pixels under this jit too (a cond on the traced
+    # count: both programs compiled), the way to write a jitted gradient loop
+    @functools.partial(jax.jit, static_argnames="pack")
+    def loss_and_grad(scene, texels, target, pack=None):
         def loss(t):
-            return jnp.mean((jaxnm.render(scene.replace(normal_map=t))["color"] - target) ** 2)
+            return jnp.mean((jaxnm.render(scene.replace(normal_map=t), pack=pack)["color"]
+                             - target) ** 2)
         return jax.value_and_grad(loss)(texels)
 
     flat = jnp.asarray(p.flat_texels)
     first_b, fb = _median_ms(lambda: loss_and_grad(scene, flat, target), repeats)
+    first_p, fp = _median_ms(lambda: loss_and_grad(scene, flat, target, pack=True), repeats)
     return {"forward_ms": round(fwd, 2), "forward_backward_ms": round(fb, 2),
+            "forward_backward_packed_ms": round(fp, 2),
             "first_forward_s": round(first, 2), "first_backward_s": round(first_b, 2),
+            "first_backward_packed_s": round(first_p, 2),
             "triangles": int(p.faces.shape[0]), "size": f"{p.width}x{p.height}"}
 
 
@@ -128,9 +135,9 @@ def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool) 
                 row["mitsuba"] = mitsuba.forward_times(q, repeats=repeats)
                 row["forward_ratio"] = round(row["jaxnm"]["forward_ms"]
                                              / row["mitsuba"]["forward_ms"], 2)
-                row["forward_backward_ratio"] = round(
-                    row["jaxnm"]["forward_backward_ms"] / row["mitsuba"]["forward_backward_ms"],
-                    2)
+                for key in ("forward_backward", "forward_backward_packed"):
+                    row[f"{key}_ratio"] = round(
+                        row["jaxnm"][f"{key}_ms"] / row["mitsuba"]["forward_backward_ms"], 2)
             rows.append(row)
             print(json.dumps(row), file=sys.stderr, flush=True)
     return rows
@@ -404,14 +411,18 @@ def _r(x, nd: int = 2):
 def markdown(res: dict) -> str:
     lines = [f"Machine: {res['machine']}; JAX {res['jax']}; {res['mitsuba']}; {res['date']}.", ""]
     lines += ["| frame | size | jaxnm forward ms | Mitsuba forward ms | ratio | jaxnm fwd+bwd ms "
-              "| Mitsuba fwd+bwd ms | ratio | jaxnm first call s (compile) |",
+              "(pack=True) | Mitsuba fwd+bwd ms | ratio (pack=True) | jaxnm first call s "
+              "(compile): forward, fwd+bwd (pack=True) |",
               "|---|---|---|---|---|---|---|---|---|"]
     for r in res.get("forward", []):
         j, m = r["jaxnm"], r.get("mitsuba", {})
         lines.append(f"| {r['mesh']} ({j['triangles']} tris) | {j['size']} | {j['forward_ms']} | "
                      f"{_r(m.get('forward_ms'))} | {r.get('forward_ratio', '-')} | "
-                     f"{j['forward_backward_ms']} | {_r(m.get('forward_backward_ms'))} | "
-                     f"{r.get('forward_backward_ratio', '-')} | {j['first_forward_s']} |")
+                     f"{j['forward_backward_ms']} ({j['forward_backward_packed_ms']}) | "
+                     f"{_r(m.get('forward_backward_ms'))} | "
+                     f"{r.get('forward_backward_ratio', '-')} "
+                     f"({r.get('forward_backward_packed_ratio', '-')}) | {j['first_forward_s']}, "
+                     f"{j['first_backward_s']} ({j['first_backward_packed_s']}) |")
     f = res.get("fit", {})
     if f:
         lines += ["", "| fit | time to well-observed < 1 deg (s) | first loss after (s) | "

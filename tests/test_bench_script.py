@@ -44,3 +44,18 @@ def test_child_peak_memory_is_the_childs_not_the_benchmarks():
     assert child["summary"] == "ok"
     assert child["peak_rss_mb"] < 100, child
     del ballast
+
+
+def test_markdown_reports_the_forward_rows_with_the_packed_gradient():
+    bench = load_script("bench")
+    res = {"machine": "m", "jax": "j", "mitsuba": "mi", "date": "d",
+           "forward": [{"mesh": "20k torus", "forward_ratio": 2.0,
+                        "forward_backward_ratio": 2.5, "forward_backward_packed_ratio": 1.2,
+                        "jaxnm": {"triangles": 20480, "size": "512x512", "forward_ms": 14.0,
+                                  "forward_backward_ms": 55.0,
+                                  "forward_backward_packed_ms": 26.0, "first_forward_s": 2.2,
+                                  "first_backward_s": 2.1, "first_backward_packed_s": 3.0},
+                        "mitsuba": {"forward_ms": 7.0, "forward_backward_ms": 22.0}}]}
+    md = bench.markdown(res)
+    assert ("| 20k torus (20480 tris) | 512x512 | 14.0 | 7.0 | 2.0 | 55.0 (26.0) | 22.0 | "
+            "2.5 (1.2) | 2.2, 2.1 (3.0) |") in md

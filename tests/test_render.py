@@ -453,9 +453,12 @@ def test_packing_is_the_default_only_for_large_images_on_the_cpu(monkeypatch, ba
 
 
 def test_packing_under_a_callers_jit_and_grad():
-    """Inside a caller's `jax.jit` (the scene closed over, so the mesh is concrete but the
-    coverage count is traced) `render` falls back to the whole image; under `jax.grad` with
-    respect to the map alone it packs. Both give the eager packed image and a gradient."""
+    """Inside a caller's `jax.jit` the coverage count is traced: ``pack=True`` (or a slot
+    count) runs the packed program when the covered pixels fit and the all-pixel one when
+    they do not (`jax.lax.cond`), the default the whole image; under `jax.grad` with
+    respect to the map alone the count is concrete and it packs. Every way gives the eager
+    image, and the same gradient as the whole image's, with the scene closed over (mesh
+    concrete) or passed in (mesh traced)."""
     import jax
 
     from jaxnm.camera import Camera, look_at, perspective
@@ -465,15 +468,26 @@ def test_packing_under_a_callers_jit_and_grad():
         look_at((0.5, -4.5, 3.0), (0.3, 0.0, -0.1), (0.0, 0.0, 1.0)),
         perspective(45.0, 1.5, 0.1, 50.0)))
     texels = jnp.asarray(sc.normal_map)
-    eager = render(sc, pack=True)["color"]
+    eager = render(sc, pack=False)["color"]
+    covered = int(jnp.count_nonzero(eager.sum(-1) > 0))
+    assert 0 < covered <= 48 * 32 // 4  # pack=True's image / 4 slots hold them
     jitted = jax.jit(lambda t: render(sc.replace(normal_map=t), pack=True)["color"])(texels)
     # closed over, the scene is a compile-time constant XLA folds: float32 rounding,
     # amplified by the specular power (1.1e-5 at one pixel on JAX 0.8.0)
     np.testing.assert_allclose(jitted, eager, rtol=0, atol=1e-4)
-    grad = jax.grad(lambda t: jnp.sum(render(sc.replace(normal_map=t), pack=True)["color"]))
-    g_packed = grad(texels)
-    g_whole = jax.grad(lambda t: jnp.sum(render(sc.replace(normal_map=t),
-                                                pack=False)["color"]))(texels)
+
+    def loss(s, t, pack):
+        return jnp.sum(render(s.replace(normal_map=t), pack=pack)["color"])
+
+    g_whole = jax.grad(loss, argnums=1)(sc, texels, False)
     assert float(jnp.abs(g_whole).max()) > 0
-    np.testing.assert_allclose(g_packed, g_whole, rtol=1e-4,
-                               atol=1e-5 * float(jnp.abs(g_whole).max()))
+    tol = dict(rtol=1e-4, atol=1e-5 * float(jnp.abs(g_whole).max()))
+    np.testing.assert_allclose(jax.grad(loss, argnums=1)(sc, texels, True), g_whole, **tol)
+    # the scene an argument of the caller's jit: packed (fits), all pixels (4 slots do not)
+    for pack in (True, 4):
+        step = jax.jit(jax.value_and_grad(loss, argnums=1), static_argnums=2)
+        value, g = step(sc, texels, pack)
+        np.testing.assert_allclose(value, jnp.sum(eager), rtol=1e-5)
+        np.testing.assert_allclose(g, g_whole, **tol)
+    with pytest.raises(ValueError, match="pack must be"):
+        render(sc, pack=48 * 32 + 1)
