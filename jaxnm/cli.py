@@ -148,7 +148,7 @@ def _add_fit(sub) -> None:
 def _fit(args) -> int:
     from . import io
     from .config import load_fit
-    from .fit import fit_normal_map, fit_outputs, prepare
+    from .fit import fit_normal_map, fit_outputs, prepare, prepare_held_out
     from .procedural import default_fit_job
     from .runtime import release_memory
 
@@ -180,6 +180,7 @@ def _fit(args) -> int:
     t0 = time.perf_counter()
     prep = prepare(job.problem)
     t_prep = time.perf_counter() - t0
+    held_out = prepare_held_out(job)  # with the same compiled G-buffer program
     release_memory()
     say("fitting (the first step includes compilation) ...")
     result = fit_normal_map(job.problem, job.options, ground_truth=job.ground_truth,
@@ -187,7 +188,7 @@ def _fit(args) -> int:
                             time_limit=job.time_limit)
     release_memory(drop_compiled=True)  # the solver's programs are done with
     say("writing outputs ...")
-    outputs = fit_outputs(job, prep, result, prepare_seconds=t_prep)
+    outputs = fit_outputs(job, prep, result, prepare_seconds=t_prep, held_out=held_out)
     written = io.write_fit_outputs(args.output, outputs)
     rep = outputs.report
     line = f"fit {rep['stopped']} after {rep['steps']} steps in {rep['fit_seconds']:.1f} s"

@@ -60,6 +60,30 @@ def test_held_out_light_matches_ground_truth_render(small):
     assert F.psnr(fitted, truth, m) > 35.0
 
 
+def test_held_out_scores_reuse_their_prepared_views(small, monkeypatch):
+    """`prepare_held_out` up front (as `jaxnm fit` does, while the G-buffer program is
+    compiled) gives `score_held_out` the same scores as preparing there, without preparing
+    again."""
+    import importlib
+
+    problem, gt, _, _, _ = small
+    cam = problem.targets[0].camera
+    lights = directional_light(eye_to_world(cam, [0.45, 0.35, 0.82]))
+    blank = F.FitTarget(cam, 64, 64, lights, np.zeros((64, 64, 3), np.float32))
+    truth = np.asarray(F.render_with_map(
+        F.prepare(dataclasses.replace(problem, targets=(blank,))), jnp.asarray(gt))[0][0])
+    job = F.FitJob(problem=problem, ground_truth=gt,
+                   held_out=(dataclasses.replace(blank, image=truth, name="held"),))
+    noisy = gt + np.float32(0.02) * np.roll(gt, 1, axis=0)
+    noisy /= np.linalg.norm(noisy, axis=-1, keepdims=True)
+    want = F.score_held_out(job, noisy)
+    assert want[0]["name"] == "held" and 20 < want[0]["psnr_db_vs_target"] < 100
+    pre = F.prepare_held_out(job)
+    report = importlib.import_module("jaxnm.fit.report")
+    monkeypatch.setattr(report, "prepare", lambda *a, **k: pytest.fail("prepared again"))
+    assert F.score_held_out(job, noisy, pre) == want
+
+
 def test_noisy_targets(small):
     problem, gt, _, _, _ = small
     noisy, _, _ = default_problem(render_size=64, map_size=32, n_lights=6, views=2, noise=0.02,

@@ -75,6 +75,7 @@ from .problem import problem_from_scene as problem_from_scene
 from .problem import validate_problem as validate_problem
 from .report import FitOutputs as FitOutputs
 from .report import fit_outputs as fit_outputs
+from .report import prepare_held_out as prepare_held_out
 from .report import score_held_out as score_held_out
 from .solve import fit_normal_map as fit_normal_map
 from .solve import level_sizes as level_sizes
@@ -88,5 +89,5 @@ __all__ = [
     "preconditioner", "prepare", "problem_from_scene", "psnr", "render_with_map", "residuals",
     "sample_split", "seen_texels", "slopes_to_normals", "texel_influence", "validate_problem",
     "view_key", "with_map_size", "shard_views", "FitJob", "FitOutputs", "fit_outputs",
-    "score_held_out", "CHUNK",
+    "prepare_held_out", "score_held_out", "CHUNK",
 ]

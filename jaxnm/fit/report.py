@@ -15,7 +15,8 @@ from .model import render_with_map
 from .prepare import Prepared, prepare
 from .problem import FitJob, FitResult
 
-__all__ = ["FitOutputs", "fit_outputs", "score_held_out", "ERROR_MAP_RANGE_DEG"]
+__all__ = ["FitOutputs", "fit_outputs", "prepare_held_out", "score_held_out",
+           "ERROR_MAP_RANGE_DEG"]
 
 #: The error map shows 0 to this many degrees as black to white (unseen texels dark grey).
 ERROR_MAP_RANGE_DEG = 10.0
@@ -46,12 +47,23 @@ class FitOutputs:
     report: dict
 
 
-def score_held_out(job: FitJob, normals: np.ndarray) -> list[dict]:
+def prepare_held_out(job: FitJob) -> tuple[Prepared, ...]:
+    """Each held-out target of ``job`` prepared (its view rasterized once), for
+    `score_held_out`. Prepared with the fit's own views, they reuse the G-buffer program
+    those compiled (after the fit, `jaxnm fit` has dropped it to free memory)."""
+    return tuple(prepare(dataclasses.replace(job.problem, targets=(t,)))
+                 for t in job.held_out)
+
+
+def score_held_out(job: FitJob, normals: np.ndarray,
+                   prepared: tuple[Prepared, ...] | None = None) -> list[dict]:
     """PSNR of each held-out target rendered with ``normals`` (and, with a ground truth, of
-    the ground truth's render) over the pixels that count."""
+    the ground truth's render) over the pixels that count; ``prepared``: the held-out
+    targets' `prepare_held_out` (default: prepared here)."""
     out = []
-    for t in job.held_out:
-        prep = prepare(dataclasses.replace(job.problem, targets=(t,)))
+    if prepared is None:
+        prepared = prepare_held_out(job)
+    for t, prep in zip(job.held_out, prepared, strict=True):
         fitted = np.asarray(render_with_map(prep, jnp.asarray(normals))[0][0])
         m = prep.target_mask(0)
         rec = {"name": t.name, "psnr_db_vs_target": round(psnr(fitted, t.image, m), 2)}
@@ -63,8 +75,10 @@ def score_held_out(job: FitJob, normals: np.ndarray) -> list[dict]:
 
 
 def fit_outputs(job: FitJob, prep: Prepared, result: FitResult, *,
-                prepare_seconds: float = 0.0) -> FitOutputs:
-    """The outputs of a finished fit (see `FitOutputs`)."""
+                prepare_seconds: float = 0.0,
+                held_out: tuple[Prepared, ...] | None = None) -> FitOutputs:
+    """The outputs of a finished fit (see `FitOutputs`); ``held_out``: the held-out
+    targets' `prepare_held_out`, if already made."""
     problem, enc = job.problem, job.output
     n = result.normals
     texels = np.asarray(quantize(encode_normal_map(jnp.asarray(n), encoding=enc.encoding,
@@ -99,7 +113,7 @@ def fit_outputs(job: FitJob, prep: Prepared, result: FitResult, *,
         error_map = np.where(seen, np.clip(err / ERROR_MAP_RANGE_DEG, 0, 1), 0.25)
         error_map = error_map.astype(np.float32)
     if job.held_out:
-        report["held_out"] = score_held_out(job, n)
+        report["held_out"] = score_held_out(job, n, held_out)
     return FitOutputs(map_texels=texels, bits=enc.bits, normals=n.astype(np.float32),
                       slopes=result.slopes.astype(np.float32), renders=rows,
                       history=result.history, error_map=error_map, report=report)

@@ -35,7 +35,7 @@ from jax import Array
 
 from ..runtime import release_memory
 from .diagnostics import angular_error, check_identifiability, seen_texels, texel_influence
-from .model import ModelArgs, loss, residuals, slopes_to_normals
+from .model import ModelArgs, loss, residuals
 from .prepare import Prepared, prepare, shard_views, with_map_size
 from .problem import FitOptions, FitProblem, FitResult
 
@@ -150,8 +150,22 @@ def _unaliased(state, args):
     held = {b for x in jax.tree_util.tree_leaves(args) if isinstance(x, jax.Array)
             for b in _buffers(x)}
     return jax.tree_util.tree_map(
-        lambda x: jnp.copy(x) if isinstance(x, jax.Array) and set(_buffers(x)) & held else x,
+        lambda x: _copy(x) if isinstance(x, jax.Array) and set(_buffers(x)) & held else x,
         state)
+
+
+def _unit_normals(slopes) -> np.ndarray:
+    """`jaxnm.fit.model.slopes_to_normals` on the host in float64: for the error of every
+    step and the result (as JAX operations, a dozen small compilations)."""
+    s = np.asarray(slopes, np.float64)
+    n = np.concatenate([s, np.ones(s.shape[:-1] + (1,))], -1)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def _copy(x):
+    """A copy of ``x`` in new buffers, made without compiling anything (``jnp.copy`` is an
+    XLA program per shape and dtype: 20 small compilations for an LM state)."""
+    return jax.device_put(x, may_alias=False)
 
 
 def preconditioner(prep: Prepared) -> Array:
@@ -321,7 +335,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                 # our own copy: the initial state can hold library-wide constant arrays
                 # (optimistix's result codes), which donating it to `_step` would free
                 state = jax.tree_util.tree_map(
-                    lambda x: jnp.copy(x) if isinstance(x, jax.Array) else x,
+                    lambda x: _copy(x) if isinstance(x, jax.Array) else x,
                     _shed(solver, _init(solver, z, args)))
                 _compile_ahead((args, solver), z, state)
                 # optimistix's first step evaluates the start and proposes the first move,
@@ -335,7 +349,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                     if np.isfinite(rec["loss"]) and rec["loss"] < best[0]:
                         best = (rec["loss"], slopes)
                     if gt is not None and size == (h, w):
-                        err = angular_error(slopes_to_normals(best[1]), gt)[seen]
+                        err = angular_error(_unit_normals(best[1]), gt)[seen]
                         rec["mean_angular_error_deg"] = float(err.mean())
                     history.append(rec)
                     if k > 0:
@@ -360,7 +374,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     final = best[1]
     if final.shape[:2] != (h, w):  # stopped during a coarse level
         final = _upsample(final, (h, w))
-    return FitResult(normals=np.asarray(slopes_to_normals(final)), slopes=np.asarray(final),
+    return FitResult(normals=_unit_normals(final).astype(np.float32), slopes=np.asarray(final),
                      history=history, seconds=time.perf_counter() - t_start, stopped=stopped,
                      best_loss=float(best[0]), identifiability=identifiability)
 
