@@ -47,8 +47,8 @@ from .shading import Lights, Material, check_shading_model, shade
 from .textures import NormalMapOptions
 
 __all__ = ["OUTPUTS", "PACK_MIN_PIXELS", "GBuffer", "RenderOptions", "build_gbuffer",
-           "gbuffer_from_fragments", "shade_gbuffer", "render", "with_tangents_if_needed",
-           "camera_relative"]
+           "covered_gbuffer", "gbuffer_from_fragments", "shade_gbuffer", "render",
+           "with_tangents_if_needed", "camera_relative", "release_frame_programs"]
 
 #: Every output `render` can produce (image layout, row 0 = top, float32 (H, W, C)).
 OUTPUTS = ("mask", "triangle_id", "depth", "front_facing", "position", "view", "uv", "normal",
@@ -195,6 +195,38 @@ def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOpti
     check_mesh(mesh, opts)
     return gbuffer_from_fragments(mesh, camera, albedo, _visibility(mesh, camera, opts),
                                   opts=opts)
+
+
+def covered_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *,
+                    opts: RenderOptions) -> tuple[GBuffer, Array, int]:
+    """`build_gbuffer` for the covered pixels only: ``(gbuffer, index, count)``.
+
+    Rasterizes with `render`'s visibility program (compiled once per image size and
+    culling), counts the covered pixels on the host, and runs the per-pixel stages on them
+    packed (`jaxnm.raster.compact`) into image / 2^k slots. The G-buffer's per-pixel
+    fields have a leading axis of slots, of which the first ``count`` are the covered
+    pixels in row-major image order (row 0 at the top); ``index`` (slots,) holds their flat
+    image indices (``H * W`` for unused slots). The values equal `build_gbuffer`'s at
+    those pixels to float32 rounding. The mesh and camera must be concrete; "gbuffer"
+    derivatives (stored neighbours) need the whole image: use `build_gbuffer` there.
+    """
+    if opts.derivatives == "gbuffer":
+        raise ValueError("covered_gbuffer: 'gbuffer' derivatives need the whole image's "
+                         "G-buffer (build_gbuffer)")
+    check_mesh(mesh, opts)
+    tid, count = _visible(mesh, camera, width=opts.width, height=opts.height,
+                          cull_back=opts.cull_back)
+    count = int(count)
+    gb, index = _covered(mesh, camera, albedo, tid, opts=opts,
+                         capacity=_capacity(count, opts.width * opts.height))
+    return gb, index, count
+
+
+@functools.partial(jax.jit, static_argnames=("opts", "capacity"))
+def _covered(mesh: Mesh, camera: Camera, albedo, triangle_id, *, opts, capacity):
+    packed, index = compact(triangle_id, to_clip(mesh.positions, camera),
+                            mesh.faces.astype(jnp.int32), capacity)
+    return gbuffer_from_fragments(mesh, camera, albedo, packed, opts=opts), index
 
 
 def _visibility(mesh: Mesh, camera: Camera, opts: RenderOptions):
@@ -424,6 +456,14 @@ def _traced_capacity(pack, pixels: int, source: str) -> int | None:
         raise ValueError(f"{source}: pack must be None, a bool or a slot count in 1..{pixels} "
                          f"(the image's pixels), got {pack!r}")
     return pack
+
+
+def release_frame_programs() -> None:
+    """Forget `render`'s compiled frame programs (one per scene shape, options and slot
+    count: ~26 MB for the built-in problem's targets), keeping the visibility program,
+    which `covered_gbuffer` (a fit's `jaxnm.fit.prepare`) runs again for the same image
+    size (1 s to compile). `jaxnm fit` calls it once the targets are rendered."""
+    _render.clear_cache()
 
 
 def _concrete(*xs) -> bool:

@@ -644,3 +644,18 @@ def test_the_fit_follows_optimistix_own_steps(small):
     assert res.stopped == "max_steps" and len(res.history) == opts.max_steps + 1
     np.testing.assert_allclose(res.slopes, np.asarray(z * scale), rtol=1e-4, atol=1e-5)
     assert np.abs(res.slopes - start).max() > 0.5  # the fit moved
+
+
+def test_prepare_with_stored_neighbour_derivatives_builds_the_whole_image(small):
+    """"gbuffer" derivatives need the whole image's G-buffer (`build_gbuffer`), every other
+    mode the covered pixels only (`covered_gbuffer`): the same pixels either way, and the
+    same positions and sample plans where the two agree (away from silhouettes the
+    difference of stored neighbours is the fine derivative)."""
+    problem, _, _, prep, _ = small
+    whole = F.prepare(dataclasses.replace(problem, derivatives="gbuffer"))
+    for v in range(prep.num_views):
+        a, b = prep.view(v), whole.view(v)
+        ia, ib = np.argsort(a.pixels), np.argsort(b.pixels)  # (batched by their taps first)
+        np.testing.assert_array_equal(a.pixels[ia], b.pixels[ib])
+        np.testing.assert_allclose(a.gbuffer.position[ia], b.gbuffer.position[ib], atol=1e-5)
+        np.testing.assert_array_equal(a.images[:, ia], b.images[:, ib])

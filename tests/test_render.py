@@ -491,3 +491,45 @@ def test_packing_under_a_callers_jit_and_grad():
         np.testing.assert_allclose(g, g_whole, **tol)
     with pytest.raises(ValueError, match="pack must be"):
         render(sc, pack=48 * 32 + 1)
+
+
+@pytest.mark.parametrize("derivatives", ["fine", "analytic"])
+def test_covered_gbuffer_is_the_whole_images_at_the_covered_pixels(derivatives):
+    """`covered_gbuffer` (what `jaxnm.fit.prepare` builds a view from) holds, in its first
+    ``count`` slots, the covered pixels in row-major order with `build_gbuffer`'s values
+    there: ids, mask and facing exactly, the rest to float32 rounding (fused differently);
+    "gbuffer" derivatives are refused."""
+    import dataclasses
+
+    import jax
+
+    from jaxnm.camera import Camera, look_at, perspective
+    from jaxnm.render import RenderOptions, build_gbuffer, covered_gbuffer
+
+    sc = default_scene(width=48, height=32)
+    sc = sc.replace(camera=Camera.from_matrices(
+        look_at((0.5, -4.5, 3.0), (0.3, 0.0, -0.1), (0.0, 0.0, 1.0)),
+        perspective(45.0, 1.5, 0.1, 50.0)))
+    opts = RenderOptions.of(sc, outputs=("color",), derivatives=derivatives)
+    albedo = jnp.asarray(sc.albedo)
+    whole = build_gbuffer(sc.mesh, sc.camera, albedo, opts=opts)
+    gb, index, count = covered_gbuffer(sc.mesh, sc.camera, albedo, opts=opts)
+    pix = np.flatnonzero(np.asarray(whole.mask))
+    assert 0 < count == pix.size < 48 * 32 // 2
+    np.testing.assert_array_equal(np.asarray(index)[:count], pix)
+    assert np.all(np.asarray(index)[count:] == 48 * 32)  # unused slots
+    flat_whole = jax.tree_util.tree_leaves(jax.tree_util.tree_map(
+        lambda x: np.asarray(x).reshape((-1,) + x.shape[2:])[pix],
+        dataclasses.replace(whole, eye=None)))
+    flat_covered = jax.tree_util.tree_leaves(jax.tree_util.tree_map(
+        lambda x: np.asarray(x)[:count], dataclasses.replace(gb, eye=None)))
+    assert len(flat_whole) == len(flat_covered) > 8
+    for a, b in zip(flat_covered, flat_whole):
+        if a.dtype.kind in "biu":
+            np.testing.assert_array_equal(a, b)
+        else:
+            scale = max(float(np.abs(b).max()), 1e-30)
+            np.testing.assert_allclose(a, b, rtol=0, atol=4e-6 * scale)
+    with pytest.raises(ValueError, match="whole image"):
+        covered_gbuffer(sc.mesh, sc.camera, albedo,
+                        opts=RenderOptions.of(sc, derivatives="gbuffer"))

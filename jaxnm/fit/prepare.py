@@ -19,7 +19,7 @@ import numpy as np
 from jax import Array
 
 from .. import textures as _tex
-from ..render import GBuffer, RenderOptions, build_gbuffer, check_mesh
+from ..render import GBuffer, RenderOptions, build_gbuffer, check_mesh, covered_gbuffer
 from ..shading import Lights, Material
 from .problem import FitProblem, FitTarget, validate_problem
 
@@ -189,8 +189,19 @@ def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
                                            if jnp.ndim(problem.albedo) == 3 else None),
                              outputs=("color",))
         check_mesh(problem.mesh, opts, problem.source)
-        gb = build_gbuffer(problem.mesh, t0.camera, jnp.asarray(problem.albedo), opts=opts)
-        cover = np.asarray(gb.mask)
+        albedo = jnp.asarray(problem.albedo)
+        if opts.derivatives == "gbuffer":  # stored neighbours: the whole image's G-buffer
+            gb = build_gbuffer(problem.mesh, t0.camera, albedo, opts=opts)
+            cover = np.asarray(gb.mask)
+            pix = np.flatnonzero(cover).astype(np.int32)
+            covered = lambda x: x.reshape((-1,) + x.shape[2:])[pix]  # noqa: E731
+        else:  # the per-pixel stages on the covered pixels only, in row-major order
+            gb, index, count = covered_gbuffer(problem.mesh, t0.camera, albedo, opts=opts)
+            pix = np.asarray(index)[:count]
+            cover = np.zeros(t0.height * t0.width, bool)
+            cover[pix] = True
+            cover = cover.reshape(t0.height, t0.width)
+            covered = lambda x: x[:count]  # noqa: E731
         gb = _host(_fit_fields(gb))  # the rest is host-side indexing, in NumPy
         ws = []
         for i, t in enumerate(ts):
@@ -199,9 +210,8 @@ def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
                 raise ValueError(f"{problem.source}: {t.name or 'a target'}: the mask and the "
                                  "mesh's silhouette do not overlap")
             ws.append(m[..., None].astype(np.float32))
-        pix = np.flatnonzero(cover).astype(np.int32)
         flat = lambda x: x.reshape((-1,) + x.shape[2:])[pix]  # noqa: E731
-        views.append(View(map_pixels(gb, flat), pix,
+        views.append(View(map_pixels(gb, covered), pix,
                           np.stack([flat(np.asarray(t.image, np.float32)) for t in ts]),
                           np.stack([flat(w) for w in ws]),
                           _host(_stack_lights([t.lights for t in ts]))))
