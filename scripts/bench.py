@@ -201,6 +201,9 @@ def fit_worker(args) -> None:
         sc = B.jaxnm_scene(p, d)
         targets.append(F.FitTarget(B.jaxnm_camera(p), p.width, p.height, sc.lights,
                                    np.asarray(jaxnm.render(sc)["color"])))
+    # as if the targets came from files: the fit compiles everything it runs, including
+    # the visibility program its `prepare` shares with `render` (1 s cold)
+    jax.clear_caches()
     out = {}
     for run in ("first", "steady"):
         r = _jaxnm_fit_once(p, targets, well, args.budget)
