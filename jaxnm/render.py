@@ -224,9 +224,14 @@ def covered_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *,
 
 @functools.partial(jax.jit, static_argnames=("opts", "capacity"))
 def _covered(mesh: Mesh, camera: Camera, albedo, triangle_id, *, opts, capacity):
-    packed, index = compact(triangle_id, to_clip(mesh.positions, camera),
-                            mesh.faces.astype(jnp.int32), capacity)
+    packed, index = _compact(mesh, camera, triangle_id, capacity)
     return gbuffer_from_fragments(mesh, camera, albedo, packed, opts=opts), index
+
+
+def _compact(mesh: Mesh, camera: Camera, triangle_id: Array, capacity: int):
+    """`jaxnm.raster.compact` of ``mesh`` seen by ``camera``: (packed fragments, index)."""
+    return compact(triangle_id, to_clip(mesh.positions, camera), mesh.faces.astype(jnp.int32),
+                   capacity)
 
 
 def _visibility(mesh: Mesh, camera: Camera, opts: RenderOptions):
@@ -567,8 +572,7 @@ def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, or
         image = {"mask": lambda: frags.mask, "triangle_id": lambda: frags.triangle_id,
                  "depth": lambda: frags.depth, "front_facing": lambda: frags.front_facing}
     else:
-        packed, index = compact(triangle_id, to_clip(mesh.positions, camera),
-                                mesh.faces.astype(jnp.int32), capacity)
+        packed, index = _compact(mesh, camera, triangle_id, capacity)
         image = {"mask": lambda: triangle_id >= 0, "triangle_id": lambda: triangle_id,
                  "depth": lambda: expand(packed.depth, index, opts.height, opts.width, 1.0),
                  "front_facing": lambda: expand(packed.front_facing, index, opts.height,

@@ -84,7 +84,7 @@ def release_memory(*, drop_compiled: bool = False, collect: bool = True) -> None
     frees hundreds of megabytes that glibc's allocator would otherwise keep in its arenas,
     and the next phase's peak would stack on them (a no-op where glibc is not the
     allocator; ~40 ms). ``drop_compiled`` also drops every compiled program (after a phase
-    whose programs are not run again: ~130 MB for the built-in problem's target renders);
+    whose programs are not run again, such as a fit's solver steps);
     ``collect`` first runs Python's garbage collector (~80 ms: needed where Python objects
     hold the memory, not after a compilation)."""
     import gc

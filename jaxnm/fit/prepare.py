@@ -190,11 +190,15 @@ def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
                              outputs=("color",))
         check_mesh(problem.mesh, opts, problem.source)
         albedo = jnp.asarray(problem.albedo)
+
+        def flat(x):  # an image-layout array's covered pixels
+            return x.reshape((-1,) + x.shape[2:])[pix]
+
         if opts.derivatives == "gbuffer":  # stored neighbours: the whole image's G-buffer
             gb = build_gbuffer(problem.mesh, t0.camera, albedo, opts=opts)
             cover = np.asarray(gb.mask)
             pix = np.flatnonzero(cover).astype(np.int32)
-            covered = lambda x: x.reshape((-1,) + x.shape[2:])[pix]  # noqa: E731
+            covered = flat
         else:  # the per-pixel stages on the covered pixels only, in row-major order
             gb, index, count = covered_gbuffer(problem.mesh, t0.camera, albedo, opts=opts)
             pix = np.asarray(index)[:count]
@@ -210,7 +214,6 @@ def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
                 raise ValueError(f"{problem.source}: {t.name or 'a target'}: the mask and the "
                                  "mesh's silhouette do not overlap")
             ws.append(m[..., None].astype(np.float32))
-        flat = lambda x: x.reshape((-1,) + x.shape[2:])[pix]  # noqa: E731
         views.append(View(map_pixels(gb, covered), pix,
                           np.stack([flat(np.asarray(t.image, np.float32)) for t in ts]),
                           np.stack([flat(w) for w in ws]),
