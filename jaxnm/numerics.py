@@ -98,13 +98,17 @@ def materialize(x):
     probe = leaves[0].reshape(-1)[0]
     one = jax.lax.bitcast_convert_type(probe.astype(jnp.float32), jnp.int32) & 1
 
+    def keep(a, k):
+        # Make ``a`` loop-variant (an untouched value would be hoisted out of the loop and
+        # fused into its consumers): XLA does not fold float "0 * k" (it could be NaN), nor
+        # a select on the counter's sign (it never is negative, which XLA does not prove).
+        if jnp.issubdtype(a.dtype, jnp.floating):
+            return a + 0.0 * k.astype(a.dtype)
+        return jnp.where(k < 0, jnp.zeros_like(a), a)
+
     def body(c):
-        # "+ 0 * counter" keeps x loop-variant (an untouched value would be hoisted out and
-        # the loop deleted); XLA does not fold float "0 * y", which could be NaN
         k, v = c
-        return k + 1, jax.tree_util.tree_map(
-            lambda a: a + 0.0 * k.astype(a.dtype) if jnp.issubdtype(a.dtype, jnp.floating)
-            else a, v)
+        return k + 1, jax.tree_util.tree_map(lambda a: keep(a, k), v)
 
     return jax.lax.while_loop(lambda c: c[0] < one, body, (jnp.int32(0), x))[1]
 

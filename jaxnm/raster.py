@@ -31,13 +31,14 @@ vertices in a canonical (lexicographic) order and then negated if needed, so
 the two triangles that share an edge compute bit-identical values of opposite
 sign: coverage is watertight (no cracks, no double coverage) in float32.
 
-**Cost.** Work is triangle-parallel. Each triangle's clipped screen bounding
-box is split into ``block x block`` pixel blocks aligned to a global grid; a
-*slot* is one (triangle, block) pair. Slots are processed ``slots`` at a time
+**Cost.** Work is triangle-parallel. The image is a grid of ``block x block``
+pixel tiles; a *slot* is one (triangle, tile) pair, for every tile a triangle's
+clipped screen bounding box touches. Slots are processed ``slots`` at a time
 (a fixed buffer); the number of rounds adapts at run time, so nothing is ever
-dropped, and memory stays bounded. The depth test is two scatter-min passes
-(nearest depth, then the lowest triangle index among equal depths, as
-``GL_LESS`` with draw order = index order).
+dropped, and memory stays bounded. The depth and triangle buffers are stored
+tile by tile, so each slot's depth test is a scatter of one whole tile: a
+scatter-min of depth, then of the lowest triangle index among the pixels that
+reached it (``GL_LESS`` with draw order = index order).
 """
 
 from __future__ import annotations
@@ -284,11 +285,11 @@ def _orientation(v: list[list[Array]]) -> Array:
 def _triangle_setup(tri: Array, width: int, height: int, block: int, cull_back: bool):
     """Per-triangle sign, block bounding box and validity.
 
-    ``tri``: (F, 3, 4) homogeneous window coordinates of the corners. Returns ``sigma`` (F,) sign of
-    det M, the first pixel of the bounding box ``x0, y0`` and its size in blocks ``nbx, nby``
-    (F,); ``nbx = nby = 0`` for triangles that cannot cover a pixel. The blocks tile the
-    box from its corner (not a grid fixed to the image): a box of w x h pixels takes
-    ceil(w / block) x ceil(h / block) blocks wherever it lies.
+    ``tri``: (F, 3, 4) homogeneous window coordinates of the corners. Returns ``sigma`` (F,)
+    sign of det M, the first tile ``tx0, ty0`` of the bounding box on the image's grid of
+    ``block x block`` tiles (tile ``(tx, ty)`` holds window pixels ``i // block == tx``,
+    ``j // block == ty``) and the box's size in tiles ``nbx, nby`` (F,); ``nbx = nby = 0``
+    for triangles that cannot cover a pixel.
     """
     v = _corner_components(tri)
     sigma = jnp.sign(_orientation(v))
@@ -350,9 +351,10 @@ def _triangle_setup(tri: Array, width: int, height: int, block: int, cull_back: 
     )
     if cull_back:
         valid = valid & (sigma > 0)
-    nbx = jnp.where(valid, (i1 - i0) // block + 1, 0)
-    nby = jnp.where(valid, (j1 - j0) // block + 1, 0)
-    return sigma, i0, j0, nbx, nby
+    # the tiles of the image's block x block grid that the box touches
+    nbx = jnp.where(valid, i1 // block - i0 // block + 1, 0)
+    nby = jnp.where(valid, j1 // block - j0 // block + 1, 0)
+    return sigma, i0 // block, j0 // block, nbx, nby
 
 
 # --------------------------------------------------------------------------------------
@@ -375,23 +377,33 @@ def _depth_plane(th: Array, x0: Array, y0: Array):
     return dot(c, hz) / det, dot(a, hz) / det, dot(b, hz) / det
 
 
-def _slot_fragments(slot0, tri_h, tri_depth, sigma, bx0, by0, nbx, starts, ends, total, *,
-                    width, height, block, slots):
-    """Evaluate ``slots`` consecutive (triangle, block) slots starting at ``slot0``.
+def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts, ends,
+                    starts_ahead, total, *, width, height, block, slots):
+    """Evaluate ``slots`` consecutive (triangle, tile) slots starting at ``slot0``.
 
     ``tri_h``: (F, 3, 4) coverage (snapped) vertices, ``tri_depth``: (F, 3, 4)
-    unsnapped homogeneous window vertices. Returns, per candidate pixel, its flat
-    image-layout index (out of range when not covered), its depth and its
-    triangle index, each ``(slots * block**2,)``.
+    unsnapped homogeneous window vertices; ``order``, ``starts``, ``ends``,
+    ``starts_ahead``: see `_fragment_source`. Returns each slot's flat tile index
+    ``ty * tiles_x + tx`` (slots,), the window depth of its ``block**2`` pixels
+    ``(slots, block, block)`` (indexed ``[slot, dy, dx]``; ``inf`` where the triangle does
+    not cover the pixel) and its triangle index (slots,).
     """
     s = slot0 + jnp.arange(slots, dtype=jnp.int32)
     live = s < total
-    t = jnp.searchsorted(ends, s, side="right").astype(jnp.int32)
-    t = jnp.minimum(t, tri_h.shape[0] - 1)
-    local = s - starts[t]
+    # Which triangle owns each slot: the round starts inside triangle k0 (of those with
+    # slots, in order); each of the next `slots` triangles starts at most once in the round,
+    # so counting the starts up to each slot (a scatter and a prefix sum over the round)
+    # replaces a binary search per slot.
+    k0 = jnp.searchsorted(ends, slot0, side="right").astype(jnp.int32)
+    ahead = jax.lax.dynamic_slice_in_dim(starts_ahead, k0 + 1, slots)
+    marks = jnp.zeros((slots,), jnp.int32).at[ahead - slot0].add(1, mode="drop")
+    k = jnp.minimum(k0 + jnp.cumsum(marks), order.shape[0] - 1)
+    t = order[k]
+    local = s - starts[k]
     nx = jnp.maximum(nbx[t], 1)
-    bx = bx0[t] + (local % nx) * block  # the block's first pixel
-    by = by0[t] + (local // nx) * block
+    tx = tx0[t] + local % nx
+    ty = ty0[t] + local // nx
+    bx, by = tx * block, ty * block  # the tile's first pixel
     x0 = bx.astype(tri_h.dtype) + 0.5
     y0 = by.astype(tri_h.dtype) + 0.5
 
@@ -412,35 +424,22 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, bx0, by0, nbx, starts, ends,
     # Fold the orientation into the coefficients: inside <=> e > 0, or e >= 0 on tie edges.
     a, b, c = sg * a, sg * b, sg * c
     live = live & (sg[:, 0] != 0)
-    n_pix = height * width
-
-    # The per-pixel work runs in a loop over the block's rows: a loop body is a separate
-    # computation, so the per-slot coefficients above are computed once and materialised
-    # (fused into one big kernel, XLA would recompute them for every pixel of the block).
-    fx = jnp.arange(block, dtype=a.dtype)[None, :]  # (1, block): the pixels of one row
-    ix = jnp.arange(block, dtype=jnp.int32)[None, :]
-    ea = [a[:, i:i + 1] for i in range(3)]
-    eb = [b[:, i:i + 1] for i in range(3)]
-    ec = [c[:, i:i + 1] for i in range(3)]
-    et = [tie[:, i:i + 1] for i in range(3)]
-
-    def row(dy, out):
-        fy = dy.astype(a.dtype)
-        inside = live[:, None]
-        for i in range(3):
-            e = ec[i] + ea[i] * fx + eb[i] * fy  # (S, block)
-            inside = inside & jnp.where(et[i], e >= 0, e > 0)
-        depth = dz_c[:, None] + dz_a[:, None] * fx + dz_b[:, None] * fy
-        pi, pj = bx[:, None] + ix, by[:, None] + dy
-        inside = inside & (depth >= 0.0) & (depth <= 1.0) & (pi < width) & (pj < height)
-        flat = jnp.where(inside, (height - 1 - pj) * width + pi, n_pix)
-        return (out[0].at[dy].set(flat.T), out[1].at[dy].set(depth.T))
-
-    flat, depth = jax.lax.fori_loop(
-        0, block, row, (jnp.zeros((block, block, slots), jnp.int32),
-                        jnp.zeros((block, block, slots), a.dtype)))
-    tri_index = jnp.broadcast_to(t[None, :], flat.shape)
-    return flat.reshape(-1), depth.reshape(-1), tri_index.reshape(-1)
+    tiles_x = -(-width // block)
+    # Per-slot values computed once into their own buffers: fused into the per-pixel kernel,
+    # XLA would recompute them for every pixel of the tile.
+    a, b, c, tie, dz_c, dz_a, dz_b, live, bx, by = materialize(
+        (a, b, c, tie, dz_c, dz_a, dz_b, live, bx, by))
+    fx = jnp.tile(jnp.arange(block, dtype=jnp.int32), block)[None, :]  # (1, block**2):
+    fy = jnp.repeat(jnp.arange(block, dtype=jnp.int32), block)[None, :]  # dx, then dy
+    inside = live[:, None] & (bx[:, None] + fx < width) & (by[:, None] + fy < height)
+    fx, fy = fx.astype(a.dtype), fy.astype(a.dtype)
+    for i in range(3):
+        e = c[:, i:i + 1] + a[:, i:i + 1] * fx + b[:, i:i + 1] * fy  # (S, block**2)
+        inside = inside & jnp.where(tie[:, i:i + 1], e >= 0, e > 0)
+    depth = dz_c[:, None] + dz_a[:, None] * fx + dz_b[:, None] * fy
+    inside = inside & (depth >= 0.0) & (depth <= 1.0)
+    depth = materialize(jnp.where(inside, depth, jnp.inf).reshape(slots, block, block))
+    return by // block * tiles_x + bx // block, depth, t
 
 
 def _window_corners(clip, faces, *, width, height, subpixel_bits):
@@ -454,15 +453,21 @@ def _window_corners(clip, faces, *, width, height, subpixel_bits):
 def _fragment_source(tri, tri_depth, setup, *, width, height, block, slots):
     """Returns ``(fragments(slot0), total_slots)`` for triangles with corners ``tri``
     (coverage), ``tri_depth`` (depth) and `_triangle_setup` result ``setup``."""
-    sigma, bx0, by0, nbx, nby = setup
+    sigma, tx0, ty0, nbx, nby = setup
     counts = nbx * nby
+    n = counts.shape[0]
+    # the triangles that have slots, in order (then padding: no slots)
+    order = jnp.nonzero(counts > 0, size=n, fill_value=0)[0].astype(jnp.int32)
+    counts = jnp.where(jnp.arange(n) < jnp.sum(counts > 0), counts[order], 0)
     ends = jnp.cumsum(counts)
     starts = ends - counts
     total = ends[-1]
+    # the starts again, padded so that any `slots` of them after one triangle can be sliced
+    starts_ahead = jnp.concatenate([starts, jnp.full((slots + 1,), total, jnp.int32)])
     fragments = functools.partial(
-        _slot_fragments, tri_h=tri, tri_depth=tri_depth, sigma=sigma, bx0=bx0,
-        by0=by0, nbx=nbx, starts=starts, ends=ends, total=total, width=width, height=height,
-        block=block, slots=slots,
+        _slot_fragments, tri_h=tri, tri_depth=tri_depth, sigma=sigma, tx0=tx0,
+        ty0=ty0, nbx=nbx, order=order, starts=starts, ends=ends, starts_ahead=starts_ahead,
+        total=total, width=width, height=height, block=block, slots=slots,
     )
     return fragments, total
 
@@ -471,35 +476,51 @@ _STATIC = ("width", "height", "cull_back", "block", "slots", "subpixel_bits")
 
 
 def _depth_test(tri, tri_depth, setup, zbuf, ids, face_offset, *, width, height, block, slots):
-    """Depth-test triangles (their ids offset by ``face_offset``) into ``zbuf``/``ids``."""
+    """Depth-test triangles (their ids offset by ``face_offset``) into the tiled buffers
+    ``zbuf``/``ids`` (tiles, block, block)."""
     fragments, total = _fragment_source(tri, tri_depth, setup, width=width, height=height,
                                         block=block, slots=slots)
-    n_pix = height * width
 
     def round_(carry):
-        # one round of slots: its own depth test, then merged into the running buffers
-        # (nearer wins; on equal depth the lower triangle index, as GL_LESS in draw order)
+        # One round of slots, depth-tested straight into the running buffers (nearer wins;
+        # on equal depth the lower triangle index, as GL_LESS in draw order). Each slot
+        # updates one whole tile, so XLA's scatters loop over slots, not pixels, and a
+        # round's work does not grow with the image.
         q, zbuf, ids = carry
-        flat, depth, t = fragments(q * slots)
-        zr = jnp.full((n_pix,), jnp.inf, depth.dtype).at[flat].min(depth, mode="drop")
-        win = depth == zr[jnp.minimum(flat, n_pix - 1)]
-        idr = jnp.full((n_pix,), _NO_TRIANGLE, jnp.int32).at[jnp.where(win, flat, n_pix)].min(
-            t + face_offset, mode="drop")
-        ids = jnp.where(zr < zbuf, idr, jnp.where(zr == zbuf, jnp.minimum(ids, idr), ids))
-        return q + 1, jnp.minimum(zbuf, zr), ids
+        tile, depth, t = fragments(q * slots)
+        before = zbuf[tile]
+        zbuf = zbuf.at[tile].min(depth, mode="drop")
+        after = zbuf[tile]
+        # where this round brought a pixel nearer, the earlier winner is gone (every slot on
+        # a tile writes the same values: a function of the tile's state alone)
+        ids = ids.at[tile].set(jnp.where(after < before, _NO_TRIANGLE, ids[tile]), mode="drop")
+        win = (depth == after) & (depth < jnp.inf)
+        ids = ids.at[tile].min(jnp.where(win, (t + face_offset)[:, None, None], _NO_TRIANGLE),
+                               mode="drop")
+        return q + 1, zbuf, ids
 
     _, zbuf, ids = jax.lax.while_loop(lambda c: c[0] * slots < total, round_,
                                       (jnp.int32(0), zbuf, ids))
     return zbuf, ids
 
 
+def _tiles_to_image(tiles: Array, width: int, height: int) -> Array:
+    """(tiles_y * tiles_x, block, block) per-tile values (rows: window y up) as an
+    (H, W) image in image layout (row 0 = top)."""
+    _, block, _ = tiles.shape
+    tiles_x, tiles_y = -(-width // block), -(-height // block)
+    window = tiles.reshape(tiles_y, tiles_x, block, block).transpose(0, 2, 1, 3).reshape(
+        tiles_y * block, tiles_x * block)
+    return window[:height, :width][::-1]
+
+
 @functools.partial(jax.jit, static_argnames=_STATIC + ("chunk", "force_chunks"))
 def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits, chunk,
                force_chunks=False):
     kw = dict(width=width, height=height, block=block, slots=slots)
-    n_pix = height * width
-    zbuf0 = jnp.full((n_pix,), jnp.inf, clip.dtype)
-    ids0 = jnp.full((n_pix,), _NO_TRIANGLE, jnp.int32)
+    tiles = (-(-width // block)) * (-(-height // block))
+    zbuf0 = jnp.full((tiles, block, block), jnp.inf, clip.dtype)
+    ids0 = jnp.full((tiles, block, block), _NO_TRIANGLE, jnp.int32)
     n_faces = faces.shape[0]
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
@@ -535,9 +556,8 @@ def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_
         fits = jnp.sum((nbx * nby).astype(jnp.float32)) < 2.0**31 - 2.0**26  # rounding margin
         ids = jax.lax.cond(fits, all_at_once, in_chunks)
 
-    shape = (height, width)
-    covered = (ids != _NO_TRIANGLE).reshape(shape)
-    tid = jnp.where(covered, ids.reshape(shape), -1)
+    ids = _tiles_to_image(ids, width, height)
+    tid = jnp.where(ids != _NO_TRIANGLE, ids, -1)
     # facing from the coverage (snapped) orientation, as the rasterizer saw the triangle
     depth, front = _depth_and_facing(tri_depth, setup[0], tid,
                                      *pixel_centers(height, width, tri_depth.dtype))
@@ -579,12 +599,13 @@ def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_b
 
     def body(carry):
         q, count = carry
-        flat, _, _ = fragments(q * slots)
-        return q + 1, count.at[flat].add(1, mode="drop")
+        tile, depth, _ = fragments(q * slots)
+        return q + 1, count.at[tile].add((depth < jnp.inf).astype(jnp.int32), mode="drop")
 
+    tiles = (-(-width // block)) * (-(-height // block))
     _, count = jax.lax.while_loop(lambda c: c[0] * slots < total, body,
-                                  (jnp.int32(0), jnp.zeros((height * width,), jnp.int32)))
-    return count.reshape(height, width)
+                                  (jnp.int32(0), jnp.zeros((tiles, block, block), jnp.int32)))
+    return _tiles_to_image(count, width, height)
 
 
 def overdraw(clip: Array, faces: Array, *, width: int, height: int, cull_back: bool = False,
