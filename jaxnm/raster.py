@@ -475,9 +475,8 @@ def _fragment_source(tri, tri_depth, setup, *, width, height, block, slots):
 _STATIC = ("width", "height", "cull_back", "block", "slots", "subpixel_bits")
 
 
-def _depth_test(tri, tri_depth, setup, zbuf, ids, face_offset, *, width, height, block, slots):
-    """Depth-test triangles (their ids offset by ``face_offset``) into the tiled buffers
-    ``zbuf``/``ids`` (tiles, block, block)."""
+def _depth_test(tri, tri_depth, setup, zbuf, ids, *, width, height, block, slots):
+    """Depth-test triangles into the tiled buffers ``zbuf``/``ids`` (tiles, block, block)."""
     fragments, total = _fragment_source(tri, tri_depth, setup, width=width, height=height,
                                         block=block, slots=slots)
 
@@ -495,7 +494,7 @@ def _depth_test(tri, tri_depth, setup, zbuf, ids, face_offset, *, width, height,
         # a tile writes the same values: a function of the tile's state alone)
         ids = ids.at[tile].set(jnp.where(after < before, _NO_TRIANGLE, ids[tile]), mode="drop")
         win = (depth == after) & (depth < jnp.inf)
-        ids = ids.at[tile].min(jnp.where(win, (t + face_offset)[:, None, None], _NO_TRIANGLE),
+        ids = ids.at[tile].min(jnp.where(win, t[:, None, None], _NO_TRIANGLE),
                                mode="drop")
         return q + 1, zbuf, ids
 
@@ -514,47 +513,51 @@ def _tiles_to_image(tiles: Array, width: int, height: int) -> Array:
     return window[:height, :width][::-1]
 
 
-@functools.partial(jax.jit, static_argnames=_STATIC + ("chunk", "force_chunks"))
-def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits, chunk,
-               force_chunks=False):
+#: Slots per pass: a frame's slots are counted in int32, so a frame with more than this many
+#: (only possible with huge triangles by the tens of thousands) is depth-tested in several
+#: passes over its triangles, each counting at most this many plus one triangle's slots.
+PASS_SLOTS = 1 << 30
+
+
+def _slot_passes(counts: Array, pass_slots: int) -> tuple[Array, Array]:
+    """The pass of each triangle (F,) int32 and the number of passes, for triangles with
+    ``counts`` slots each (each at most ``pass_slots``): triangle i is in pass
+    ``floor(start_i / pass_slots)`` where ``start_i`` is its first slot in the frame, counted
+    exactly (mod 2**32 plus the number of wrap-arounds) though it may exceed int32."""
+    ends = jnp.cumsum(counts.astype(jnp.uint32))  # exact mod 2**32
+    wrapped = jnp.concatenate([jnp.zeros((1,), bool), ends[1:] < ends[:-1]])
+    laps = jnp.cumsum(wrapped.astype(jnp.int32))  # 2**32 wrap-arounds up to each end
+    starts = ends - counts.astype(jnp.uint32)
+    # the start's wrap-arounds are the previous end's (an end that wrapped, starts before)
+    laps = jnp.concatenate([jnp.zeros((1,), jnp.int32), laps[:-1]])
+    shift = pass_slots.bit_length() - 1
+    passes = laps * (1 << (32 - shift)) + (starts >> shift).astype(jnp.int32)
+    return passes, passes[-1] + 1
+
+
+@functools.partial(jax.jit, static_argnames=_STATIC + ("pass_slots",))
+def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits,
+               pass_slots=PASS_SLOTS):
     kw = dict(width=width, height=height, block=block, slots=slots)
     tiles = (-(-width // block)) * (-(-height // block))
-    zbuf0 = jnp.full((tiles, block, block), jnp.inf, clip.dtype)
-    ids0 = jnp.full((tiles, block, block), _NO_TRIANGLE, jnp.int32)
-    n_faces = faces.shape[0]
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     setup = _triangle_setup(tri, width, height, block, cull_back)
+    sigma, tx0, ty0, nbx, nby = setup
+    passes, n_passes = _slot_passes(nbx * nby, pass_slots)
 
-    def all_at_once():
-        return _depth_test(tri, tri_depth, setup, zbuf0, ids0, 0, **kw)[1]
+    def one_pass(carry):
+        # (a while loop, not a lax.cond on the rare overflow: XLA's CPU conditional made
+        # the whole frame ~9 ms slower at 200k triangles)
+        p, zbuf, ids = carry
+        mine = passes == p
+        st = (sigma, tx0, ty0, jnp.where(mine, nbx, 0), jnp.where(mine, nby, 0))
+        return (p + 1,) + _depth_test(tri, tri_depth, st, zbuf, ids, **kw)
 
-    def in_chunks():
-        # A frame with more than 2**31 (triangle, block) pairs (only possible with huge
-        # triangles by the tens of thousands): depth-test the faces a chunk at a time.
-        n_chunks = -(-n_faces // chunk)
-        pad = n_chunks * chunk - n_faces
-
-        def padded(x):  # zero rows: no blocks, so no slots
-            return jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)])
-
-        arrays = jax.tree_util.tree_map(padded, (tri, tri_depth, setup))
-
-        def body(i, carry):
-            t, td, st = jax.tree_util.tree_map(
-                lambda x: jax.lax.dynamic_slice_in_dim(x, i * chunk, chunk), arrays)
-            return _depth_test(t, td, st, *carry, i * chunk, **kw)
-
-        return jax.lax.fori_loop(0, n_chunks, body, (zbuf0, ids0))[1]
-
-    if force_chunks:  # for tests: exercise the overflow path on a small mesh
-        ids = in_chunks()
-    elif n_faces <= chunk:
-        ids = all_at_once()
-    else:
-        _, _, _, nbx, nby = setup
-        fits = jnp.sum((nbx * nby).astype(jnp.float32)) < 2.0**31 - 2.0**26  # rounding margin
-        ids = jax.lax.cond(fits, all_at_once, in_chunks)
+    _, _, ids = jax.lax.while_loop(
+        lambda c: c[0] < n_passes, one_pass,
+        (jnp.int32(0), jnp.full((tiles, block, block), jnp.inf, clip.dtype),
+         jnp.full((tiles, block, block), _NO_TRIANGLE, jnp.int32)))
 
     ids = _tiles_to_image(ids, width, height)
     tid = jnp.where(ids != _NO_TRIANGLE, ids, -1)
@@ -589,21 +592,31 @@ def _pixel_depth(tri_depth: Array, tid: Array, x: Array, y: Array) -> Array:
     return num / jnp.where(den == 0, 1.0, den)
 
 
-@functools.partial(jax.jit, static_argnames=_STATIC)
-def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits):
+@functools.partial(jax.jit, static_argnames=_STATIC + ("pass_slots",))
+def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits,
+              pass_slots=PASS_SLOTS):
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
-    setup = _triangle_setup(tri, width, height, block, cull_back)
-    fragments, total = _fragment_source(tri, tri_depth, setup, width=width, height=height,
-                                        block=block, slots=slots)
+    sigma, tx0, ty0, nbx, nby = _triangle_setup(tri, width, height, block, cull_back)
+    passes, n_passes = _slot_passes(nbx * nby, pass_slots)
 
-    def body(carry):
-        q, count = carry
-        tile, depth, _ = fragments(q * slots)
-        return q + 1, count.at[tile].add((depth < jnp.inf).astype(jnp.int32), mode="drop")
+    def one_pass(carry):
+        p, count = carry
+        mine = passes == p
+        st = (sigma, tx0, ty0, jnp.where(mine, nbx, 0), jnp.where(mine, nby, 0))
+        fragments, total = _fragment_source(tri, tri_depth, st, width=width, height=height,
+                                            block=block, slots=slots)
+
+        def round_(c):
+            q, count = c
+            tile, depth, _ = fragments(q * slots)
+            return q + 1, count.at[tile].add((depth < jnp.inf).astype(jnp.int32), mode="drop")
+
+        return p + 1, jax.lax.while_loop(lambda c: c[0] * slots < total, round_,
+                                         (jnp.int32(0), count))[1]
 
     tiles = (-(-width // block)) * (-(-height // block))
-    _, count = jax.lax.while_loop(lambda c: c[0] * slots < total, body,
+    _, count = jax.lax.while_loop(lambda c: c[0] < n_passes, one_pass,
                                   (jnp.int32(0), jnp.zeros((tiles, block, block), jnp.int32)))
     return _tiles_to_image(count, width, height)
 
@@ -621,18 +634,7 @@ def overdraw(clip: Array, faces: Array, *, width: int, height: int, cull_back: b
                                     slots)
     if faces.shape[0] == 0:
         return jnp.zeros((height, width), jnp.int32)
-    chunk = _max_triangles_per_chunk(width, height, block)
-    total = None
-    for start in range(0, faces.shape[0], chunk):
-        c = _overdraw(clip, faces[start:start + chunk], **kw)
-        total = c if total is None else total + c
-    return total
-
-
-def _max_triangles_per_chunk(width: int, height: int, block: int) -> int:
-    """Triangles per chunk such that the int32 slot count cannot overflow."""
-    n_blocks = (-(-width // block)) * (-(-height // block))
-    return max(1, (2**31 - 1) // n_blocks)
+    return _overdraw(clip, faces, **kw)
 
 
 def default_slots(num_faces: int, width: int, height: int, block: int) -> int:
@@ -666,12 +668,11 @@ def rasterize(clip: Array, faces: Array, *, width: int, height: int, cull_back: 
     clip, faces, kw = _prepare_args(clip, faces, width, height, cull_back, subpixel_bits, block,
                                     slots)
     num_faces = faces.shape[0]
-    chunk = _max_triangles_per_chunk(width, height, block)
     if num_faces == 0:
         tid = jnp.full((height, width), -1, jnp.int32)
         return Fragments(tid, jnp.ones((height, width), clip.dtype),
                          jnp.zeros((height, width), bool), clip, faces)
-    tid, depth, front = _rasterize(clip, faces, chunk=chunk, **kw)
+    tid, depth, front = _rasterize(clip, faces, **kw)
     return Fragments(tid, depth, front, clip, faces)
 
 
@@ -697,6 +698,9 @@ def _prepare_args(clip, faces, width, height, cull_back, subpixel_bits, block, s
                          f"{subpixel_bits}")
     if block < 1:
         raise ValueError(f"rasterize: `block` must be >= 1, got {block}")
+    if width * height >= 2**31 or (-(-width // block)) * (-(-height // block)) > 2**28:
+        raise ValueError(f"rasterize: a {width}x{height} image is too large (at most 2**31 - 1 "
+                         f"pixels and 2**28 tiles of block x block)")
     if not isinstance(clip, jax.core.Tracer) and clip.size:
         bad = ~np.all(np.isfinite(np.asarray(clip)), axis=1)
         if bad.any():

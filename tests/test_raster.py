@@ -177,8 +177,9 @@ def test_depth_test_nearest_wins_and_ties_go_to_lower_index():
     assert set(np.unique(tid)) == {-1, 1}
 
 
-def test_many_rounds_and_chunks_give_the_same_image():
-    """A tiny slot budget forces many rounds: the result must not change."""
+def test_many_rounds_and_passes_give_the_same_image():
+    """A tiny slot budget forces many rounds, a tiny pass size many passes (the int32
+    overflow path of frames with over 2**30 slots): the result must not change."""
     pos, faces = icosphere(2)
     clip = clip_of(pos, perspective_mvp((0.2, 0.5, 2.6))).astype(np.float32)
     a = jaxnm.rasterize(clip, faces, width=40, height=40)
@@ -186,12 +187,36 @@ def test_many_rounds_and_chunks_give_the_same_image():
     assert np.array_equal(np.asarray(a.triangle_id), np.asarray(b.triangle_id))
     from jaxnm import raster
 
-    # the int32-overflow fallback (faces depth-tested a chunk at a time), forced
+    kw = dict(width=40, height=40, cull_back=False, block=4, slots=64, subpixel_bits=8)
     c_tid, c_depth, c_front = raster._rasterize(
-        jnp.asarray(clip), jnp.asarray(faces, jnp.int32), chunk=50, force_chunks=True, width=40,
-        height=40, cull_back=False, block=4, slots=64, subpixel_bits=8)
+        jnp.asarray(clip), jnp.asarray(faces, jnp.int32), pass_slots=32, **kw)
     assert np.array_equal(np.asarray(a.triangle_id), np.asarray(c_tid))
     assert np.array_equal(np.asarray(a.front_facing), np.asarray(c_front))
+    counts = raster._overdraw(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), pass_slots=32,
+                              **kw)
+    assert np.array_equal(np.asarray(counts), np.asarray(raster.overdraw(clip, faces, width=40,
+                                                                         height=40)))
+    # that was many passes
+    tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=40,
+                                    height=40, subpixel_bits=8)
+    _, _, _, nbx, nby = raster._triangle_setup(tri, 40, 40, 4, False)
+    assert int(raster._slot_passes(nbx * nby, 32)[1]) > 5
+
+
+def test_slot_passes_count_past_int32():
+    """Each triangle's pass is floor(first slot / pass size), its first slot counted exactly
+    though the frame's total wraps around uint32 several times."""
+    from jaxnm import raster
+
+    rng = np.random.default_rng(3)
+    counts = rng.integers(0, 2**28, 200).astype(np.int64)
+    counts[rng.random(200) < 0.3] = 0
+    starts = np.cumsum(counts) - counts
+    assert starts[-1] > 3 * 2**32
+    for pass_slots in (2**30, 2**24):
+        passes, n = raster._slot_passes(jnp.asarray(counts, jnp.int32), pass_slots)
+        np.testing.assert_array_equal(np.asarray(passes), starts // pass_slots)
+        assert int(n) == starts[-1] // pass_slots + 1
 
 
 @pytest.mark.parametrize(
