@@ -544,20 +544,23 @@ def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_
                                      subpixel_bits=subpixel_bits)
     setup = _triangle_setup(tri, width, height, block, cull_back)
     sigma, tx0, ty0, nbx, nby = setup
-    passes, n_passes = _slot_passes(nbx * nby, pass_slots)
+    zbuf = jnp.full((tiles, block, block), jnp.inf, clip.dtype)
+    ids = jnp.full((tiles, block, block), _NO_TRIANGLE, jnp.int32)
+    if faces.shape[0] * tiles <= pass_slots:  # one pass, whatever the triangles (static)
+        _, ids = _depth_test(tri, tri_depth, setup, zbuf, ids, **kw)
+    else:
+        passes, n_passes = _slot_passes(nbx * nby, pass_slots)
 
-    def one_pass(carry):
-        # (a while loop, not a lax.cond on the rare overflow: XLA's CPU conditional made
-        # the whole frame ~9 ms slower at 200k triangles)
-        p, zbuf, ids = carry
-        mine = passes == p
-        st = (sigma, tx0, ty0, jnp.where(mine, nbx, 0), jnp.where(mine, nby, 0))
-        return (p + 1,) + _depth_test(tri, tri_depth, st, zbuf, ids, **kw)
+        def one_pass(carry):
+            # (a while loop, not a lax.cond on the rare overflow: XLA's CPU conditional
+            # made the whole frame ~9 ms slower at 200k triangles)
+            p, zbuf, ids = carry
+            mine = passes == p
+            st = (sigma, tx0, ty0, jnp.where(mine, nbx, 0), jnp.where(mine, nby, 0))
+            return (p + 1,) + _depth_test(tri, tri_depth, st, zbuf, ids, **kw)
 
-    _, _, ids = jax.lax.while_loop(
-        lambda c: c[0] < n_passes, one_pass,
-        (jnp.int32(0), jnp.full((tiles, block, block), jnp.inf, clip.dtype),
-         jnp.full((tiles, block, block), _NO_TRIANGLE, jnp.int32)))
+        _, _, ids = jax.lax.while_loop(lambda c: c[0] < n_passes, one_pass,
+                                       (jnp.int32(0), zbuf, ids))
 
     ids = _tiles_to_image(ids, width, height)
     tid = jnp.where(ids != _NO_TRIANGLE, ids, -1)
