@@ -381,8 +381,8 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
                     starts_ahead, total, *, width, height, block, slots):
     """Evaluate ``slots`` consecutive (triangle, tile) slots starting at ``slot0``.
 
-    ``tri_h``: (F, 3, 4) coverage (snapped) vertices, ``tri_depth``: (F, 3, 4)
-    unsnapped homogeneous window vertices; ``order``, ``starts``, ``ends``,
+    ``tri_h``: (F, 3, 4) coverage (snapped) vertices, ``tri_depth``: the unsnapped
+    homogeneous window corners (`_DepthCorners`); ``order``, ``starts``, ``ends``,
     ``starts_ahead``: see `_fragment_source`. Returns each slot's flat tile index
     ``ty * tiles_x + tx`` (slots,), the window depth of its ``block**2`` pixels
     ``(slots, block, block)`` (indexed ``[slot, dy, dx]``; ``inf`` where the triangle does
@@ -442,12 +442,31 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     return by // block * tiles_x + bx // block, depth, t
 
 
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class _DepthCorners:
+    """The unsnapped homogeneous window vertices (V, 4) and the faces (F, 3): depth is
+    evaluated from these, corners gathered where needed (per slot, per pixel) rather than
+    for every triangle (a (F, 3, 4) array written and read again every frame)."""
+
+    vertices: Array
+    faces: Array
+
+    def __getitem__(self, t: Array) -> Array:
+        """The corners (..., 3, 4) of triangles ``t``."""
+        return self.vertices[self.faces[t]]
+
+    @property
+    def dtype(self):
+        return self.vertices.dtype
+
+
 def _window_corners(clip, faces, *, width, height, subpixel_bits):
-    """Each triangle's corners in homogeneous window coordinates, (F, 3, 4) each: snapped
-    (coverage) and unsnapped (depth)."""
+    """Each triangle's snapped corners (coverage) in homogeneous window coordinates
+    (F, 3, 4), and its unsnapped ones (depth) as `_DepthCorners`."""
     h_unsnapped = window_homogeneous(jax.lax.stop_gradient(clip), width, height)
     h = _snap_vertices(h_unsnapped, subpixel_bits)
-    return _gather_corners(h, faces), _gather_corners(h_unsnapped, faces)
+    return _gather_corners(h, faces), _DepthCorners(h_unsnapped, faces)
 
 
 def _fragment_source(tri, tri_depth, setup, *, width, height, block, slots):
@@ -570,10 +589,11 @@ def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_
     return tid, depth, front
 
 
-def _depth_and_facing(tri_depth: Array, sigma: Array, tid: Array, x: Array, y: Array):
+def _depth_and_facing(tri_depth: _DepthCorners, sigma: Array, tid: Array, x: Array, y: Array):
     """Window depth (1 on background) and front-facing of each pixel's triangle ``tid`` (-1:
     background) at the pixel centres ``x``, ``y`` (broadcastable to ``tid``), from the
-    unsnapped corners ``tri_depth`` (F, 3, 4) and the snapped orientation ``sigma`` (F,)."""
+    unsnapped corners ``tri_depth`` (`_DepthCorners`) and the snapped orientation ``sigma``
+    (F,)."""
     covered = tid >= 0
     t = jnp.maximum(tid, 0)
     # facing per triangle (F,), then gathered (per-pixel work here would fuse badly with
@@ -582,9 +602,9 @@ def _depth_and_facing(tri_depth: Array, sigma: Array, tid: Array, x: Array, y: A
     return jnp.where(covered, _pixel_depth(tri_depth, t, x, y), 1.0), front
 
 
-def _pixel_depth(tri_depth: Array, tid: Array, x: Array, y: Array) -> Array:
+def _pixel_depth(tri_depth: _DepthCorners, tid: Array, x: Array, y: Array) -> Array:
     """Window depth of each pixel's triangle at the pixel centre (x, y), from its unsnapped
-    corners ``tri_depth`` (F, 3, 4)."""
+    corners ``tri_depth`` (`_DepthCorners`)."""
     hv = tri_depth[tid]  # (..., 3, 4)
     x, y = x[..., None], y[..., None]
     hx = hv[..., 0] - x * hv[..., 3]
