@@ -173,7 +173,7 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
                        packed_from=(height, width))
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
-    sigma = jnp.sign(_orientation(_corner_components(tri)))
+    sigma = jnp.sign(_orientation(tri.components()))
     depth, front = _depth_and_facing(tri_depth, sigma, tid,
                                      *placed.window_centers(tri_depth.dtype))
     return dataclasses.replace(placed, depth=depth, front_facing=front), index
@@ -259,20 +259,34 @@ def _snap_vertices(h: Array, subpixel_bits: int | None) -> Array:
     return jnp.where(ok[:, None], snapped, h)
 
 
-def _corner_components(tri: Array) -> list[list[Array]]:
-    """``v[k][c]``: component ``c`` (x, y, z, w) of corner ``k`` of every triangle, each (F,),
-    from the gathered corners ``tri`` (F, 3, 4).
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class _Corners:
+    """Triangle corners in homogeneous window coordinates, kept as the vertices (V, 4) and
+    the faces (F, 3): corners are gathered where needed (per slot, per pixel) rather than
+    as an (F, 3, 4) array written and read again every frame."""
 
-    Structure of arrays: per-triangle setup on (F,) vectors fuses into a few loops, where
-    the same arithmetic on (F, 3, 4) or (F, 6, 4) arrays (minor axes of 3 to 6) ran an
-    order of magnitude slower on XLA's CPU backend (200k triangles: 29 ms).
-    """
-    return [[tri[:, k, c] for c in range(4)] for k in range(3)]
+    vertices: Array
+    faces: Array
 
+    def __getitem__(self, t: Array) -> Array:
+        """The corners (..., 3, 4) of triangles ``t``."""
+        return self.vertices[self.faces[t]]
 
-def _gather_corners(h: Array, faces: Array) -> Array:
-    """(F, 3, 4) corners, gathered once (else XLA re-gathers for every fused consumer)."""
-    return materialize(h[faces])
+    @property
+    def dtype(self):
+        return self.vertices.dtype
+
+    def components(self) -> list[list[Array]]:
+        """``v[k][c]``: component ``c`` (x, y, z, w) of corner ``k`` of every triangle,
+        each (F,), computed once into their own buffers.
+
+        Structure of arrays: per-triangle setup on (F,) vectors fuses into a few loops,
+        where the same arithmetic on (F, 3, 4) or (F, 6, 4) arrays (minor axes of 3 to 6)
+        ran an order of magnitude slower on XLA's CPU backend (200k triangles: 29 ms).
+        """
+        return materialize([[self.vertices[:, c][self.faces[:, k]] for c in range(4)]
+                            for k in range(3)])
 
 
 def _orientation(v: list[list[Array]]) -> Array:
@@ -282,16 +296,17 @@ def _orientation(v: list[list[Array]]) -> Array:
     return x0 * (y1 * w2 - w1 * y2) + y0 * (w1 * x2 - x1 * w2) + w0 * (x1 * y2 - y1 * x2)
 
 
-def _triangle_setup(tri: Array, width: int, height: int, block: int, cull_back: bool):
+def _triangle_setup(v: list[list[Array]], width: int, height: int, block: int,
+                    cull_back: bool):
     """Per-triangle sign, block bounding box and validity.
 
-    ``tri``: (F, 3, 4) homogeneous window coordinates of the corners. Returns ``sigma`` (F,)
-    sign of det M, the first tile ``tx0, ty0`` of the bounding box on the image's grid of
-    ``block x block`` tiles (tile ``(tx, ty)`` holds window pixels ``i // block == tx``,
-    ``j // block == ty``) and the box's size in tiles ``nbx, nby`` (F,); ``nbx = nby = 0``
+    ``v``: the homogeneous window coordinates of the corners (`_Corners.components`).
+    Returns ``sigma`` (F,) sign of det M, the first tile ``tx0, ty0`` of the bounding box
+    on the image's grid of ``block x block`` tiles (tile ``(tx, ty)`` holds window pixels
+    ``i // block == tx``, ``j // block == ty``) and the box's size in tiles ``nbx, nby``
+    (F,); ``nbx = nby = 0``
     for triangles that cannot cover a pixel.
     """
-    v = _corner_components(tri)
     sigma = jnp.sign(_orientation(v))
 
     # Clipped bounding box: vertices in front of the near plane, plus the points where
@@ -309,7 +324,7 @@ def _triangle_setup(tri: Array, width: int, height: int, block: int, cull_back: 
         ok.append(crosses)
     # a kept point not in front of the eye
     bad_w = functools.reduce(jnp.logical_or, [k & ~(p[3] > 0.0) for k, p in zip(ok, pts)])
-    big = jnp.asarray(np.finfo(np.float32).max, tri.dtype)
+    big = jnp.asarray(np.finfo(np.float32).max, v[0][0].dtype)
     xmin = ymin = big
     xmax = ymax = -big
     for k, p in zip(ok, pts):
@@ -381,8 +396,8 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
                     starts_ahead, total, *, width, height, block, slots):
     """Evaluate ``slots`` consecutive (triangle, tile) slots starting at ``slot0``.
 
-    ``tri_h``: (F, 3, 4) coverage (snapped) vertices, ``tri_depth``: the unsnapped
-    homogeneous window corners (`_DepthCorners`); ``order``, ``starts``, ``ends``,
+    ``tri_h``, ``tri_depth``: the snapped (coverage) and unsnapped (depth) homogeneous
+    window corners (`_Corners`); ``order``, ``starts``, ``ends``,
     ``starts_ahead``: see `_fragment_source`. Returns each slot's flat tile index
     ``ty * tiles_x + tx`` (slots,), the window depth of its ``block**2`` pixels
     ``(slots, block, block)`` (indexed ``[slot, dy, dx]``; ``inf`` where the triangle does
@@ -442,31 +457,12 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     return by // block * tiles_x + bx // block, depth, t
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class _DepthCorners:
-    """The unsnapped homogeneous window vertices (V, 4) and the faces (F, 3): depth is
-    evaluated from these, corners gathered where needed (per slot, per pixel) rather than
-    for every triangle (a (F, 3, 4) array written and read again every frame)."""
-
-    vertices: Array
-    faces: Array
-
-    def __getitem__(self, t: Array) -> Array:
-        """The corners (..., 3, 4) of triangles ``t``."""
-        return self.vertices[self.faces[t]]
-
-    @property
-    def dtype(self):
-        return self.vertices.dtype
-
-
 def _window_corners(clip, faces, *, width, height, subpixel_bits):
-    """Each triangle's snapped corners (coverage) in homogeneous window coordinates
-    (F, 3, 4), and its unsnapped ones (depth) as `_DepthCorners`."""
+    """The triangles' corners in homogeneous window coordinates (`_Corners`): snapped
+    (coverage) and unsnapped (depth)."""
     h_unsnapped = window_homogeneous(jax.lax.stop_gradient(clip), width, height)
     h = _snap_vertices(h_unsnapped, subpixel_bits)
-    return _gather_corners(h, faces), _DepthCorners(h_unsnapped, faces)
+    return _Corners(materialize(h), faces), _Corners(h_unsnapped, faces)
 
 
 def _fragment_source(tri, tri_depth, setup, *, width, height, block, slots):
@@ -561,7 +557,7 @@ def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_
     tiles = (-(-width // block)) * (-(-height // block))
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
-    setup = _triangle_setup(tri, width, height, block, cull_back)
+    setup = _triangle_setup(tri.components(), width, height, block, cull_back)
     sigma, tx0, ty0, nbx, nby = setup
     zbuf = jnp.full((tiles, block, block), jnp.inf, clip.dtype)
     ids = jnp.full((tiles, block, block), _NO_TRIANGLE, jnp.int32)
@@ -589,10 +585,10 @@ def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_
     return tid, depth, front
 
 
-def _depth_and_facing(tri_depth: _DepthCorners, sigma: Array, tid: Array, x: Array, y: Array):
+def _depth_and_facing(tri_depth: _Corners, sigma: Array, tid: Array, x: Array, y: Array):
     """Window depth (1 on background) and front-facing of each pixel's triangle ``tid`` (-1:
     background) at the pixel centres ``x``, ``y`` (broadcastable to ``tid``), from the
-    unsnapped corners ``tri_depth`` (`_DepthCorners`) and the snapped orientation ``sigma``
+    unsnapped corners ``tri_depth`` (`_Corners`) and the snapped orientation ``sigma``
     (F,)."""
     covered = tid >= 0
     t = jnp.maximum(tid, 0)
@@ -602,9 +598,9 @@ def _depth_and_facing(tri_depth: _DepthCorners, sigma: Array, tid: Array, x: Arr
     return jnp.where(covered, _pixel_depth(tri_depth, t, x, y), 1.0), front
 
 
-def _pixel_depth(tri_depth: _DepthCorners, tid: Array, x: Array, y: Array) -> Array:
+def _pixel_depth(tri_depth: _Corners, tid: Array, x: Array, y: Array) -> Array:
     """Window depth of each pixel's triangle at the pixel centre (x, y), from its unsnapped
-    corners ``tri_depth`` (`_DepthCorners`)."""
+    corners ``tri_depth`` (`_Corners`)."""
     hv = tri_depth[tid]  # (..., 3, 4)
     x, y = x[..., None], y[..., None]
     hx = hv[..., 0] - x * hv[..., 3]
@@ -620,7 +616,7 @@ def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_b
               pass_slots=PASS_SLOTS):
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
-    sigma, tx0, ty0, nbx, nby = _triangle_setup(tri, width, height, block, cull_back)
+    sigma, tx0, ty0, nbx, nby = _triangle_setup(tri.components(), width, height, block, cull_back)
     passes, n_passes = _slot_passes(nbx * nby, pass_slots)
 
     def one_pass(carry):

@@ -199,7 +199,7 @@ def test_many_rounds_and_passes_give_the_same_image():
     # that was many passes
     tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=40,
                                     height=40, subpixel_bits=8)
-    _, _, _, nbx, nby = raster._triangle_setup(tri, 40, 40, 4, False)
+    _, _, _, nbx, nby = raster._triangle_setup(tri.components(), 40, 40, 4, False)
     assert int(raster._slot_passes(nbx * nby, 32)[1]) > 5
 
 
