@@ -173,10 +173,14 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
                        packed_from=(height, width))
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
-    sigma = jnp.sign(_orientation(tri.components()))
-    depth, front = _depth_and_facing(tri_depth, sigma, tid,
-                                     *placed.window_centers(tri_depth.dtype))
-    return dataclasses.replace(placed, depth=depth, front_facing=front), index
+    covered = tid >= 0
+    t = jnp.maximum(tid, 0)
+    # the facing from the fragment's own (snapped) corners: no per-triangle pass over the mesh
+    corners = tri[t]  # (capacity, 3, 4)
+    sigma = jnp.sign(_orientation([[corners[:, k, c] for c in range(4)] for k in range(3)]))
+    depth = jnp.where(covered, _pixel_depth(tri_depth, t, *placed.window_centers(
+        tri_depth.dtype)), 1.0)
+    return dataclasses.replace(placed, depth=depth, front_facing=covered & (sigma > 0)), index
 
 
 def expand(values: Array, index: Array, height: int, width: int, fill=0) -> Array:
