@@ -308,8 +308,7 @@ def _triangle_setup(v: list[list[Array]], width: int, height: int, block: int,
     Returns ``sigma`` (F,) sign of det M, the first tile ``tx0, ty0`` of the bounding box
     on the image's grid of ``block x block`` tiles (tile ``(tx, ty)`` holds window pixels
     ``i // block == tx``, ``j // block == ty``) and the box's size in tiles ``nbx, nby``
-    (F,); ``nbx = nby = 0``
-    for triangles that cannot cover a pixel.
+    (F,); ``nbx = nby = 0`` for triangles that cannot cover a pixel.
     """
     sigma = jnp.sign(_orientation(v))
 
@@ -554,6 +553,20 @@ def _slot_passes(counts: Array, pass_slots: int) -> tuple[Array, Array]:
     return passes, passes[-1] + 1
 
 
+def _passes(setup, pass_slots: int):
+    """``(n_passes, setup_of)``: the number of passes `_slot_passes` gives the triangles of
+    `_triangle_setup`'s ``setup``, and ``setup_of(p)``, that setup with the triangles of
+    other passes given no tiles."""
+    sigma, tx0, ty0, nbx, nby = setup
+    passes, n_passes = _slot_passes(nbx * nby, pass_slots)
+
+    def setup_of(p):
+        mine = passes == p
+        return sigma, tx0, ty0, jnp.where(mine, nbx, 0), jnp.where(mine, nby, 0)
+
+    return n_passes, setup_of
+
+
 @functools.partial(jax.jit, static_argnames=_STATIC + ("pass_slots",))
 def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits,
                pass_slots=PASS_SLOTS):
@@ -562,21 +575,18 @@ def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     setup = _triangle_setup(tri.components(), width, height, block, cull_back)
-    sigma, tx0, ty0, nbx, nby = setup
     zbuf = jnp.full((tiles, block, block), jnp.inf, clip.dtype)
     ids = jnp.full((tiles, block, block), _NO_TRIANGLE, jnp.int32)
     if faces.shape[0] * tiles <= pass_slots:  # one pass, whatever the triangles (static)
         _, ids = _depth_test(tri, tri_depth, setup, zbuf, ids, **kw)
     else:
-        passes, n_passes = _slot_passes(nbx * nby, pass_slots)
+        n_passes, setup_of = _passes(setup, pass_slots)
 
         def one_pass(carry):
             # (a while loop, not a lax.cond on the rare overflow: XLA's CPU conditional
             # made the whole frame ~9 ms slower at 200k triangles)
             p, zbuf, ids = carry
-            mine = passes == p
-            st = (sigma, tx0, ty0, jnp.where(mine, nbx, 0), jnp.where(mine, nby, 0))
-            return (p + 1,) + _depth_test(tri, tri_depth, st, zbuf, ids, **kw)
+            return (p + 1,) + _depth_test(tri, tri_depth, setup_of(p), zbuf, ids, **kw)
 
         _, _, ids = jax.lax.while_loop(lambda c: c[0] < n_passes, one_pass,
                                        (jnp.int32(0), zbuf, ids))
@@ -620,15 +630,13 @@ def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_b
               pass_slots=PASS_SLOTS):
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
-    sigma, tx0, ty0, nbx, nby = _triangle_setup(tri.components(), width, height, block, cull_back)
-    passes, n_passes = _slot_passes(nbx * nby, pass_slots)
+    n_passes, setup_of = _passes(
+        _triangle_setup(tri.components(), width, height, block, cull_back), pass_slots)
 
     def one_pass(carry):
         p, count = carry
-        mine = passes == p
-        st = (sigma, tx0, ty0, jnp.where(mine, nbx, 0), jnp.where(mine, nby, 0))
-        fragments, total = _fragment_source(tri, tri_depth, st, width=width, height=height,
-                                            block=block, slots=slots)
+        fragments, total = _fragment_source(tri, tri_depth, setup_of(p), width=width,
+                                            height=height, block=block, slots=slots)
 
         def round_(c):
             q, count = c
