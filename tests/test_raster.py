@@ -231,6 +231,9 @@ def test_slot_passes_count_past_int32():
         (np.array([[0, 0, 0, 1], [np.nan, 0, 0, 1], [0, 1, 0, 1]]), [[0, 1, 2]],
          dict(width=8, height=8), "non-finite"),
         (np.zeros((3, 4)), [[0.0, 1.0, 2.0]], dict(width=8, height=8), "integers"),
+        (np.zeros((3, 4)), [[0, 1, 2]], dict(width=65536, height=32768), "too large"),
+        (np.zeros((3, 4)), [[0, 1, 2]], dict(width=32768, height=32768, block=1),
+         "too large"),
     ],
 )
 def test_bad_arguments_raise_clear_errors(clip, faces, kw, match):
