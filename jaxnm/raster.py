@@ -457,7 +457,7 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     depth = dz_c[:, None] + dz_a[:, None] * fx + dz_b[:, None] * fy
     inside = inside & (depth >= 0.0) & (depth <= 1.0)
     depth = materialize(jnp.where(inside, depth, jnp.inf).reshape(slots, block, block))
-    return by // block * tiles_x + bx // block, depth, t
+    return by // block * tiles_x + bx // block, depth, t  # (from the materialised bx, by)
 
 
 def _window_corners(clip, faces, *, width, height, subpixel_bits):
@@ -553,18 +553,25 @@ def _slot_passes(counts: Array, pass_slots: int) -> tuple[Array, Array]:
     return passes, passes[-1] + 1
 
 
-def _passes(setup, pass_slots: int):
-    """``(n_passes, setup_of)``: the number of passes `_slot_passes` gives the triangles of
-    `_triangle_setup`'s ``setup``, and ``setup_of(p)``, that setup with the triangles of
-    other passes given no tiles."""
+def _each_pass(fn, setup, carry, *, tiles: int, pass_slots: int):
+    """``carry = fn(setup_p, carry)`` for the triangles of each pass in turn (`_slot_passes`),
+    ``setup_p`` being `_triangle_setup`'s ``setup`` with the other passes' triangles given
+    no tiles; a single call with ``setup`` itself where the frame cannot have more than
+    ``pass_slots`` slots (faces x tiles; static). A while loop, not a ``lax.cond`` on the
+    rare overflow: XLA's CPU conditional made the whole frame ~9 ms slower at 200k
+    triangles."""
     sigma, tx0, ty0, nbx, nby = setup
+    if nbx.shape[0] * tiles <= pass_slots:
+        return fn(setup, carry)
     passes, n_passes = _slot_passes(nbx * nby, pass_slots)
 
-    def setup_of(p):
+    def one_pass(c):
+        p, carry = c
         mine = passes == p
-        return sigma, tx0, ty0, jnp.where(mine, nbx, 0), jnp.where(mine, nby, 0)
+        return p + 1, fn((sigma, tx0, ty0, jnp.where(mine, nbx, 0), jnp.where(mine, nby, 0)),
+                         carry)
 
-    return n_passes, setup_of
+    return jax.lax.while_loop(lambda c: c[0] < n_passes, one_pass, (jnp.int32(0), carry))[1]
 
 
 @functools.partial(jax.jit, static_argnames=_STATIC + ("pass_slots",))
@@ -575,21 +582,11 @@ def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     setup = _triangle_setup(tri.components(), width, height, block, cull_back)
-    zbuf = jnp.full((tiles, block, block), jnp.inf, clip.dtype)
-    ids = jnp.full((tiles, block, block), _NO_TRIANGLE, jnp.int32)
-    if faces.shape[0] * tiles <= pass_slots:  # one pass, whatever the triangles (static)
-        _, ids = _depth_test(tri, tri_depth, setup, zbuf, ids, **kw)
-    else:
-        n_passes, setup_of = _passes(setup, pass_slots)
-
-        def one_pass(carry):
-            # (a while loop, not a lax.cond on the rare overflow: XLA's CPU conditional
-            # made the whole frame ~9 ms slower at 200k triangles)
-            p, zbuf, ids = carry
-            return (p + 1,) + _depth_test(tri, tri_depth, setup_of(p), zbuf, ids, **kw)
-
-        _, _, ids = jax.lax.while_loop(lambda c: c[0] < n_passes, one_pass,
-                                       (jnp.int32(0), zbuf, ids))
+    _, ids = _each_pass(
+        lambda st, bufs: _depth_test(tri, tri_depth, st, *bufs, **kw), setup,
+        (jnp.full((tiles, block, block), jnp.inf, clip.dtype),
+         jnp.full((tiles, block, block), _NO_TRIANGLE, jnp.int32)),
+        tiles=tiles, pass_slots=pass_slots)
 
     ids = _tiles_to_image(ids, width, height)
     tid = jnp.where(ids != _NO_TRIANGLE, ids, -1)
@@ -630,12 +627,10 @@ def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_b
               pass_slots=PASS_SLOTS):
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
-    n_passes, setup_of = _passes(
-        _triangle_setup(tri.components(), width, height, block, cull_back), pass_slots)
+    tiles = (-(-width // block)) * (-(-height // block))
 
-    def one_pass(carry):
-        p, count = carry
-        fragments, total = _fragment_source(tri, tri_depth, setup_of(p), width=width,
+    def one_pass(setup, count):
+        fragments, total = _fragment_source(tri, tri_depth, setup, width=width,
                                             height=height, block=block, slots=slots)
 
         def round_(c):
@@ -643,12 +638,13 @@ def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_b
             tile, depth, _ = fragments(q * slots)
             return q + 1, count.at[tile].add((depth < jnp.inf).astype(jnp.int32), mode="drop")
 
-        return p + 1, jax.lax.while_loop(lambda c: c[0] * slots < total, round_,
-                                         (jnp.int32(0), count))[1]
+        return jax.lax.while_loop(lambda c: c[0] * slots < total, round_,
+                                  (jnp.int32(0), count))[1]
 
-    tiles = (-(-width // block)) * (-(-height // block))
-    _, count = jax.lax.while_loop(lambda c: c[0] < n_passes, one_pass,
-                                  (jnp.int32(0), jnp.zeros((tiles, block, block), jnp.int32)))
+    count = _each_pass(one_pass, _triangle_setup(tri.components(), width, height, block,
+                                                 cull_back),
+                       jnp.zeros((tiles, block, block), jnp.int32), tiles=tiles,
+                       pass_slots=pass_slots)
     return _tiles_to_image(count, width, height)
 
 
