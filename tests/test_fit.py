@@ -355,8 +355,9 @@ def test_ctrl_c_stops_after_the_current_step_and_keeps_the_best(small):
     timer = threading.Timer(1.0, lambda: os.kill(os.getpid(), signal.SIGINT))
     timer.start()
     try:
-        res = F.fit_normal_map(problem, F.FitOptions(max_steps=100000), prepared=prep,
-                               progress=False)
+        # (no convergence test: on a fast machine the fit converged before the interrupt)
+        res = F.fit_normal_map(problem, F.FitOptions(max_steps=100000, ftol=0.0, rtol=0.0,
+                                                     atol=0.0), prepared=prep, progress=False)
     finally:
         timer.cancel()
     assert res.stopped == "interrupted"
