@@ -664,12 +664,26 @@ def overdraw(clip: Array, faces: Array, *, width: int, height: int, cull_back: b
     return _overdraw(clip, faces, **kw)
 
 
-def default_slots(num_faces: int, width: int, height: int, block: int) -> int:
-    """Slots per round: about one round for small scenes, at most 2**15 (more rounds run as
-    needed)."""
+#: The most slots per round, by backend. On the CPU a round's buffers should stay in cache
+#: (2^14: 1.1-1.4x slower, 2^17: 1.3-3x slower than 2^15; 2-core VM). A GPU's while loop
+#: waits on the host for its condition every round, so it wants few, large rounds: on an
+#: H100, visibility of the 200k torus at 1024^2 takes 5.2 ms at 2^15, 2.5 at 2^17, 1.6 at
+#: 2^19 and 3.5 at 2^21 (20k at 512^2: 1.25, 1.02, 1.44 ms at 2^15, 2^17, 2^19), 2026-11-25,
+#: ``scripts/profile_render.py --slots``.
+MAX_SLOTS = {"cpu": 1 << 15}
+MAX_SLOTS_ACCELERATOR = 1 << 19
+
+
+def default_slots(num_faces: int, width: int, height: int, block: int,
+                  backend: str | None = None) -> int:
+    """Slots per round: about one round for small scenes, at most `MAX_SLOTS` of the
+    ``backend`` (JAX's default backend if None; `MAX_SLOTS_ACCELERATOR` for GPUs and other
+    accelerators). More rounds run as needed."""
+    backend = jax.default_backend() if backend is None else backend
+    cap = MAX_SLOTS.get(backend, MAX_SLOTS_ACCELERATOR)
     n_blocks = (-(-width // block)) * (-(-height // block))
     want = max(4 * num_faces, n_blocks, 256)
-    return int(min(1 << 15, 1 << (want - 1).bit_length()))
+    return int(min(cap, 1 << (want - 1).bit_length()))
 
 
 def rasterize(clip: Array, faces: Array, *, width: int, height: int, cull_back: bool = False,

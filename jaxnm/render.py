@@ -427,10 +427,13 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
             raise ValueError(f"{scene.source}: {e}") from None
     scene = with_tangents_if_needed(scene, opts)
     check_mesh(scene.mesh, opts, scene.source)
-    scene, origin = camera_relative(scene)
+    # the mesh's shift to the camera is left to the compiled programs (``shift``): done here
+    # it would be an eager operation and a transfer per frame (1.1 ms of host time on an H100)
+    scene, origin, shift = _camera_relative(scene, defer_shift=True)
     nm = None if scene.normal_map is None else jnp.asarray(scene.normal_map)
-    args = (scene.mesh, scene.camera, nm, jnp.asarray(scene.albedo), scene.lights,
-            scene.material, jnp.asarray(origin, jnp.float32))
+    args = (scene.mesh, scene.camera, nm, scene.albedo, scene.lights, scene.material,
+            jnp.asarray(origin, jnp.float32) if isinstance(origin, jax.core.Tracer)
+            else np.asarray(origin, np.float32), shift)
     pixels = opts.width * opts.height
     slots = _traced_capacity(pack, pixels, scene.source)
     if pack is None:
@@ -438,8 +441,8 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     if (pack is False or opts.derivatives == "gbuffer"
             or (slots is None and not _concrete(scene.mesh, scene.camera))):
         return _render(*args, opts=opts)
-    tid, count = _visible(scene.mesh, scene.camera, width=opts.width, height=opts.height,
-                          cull_back=opts.cull_back)
+    tid, count = _visible(scene.mesh, scene.camera, shift, width=opts.width,
+                          height=opts.height, cull_back=opts.cull_back)
     if not isinstance(count, jax.core.Tracer):
         return _render(*args, tid, opts=opts, capacity=_capacity(int(count), pixels))
     if slots is None:  # the count is traced (the caller's jit): the whole image
@@ -487,6 +490,14 @@ def camera_relative(scene: Scene) -> tuple[Scene, Array]:
     rotation do not change. When the camera or the model is traced (``jax.grad`` with
     respect to them), the same is done in float32 with JAX.
     """
+    scene, origin, _ = _camera_relative(scene, defer_shift=False)
+    return scene, origin
+
+
+def _camera_relative(scene: Scene, *, defer_shift: bool):
+    """`camera_relative`, and with ``defer_shift`` the mesh's translation to the camera left
+    undone where the model has no rotation: returned as a (3,) float32 NumPy ``shift`` (else
+    None) for the caller's compiled program to add (`_shifted`)."""
     cam, model = scene.camera, scene.model
     if not _concrete(cam.eye, cam.view, model):  # traced: JAX, float32
         eye = jnp.asarray(cam.eye, jnp.float32)
@@ -497,29 +508,39 @@ def camera_relative(scene: Scene) -> tuple[Scene, Array]:
             nrm = None if mesh.normals is None else safe_normalize(jnp.matmul(
                 mesh.normals, jnp.linalg.inv(m[:3, :3]), precision=jax.lax.Precision.HIGHEST))
             mesh = dataclasses.replace(mesh, positions=pos + m[None, :3, 3], normals=nrm)
-        return dataclasses.replace(scene, mesh=mesh, model=None), jnp.zeros(3)
+        return dataclasses.replace(scene, mesh=mesh, model=None), jnp.zeros(3), None
     eye = np.asarray(cam.eye, np.float64)
     m = np.eye(4) if model is None else np.asarray(model, np.float64)
     rel = m.copy()
     rel[:3, 3] = m[:3, 3] - eye  # large model offset and large eye cancel in float64 here
-    if np.array_equal(rel[:3, :3], np.eye(3)):
-        mesh = dataclasses.replace(scene.mesh, positions=scene.mesh.positions + jnp.asarray(
-            rel[None, :3, 3], jnp.float32))
-    else:
+    shift = None
+    if not np.array_equal(rel[:3, :3], np.eye(3)):
         mesh = scene.mesh.transformed(rel)
+    elif defer_shift:
+        mesh, shift = scene.mesh, rel[:3, 3].astype(np.float32)
+    else:
+        mesh = _shifted(scene.mesh, rel[:3, 3].astype(np.float32))
     view = np.asarray(cam.view, np.float64).copy()
     view[:3, 3] = 0.0
-    camera = Camera(view=jnp.asarray(view, jnp.float32), projection=cam.projection,
-                    eye=np.zeros(3))
+    camera = Camera(view=view.astype(np.float32), projection=cam.projection, eye=np.zeros(3))
     lights = scene.lights
     if lights is not None and lights.point is not None:
         p = lights.point
-        shift = (np.asarray(p.position, np.float64) - eye if _concrete(p.position)
+        moved = ((np.asarray(p.position, np.float64) - eye).astype(np.float32)
+                 if _concrete(p.position)
                  else p.position - jnp.asarray(eye, jnp.float32).reshape((1,) * (
                      jnp.ndim(p.position) - 1) + (3,)))
-        lights = dataclasses.replace(lights, point=dataclasses.replace(
-            p, position=jnp.asarray(shift, jnp.float32)))
-    return dataclasses.replace(scene, mesh=mesh, camera=camera, lights=lights, model=None), eye
+        lights = dataclasses.replace(lights, point=dataclasses.replace(p, position=moved))
+    return (dataclasses.replace(scene, mesh=mesh, camera=camera, lights=lights, model=None), eye,
+            shift)
+
+
+def _shifted(mesh: Mesh, shift) -> Mesh:
+    """``mesh`` translated by ``shift`` (3,) (None: unchanged)."""
+    if shift is None:
+        return mesh
+    return dataclasses.replace(mesh, positions=mesh.positions
+                               + jnp.asarray(shift, jnp.float32)[None])
 
 
 def with_tangents_if_needed(scene: Scene, opts: RenderOptions) -> Scene:
@@ -548,10 +569,13 @@ def _capacity(count: int, pixels: int) -> int:
 
 
 @functools.partial(jax.jit, static_argnames=("width", "height", "cull_back"))
-def _visible(mesh: Mesh, camera: Camera, *, width: int, height: int, cull_back: bool):
+def _visible(mesh: Mesh, camera: Camera, shift=None, *, width: int, height: int,
+             cull_back: bool):
     """Each pixel's triangle (-1: background) and how many pixels are covered; the depth
     and facing are left to the packed pixels (`compact`). Only the options visibility
-    depends on are static: one compilation serves every output, frame and map."""
+    depends on are static: one compilation serves every output, frame and map. ``shift``:
+    see `_camera_relative`."""
+    mesh = _shifted(mesh, shift)
     tid = rasterize(to_clip(mesh.positions, camera), mesh.faces, width=width, height=height,
                     cull_back=cull_back).triangle_id
     return tid, jnp.count_nonzero(tid >= 0)
@@ -559,13 +583,14 @@ def _visible(mesh: Mesh, camera: Camera, *, width: int, height: int, cull_back: 
 
 @functools.partial(jax.jit, static_argnames=("opts", "capacity"))
 def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, origin,
-            triangle_id: Array | None = None, *, opts: RenderOptions,
+            shift=None, triangle_id: Array | None = None, *, opts: RenderOptions,
             capacity: int | None = None) -> dict[str, Array]:
     """`render` as one XLA program (one compilation per scene shape, options and capacity);
-    the scene is camera-relative (`camera_relative`), ``origin`` the camera's world
-    position. With ``capacity``, the per-pixel stages run on the covered pixels of
-    ``triangle_id`` (from `_visible`), packed by `compact`, and their results are put back
-    in image layout."""
+    the scene is camera-relative (`_camera_relative`; the mesh still to be moved by
+    ``shift``), ``origin`` the camera's world position. With ``capacity``, the per-pixel
+    stages run on the covered pixels of ``triangle_id`` (from `_visible`), packed by
+    `compact`, and their results are put back in image layout."""
+    mesh = _shifted(mesh, shift)
     if capacity is None:
         packed = frags = _visibility(mesh, camera, opts)
         index = None

@@ -11,6 +11,11 @@ camera) it times, medians of ``--repeats`` runs, each forced to completion:
 - ``whole_jit``: the whole frame as one program, the scene an argument of the caller's jit;
 - ``visibility``: `jaxnm.rasterize`'s triangle ids alone.
 
+``--slots 15,17,19`` also times visibility and the whole-frame program with rounds of
+2^k (triangle, tile) slots instead of `jaxnm.raster.default_slots` (its cap was chosen on
+the CPU), with each variant's compile time. ``--host`` breaks `render`'s host part
+(before its program is dispatched) into its steps.
+
 ``--trace`` also records a profiler trace of the whole-frame program (and, with ``--fit``,
 of LM steps of the fit benchmark) and prints the kernels that take the most device time
 per frame (per step): on a GPU, its kernels and copies; on the CPU, XLA's thunks, which nest
@@ -23,6 +28,7 @@ from __future__ import annotations
 import argparse
 import collections
 import gzip
+import importlib
 import json
 import statistics
 import sys
@@ -130,6 +136,71 @@ def profile_render(name, grid, size, args) -> dict:
     return row
 
 
+def compile_s(fn, *args) -> float:
+    t = time.perf_counter()
+    fn.lower(*args).compile()
+    return round(time.perf_counter() - t, 3)
+
+
+def profile_slots(name, grid, size, args) -> list[dict]:
+    """Visibility and the whole frame with rounds of 2^k slots (see the module docstring)."""
+    raster = importlib.import_module("jaxnm.raster")
+
+    scene = scene_for(grid, size)
+    clip = jaxnm.to_clip(scene.mesh.positions, scene.camera)
+    faces = scene.mesh.faces
+    default = raster.default_slots(faces.shape[0], size, size, 4)
+    rows = []
+    for k in [int(k) for k in args.slots.split(",")]:
+        slots = 1 << k
+
+        @jax.jit
+        def ids(clip, faces, slots=slots):
+            return jaxnm.rasterize(clip, faces, width=size, height=size,
+                                   slots=slots).triangle_id
+
+        original = raster.default_slots
+        raster.default_slots = lambda *a, slots=slots: slots
+        try:
+            jax.clear_caches()
+            whole = jax.jit(lambda s: jaxnm.render(s)["color"])
+            row = {"scene": name, "backend": jax.default_backend(), "slots_log2": k,
+                   "default_slots_log2": default.bit_length() - 1,
+                   "visibility_compile_s": compile_s(ids, clip, faces),
+                   "visibility_ms": median_ms(lambda: ids(clip, faces), args.repeats),
+                   "whole_jit_compile_s": compile_s(whole, scene),
+                   "whole_jit_ms": median_ms(lambda: whole(scene), args.repeats)}
+        finally:
+            raster.default_slots = original
+        rows.append(row)
+    jax.clear_caches()
+    return rows
+
+
+def profile_host(name, grid, size, args) -> dict:
+    """`render`'s host steps before its program runs, each timed alone (medians)."""
+    R = importlib.import_module("jaxnm.render")
+    from jaxnm.scene import validate_scene
+
+    scene = scene_for(grid, size)
+    jax.block_until_ready(jaxnm.render(scene)["color"])
+    v = validate_scene(scene)
+    opts = R.RenderOptions.of(v)
+
+    steps = {
+        "validate_scene": lambda: validate_scene(scene),
+        "RenderOptions.of": lambda: R.RenderOptions.of(v),
+        "with_tangents+check_mesh": lambda: (R.with_tangents_if_needed(v, opts),
+                                             R.check_mesh(v.mesh, opts, v.source)),
+        "camera_relative": lambda: R.camera_relative(v),
+        "whole render (host part)": lambda: jaxnm.render(scene)["color"],
+    }
+    row = {"scene": name, "backend": jax.default_backend()}
+    for label, fn in steps.items():
+        row[f"{label}_ms"] = host_ms(fn, args.repeats)
+    return row
+
+
 def profile_fit(args) -> dict:
     p = B.make_problem()
     targets = []
@@ -167,11 +238,18 @@ def main(argv=None) -> None:
     ap.add_argument("--trace", action="store_true")
     ap.add_argument("--fit", action="store_true", help="also the fit benchmark's LM steps")
     ap.add_argument("--scenes", default=",".join(SCENES))
+    ap.add_argument("--slots", default="", help="e.g. 15,17,19: rounds of 2^k slots")
+    ap.add_argument("--host", action="store_true", help="render's host steps, one by one")
     args = ap.parse_args(argv)
     Path(args.out).mkdir(parents=True, exist_ok=True)
     for name in args.scenes.split(","):
         if name:
             print(json.dumps(profile_render(name, *SCENES[name], args)), flush=True)
+            if args.host:
+                print(json.dumps(profile_host(name, *SCENES[name], args)), flush=True)
+            if args.slots:
+                for row in profile_slots(name, *SCENES[name], args):
+                    print(json.dumps(row), flush=True)
     if args.fit:
         print(json.dumps(profile_fit(args)), flush=True)
 

@@ -203,6 +203,28 @@ def test_many_rounds_and_passes_give_the_same_image():
     assert int(raster._slot_passes(nbx * nby, 32)[1]) > 5
 
 
+def test_round_size_by_backend_does_not_change_the_image():
+    """A GPU takes larger rounds than the CPU (`raster.MAX_SLOTS`); the frame is the same."""
+    from jaxnm import procedural, raster
+
+    assert raster.default_slots(20480, 512, 512, 4, backend="cpu") == 2**15
+    assert raster.default_slots(20480, 512, 512, 4, backend="gpu") == 2**17
+    assert raster.default_slots(200_000, 1024, 1024, 4, backend="gpu") == 2**19
+    assert raster.default_slots(10, 16, 16, 4, backend="gpu") == 256  # small scenes: one round
+    torus = procedural.torus(1.0, 0.4, 128, 80)
+    clip = clip_of(np.asarray(torus.positions, np.float64),
+                   perspective_mvp((0.3, 2.0, 2.2))).astype(np.float32)
+    kw = dict(width=48, height=48)
+    cpu, gpu = (raster.default_slots(len(torus.faces), 48, 48, 4, backend=b)
+                for b in ("cpu", "gpu"))
+    assert (cpu, gpu) == (2**15, 2**17)
+    a = jaxnm.rasterize(clip, torus.faces, slots=cpu, **kw)
+    b = jaxnm.rasterize(clip, torus.faces, slots=gpu, **kw)
+    assert (np.asarray(a.triangle_id) >= 0).mean() > 0.2
+    for field in ("triangle_id", "depth", "front_facing"):
+        assert np.array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)))
+
+
 def test_slot_passes_count_past_int32():
     """Each triangle's pass is floor(first slot / pass size), its first slot counted exactly
     though the frame's total wraps around uint32 several times."""
