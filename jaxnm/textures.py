@@ -60,11 +60,6 @@ __all__ = [
     "lod",
     "plan_sample",
     "apply_plan",
-    "flatten_levels",
-    "gather_taps",
-    "PlanTranspose",
-    "plan_transpose",
-    "apply_plan_transpose",
     "sample",
     "decode_normal_map",
     "encode_normal_map",
@@ -487,131 +482,10 @@ def apply_plan(plan: SamplePlan, mips: ArrayLike | Sequence[ArrayLike]) -> Array
 
 @jax.jit
 def _apply_plan(plan: SamplePlan, used: tuple[Array, ...]) -> Array:
-    flat = flatten_levels(used, plan.level_shapes)
-    return _gather_weighted(flat, plan.index, plan.weight.astype(flat.dtype))
-
-
-def flatten_levels(mips: Sequence[Array], level_shapes: Sequence[tuple[int, int]]) -> Array:
-    """``(texels, C)``: the levels of ``mips`` a plan of ``level_shapes`` reads, flattened
-    row-major and concatenated (level 0 first): the rows a `SamplePlan`'s indices address."""
-    used = list(mips)[: len(level_shapes)]
     channels = used[0].shape[-1]
     dtype = jnp.result_type(*used)
-    return jnp.concatenate([m.reshape(-1, channels).astype(dtype) for m in used], 0)
-
-
-def gather_taps(flat: Array, index: Array, weight: Array) -> Array:
-    """``sum_t weight[..., t] * flat[index[..., t]]``, ``(..., C)``: `apply_plan` on
-    texels already flattened (`flatten_levels`), for a plan's ``index`` and ``weight``
-    (or the first taps of them). Linear in ``flat``, differentiable in ``weight``."""
-    return _gather_weighted(flat, index, weight.astype(flat.dtype))
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class PlanTranspose:
-    """The transpose of a fixed sample plan, as gathers: for every texel, the (row, weight)
-    pairs of the plan's taps that read it (see `plan_transpose`).
-
-    The transpose of `apply_plan` with respect to the texels is a scatter-add: every tap adds
-    ``weight * cotangent[row]`` into its texel. A scatter-add costs several times a gather on
-    XLA's CPU backend, and on a GPU it is either run in a varying order or made
-    deterministic by sorting its indices every call. Where the plan is fixed (a fit's
-    geometry), that sort is done once, on the host: texels are grouped by how many taps read
-    them, each group a dense (texels, width) table of rows and weights (padded with a zero
-    row), so that the transpose is one gather and one sum per group, in a fixed order.
-
-    **Fields:**
-    - `rows`, `weights`: per group, (n_g, width_g) int32 rows of the cotangent (its leading
-      axes flattened; the extra row ``rows_total`` reads zero) and float32 weights.
-    - `where`: (texels,) int32: each texel's position in the concatenated groups' sums
-      (their total length for a texel no tap reads: a zero).
-    - `rows_total` (static): the number of cotangent rows.
-    """
-
-    rows: tuple[Array, ...]
-    weights: tuple[Array, ...]
-    where: Array
-    rows_total: int = dataclasses.field(metadata=dict(static=True), default=0)
-
-
-#: Widths of `PlanTranspose`'s groups grow by this factor (a group pads its texels up to
-#: its width: at most this much more work than the taps themselves). With the sums
-#: unrolled up to `_UNROLL` wide (a contraction beyond), measured on the 2-core VM for 1.2 M
-#: taps into a 256^2 map's mip chain: 2.1 ms a transpose, against 6.6-7.6 ms for XLA's
-#: scatter-add, for 0.43 s of compilation (0.26 s); a growth of 1.25 pads less but
-#: compiles 0.6 s; summing by contractions alone runs 3.9 ms.
-_GROUP_GROWTH = 2.0
-
-
-def plan_transpose(index, weight, num_texels: int) -> PlanTranspose:
-    """The `PlanTranspose` of a plan's ``index`` and ``weight`` (..., T), NumPy or concrete
-    arrays (computed on the host), for texel arrays of ``num_texels`` rows (all levels
-    concatenated, as `apply_plan` reads them). Taps of weight 0 are left out."""
-    index = np.asarray(index)
-    weight = np.asarray(weight, np.float32)
-    taps = index.shape[-1]
-    rows_total = index.size // taps
-    entries = np.flatnonzero(weight.reshape(-1) != 0)
-    texel = index.reshape(-1)[entries].astype(np.int64)
-    if texel.size and (texel.min() < 0 or texel.max() >= num_texels):
-        raise ValueError(f"plan_transpose: the plan reads texels outside [0, {num_texels})")
-    order = np.argsort(texel, kind="stable")  # each texel's taps in the plan's order
-    entries, texel = entries[order], texel[order]
-    counts = np.bincount(texel, minlength=num_texels)
-    first = np.cumsum(counts) - counts
-    rows_of = np.append(entries // taps, rows_total).astype(np.int32)  # + the zero row
-    w_of = np.append(weight.reshape(-1)[entries], np.float32(0))
-    pad = len(entries)  # -> the zero row, weight 0
-    where = np.full(num_texels, 0, np.int64)
-    rows, weights, placed, lo = [], [], 0, 0
-    seen = np.flatnonzero(counts)
-    while seen.size:
-        width = max(lo + 1, math.ceil(lo * _GROUP_GROWTH))
-        group = seen[counts[seen] <= width]
-        seen = seen[counts[seen] > width]
-        lo = width
-        if not group.size:
-            continue
-        k = np.arange(width)
-        at = np.where(k[None, :] < counts[group, None], first[group, None] + k[None, :], pad)
-        rows.append(rows_of[at])
-        weights.append(w_of[at])
-        where[group] = placed + np.arange(group.size)
-        placed += group.size
-    where[counts == 0] = placed
-    put = jax.device_put  # (jnp.asarray would compile a program per shape)
-    return PlanTranspose(tuple(put(r) for r in rows), tuple(put(w) for w in weights),
-                         put(where.astype(np.int32)), rows_total)
-
-
-_UNROLL = 64
-
-
-def apply_plan_transpose(t: PlanTranspose, cotangent: Array) -> Array:
-    """``(texels, C)``: the transpose of `apply_plan` applied to ``cotangent`` (..., C) (its
-    leading axes those of the plan's pixels), through the gathers of ``t``: the texel sums
-    are the scatter-add's, in a fixed order on every backend."""
-    c = cotangent.reshape(-1, cotangent.shape[-1])
-    if c.shape[0] != t.rows_total:
-        raise ValueError(f"apply_plan_transpose: {c.shape[0]} cotangent rows for a plan of "
-                         f"{t.rows_total}")
-    c = jnp.concatenate([c, jnp.zeros((1, c.shape[1]), c.dtype)], 0)
-    sums = []
-    for rows, w in zip(t.rows, t.weights):
-        g = c[rows]  # (n, width, C)
-        w = w.astype(c.dtype)
-        # unrolled over the width where it is small (XLA fuses it into the gather), a
-        # contraction where it is not
-        if w.shape[1] <= _UNROLL:
-            acc = w[:, 0, None] * g[:, 0]
-            for j in range(1, w.shape[1]):
-                acc = acc + w[:, j, None] * g[:, j]
-        else:
-            acc = jnp.einsum("nk,nkc->nc", w, g, precision=jax.lax.Precision.HIGHEST)
-        sums.append(acc)
-    sums.append(jnp.zeros((1, c.shape[1]), c.dtype))
-    return jnp.concatenate(sums, 0)[t.where]
+    flat = jnp.concatenate([m.reshape(-1, channels).astype(dtype) for m in used], 0)
+    return _gather_weighted(flat, plan.index, plan.weight.astype(dtype))
 
 
 def _gather(flat: Array, index: Array) -> Array:

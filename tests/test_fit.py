@@ -221,28 +221,6 @@ def test_gradient_wrt_slopes_matches_finite_differences(small):
     np.testing.assert_allclose(float(jnp.vdot(g, d)), float(fd), rtol=2e-2)
 
 
-def test_texel_gradients_are_summed_by_gathers(small):
-    """A fit step's texel gradients go through each batch's `PlanTranspose` (no scatter-add
-    in the gradient's program) and equal, to float32 rounding, the scatter-add's that JAX
-    derives when a batch has none."""
-    problem, _, _, prep, _ = small
-    assert all(b.transpose is not None for b in prep.batches)
-    z = jnp.asarray(np.random.default_rng(1).normal(0, 0.3, (32, 32, 2)), jnp.float32)
-    plain = dataclasses.replace(prep, batches=tuple(
-        dataclasses.replace(b, transpose=None) for b in prep.batches))
-    for reduce in (False, True):
-        grads = []
-        for p in (prep, plain):
-            args = F.ModelArgs.create(p, reduce=reduce)
-            grad = jax.jit(jax.grad(F.loss))
-            hlo = grad.lower(z, args).as_text()
-            assert ("scatter" in hlo) == (p is plain), (reduce, p is plain)
-            grads.append(np.asarray(grad(z, args)))
-        scale = np.abs(grads[1]).max()
-        assert scale > 0
-        np.testing.assert_allclose(grads[0], grads[1], atol=1e-5 * scale, rtol=0)
-
-
 def test_one_light_warns_that_the_map_is_not_determined(small):
     problem = small[0]
     one = dataclasses.replace(problem, targets=problem.targets[:1])

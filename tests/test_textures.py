@@ -20,7 +20,6 @@ from jaxnm.numerics import safe_normalize
 from jaxnm.textures import (
     SamplePlan,
     apply_plan,
-    apply_plan_transpose,
     build_mipmaps,
     decode_normal_map,
     encode_normal_map,
@@ -28,7 +27,6 @@ from jaxnm.textures import (
     lod,
     mip_sizes,
     plan_sample,
-    plan_transpose,
     sample,
     srgb_to_linear,
 )
@@ -767,40 +765,3 @@ def test_matches_the_gl_texture_unit():
     dx = np.stack([2.0**lods / TEX_HW[1], np.zeros(N)], -1).astype(np.float32)
     ours = sample(MIPS, UV, dx, np.zeros_like(dx), filter="trilinear")
     np.testing.assert_allclose(ours, gl, atol=2e-6)
-
-
-@pytest.mark.parametrize("filter", ["nearest", "bilinear", "trilinear"])
-def test_plan_transpose_sums_every_tap_into_its_texel(filter):
-    """`apply_plan_transpose` is the transpose of `apply_plan` w.r.t. the texels: equal to
-    float32 rounding to each texel's taps summed in float64 (np.add.at), and to JAX's own
-    transpose (a scatter-add); texels no tap reads get zero. A magnified corner (one texel
-    read by hundreds of taps) exercises the groups wider than the unrolled sums."""
-    from jaxnm import textures as T
-
-    rng = np.random.default_rng(5)
-    n = 3000
-    uv = rng.random((n, 2)).astype(np.float32) * 0.7
-    uv[:400] = 0.3 + 1e-4 * rng.random((400, 2))  # a close-up: one texel, many taps
-    duv = np.full((n, 2), 0.02, np.float32) * rng.random((n, 1)).astype(np.float32)
-    plan = plan_sample(jnp.asarray(uv), jnp.asarray(duv), jnp.asarray(duv[:, ::-1]),
-                       size_hw=(32, 32), levels=4, filter=filter)
-    mips = build_mipmaps(jnp.asarray(rng.random((32, 32, 3)), jnp.float32), levels=4)
-    texels = T.flatten_levels(mips, plan.level_shapes)
-    t = plan_transpose(plan.index, plan.weight, texels.shape[0])
-    assert max(r.shape[1] for r in t.rows) > T._UNROLL  # the wide-group path ran
-    ct = jnp.asarray(rng.normal(size=(n, 3)), jnp.float32)
-    got = np.asarray(jax.jit(apply_plan_transpose)(t, ct))
-
-    ref = np.zeros((texels.shape[0], 3))
-    idx, w = np.asarray(plan.index), np.asarray(plan.weight, np.float64)
-    np.add.at(ref, idx.reshape(-1), (w[..., None] * np.asarray(ct, np.float64)[:, None, :])
-              .reshape(-1, 3))
-    scale = np.abs(ref).max()
-    np.testing.assert_allclose(got, ref, atol=2e-6 * scale, rtol=0)
-    unread = np.setdiff1d(np.arange(texels.shape[0]), idx[w > 0])
-    assert unread.size and np.all(got[unread] == 0)
-    jax_t = jax.linear_transpose(lambda x: T.gather_taps(x, plan.index, plan.weight), texels)
-    np.testing.assert_allclose(got, np.asarray(jax_t(ct)[0]), atol=2e-6 * scale, rtol=0)
-    # the plan's own check: a cotangent of the wrong size is refused
-    with pytest.raises(ValueError, match="cotangent rows"):
-        apply_plan_transpose(t, ct[:-1])

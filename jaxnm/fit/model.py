@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jax.custom_derivatives import SymbolicZero, linear_call
+from jax.custom_derivatives import SymbolicZero
 
 from .. import textures as _tex
 from ..frames import perturb_normal
@@ -251,28 +251,30 @@ def _shade_view(gb: GBuffer, mips, lights: Lights, material: Material, opts: Ren
     return _pixel_model(m, gb, lights, material, opts.shading, jnp.asarray(strength, m.dtype))
 
 
-def _over_chunks(batch: ViewBatch, fn, pixel_axis: int, m: Array) -> Array:
-    """``fn(gbuffer, lights, images, weights, m)`` of one view's pixel chunk, run over every
+def _over_chunks(batch: ViewBatch, fn, pixel_axis: int) -> Array:
+    """``fn(gbuffer, lights, images, weights, taps)`` of one view's pixel chunk, run over every
     chunk of every view of ``batch`` (``vmap`` over views, a loop over the chunks of
     `ViewBatch.chunks`), and put together along its output's ``pixel_axis`` in the batch's
-    pixel order: (V, ..., K, ...). ``m`` (V, K, 3) are the pixels' sampled map vectors
-    (`_sample_batch`). A loop iteration holds one chunk's intermediates, so the working
-    memory of a step stays bounded however many views and pixels there are."""
+    pixel order: (V, ..., K, ...).
+
+    ``taps`` is 4 for the pixels that read one mip level (the first `ViewBatch.split`), None
+    (the plan's own) for the rest. A loop iteration holds one chunk's intermediates, so
+    the working memory of a step stays bounded however many views and pixels there are."""
     k = batch.pixels.shape[1]
     parts = []
-    for start, stop, n in ((0, batch.split, batch.chunks[0]),
-                           (batch.split, k, batch.chunks[1])):
+    for start, stop, n, taps in ((0, batch.split, batch.chunks[0], 4),
+                                 (batch.split, k, batch.chunks[1], None)):
         if stop == start:
             continue
         size = (stop - start) // n
 
-        def chunk(c, start=start, size=size):
+        def chunk(c, start=start, size=size, taps=taps):
             def cut(x, axis):
                 return jax.lax.dynamic_slice_in_dim(x, start + c * size, size, axis)
 
             gb = map_pixels(batch.gbuffer, lambda x: cut(x, 1))
-            return jax.vmap(fn)(gb, batch.lights, cut(batch.images, 2), cut(batch.weights, 2),
-                                cut(m, 1))
+            return jax.vmap(lambda *a: fn(*a, taps))(gb, batch.lights, cut(batch.images, 2),
+                                                     cut(batch.weights, 2))
 
         if n == 1:
             parts.append(chunk(0))
@@ -289,37 +291,13 @@ def _sample(plan: _tex.SamplePlan, mips, taps: int | None) -> Array:
     return materialize(_tex.apply_plan(_first_taps(plan, taps), mips))
 
 
-def _sample_batch(batch: ViewBatch, mips) -> Array:
-    """(V, K, 3): every pixel's map vector, the first `ViewBatch.split` pixels of each view
-    through their 4 non-zero taps. Its transpose (the texel gradients) sums by the gathers
-    of `ViewBatch.transpose` where there is one (`jax.custom_derivatives.linear_call`),
-    else by XLA's scatter-add."""
-    plan = batch.gbuffer.plan
-    flat = _tex.flatten_levels(mips, plan.level_shapes)
-    split, k = batch.split, plan.index.shape[1]
-
-    def sample(res, texels):
-        index, weight = res[:2]
-        parts = [_tex.gather_taps(texels, index[:, a:b, :t], weight[:, a:b, :t])
-                 for a, b, t in ((0, split, 4), (split, k, None)) if b > a]
-        return materialize(parts[0] if len(parts) == 1 else jnp.concatenate(parts, 1))
-
-    def transpose(res, cotangent):
-        return _tex.apply_plan_transpose(res[2], cotangent)
-
-    if batch.transpose is None:
-        return sample((plan.index, plan.weight), flat)
-    return linear_call(sample, transpose, (plan.index, plan.weight, batch.transpose), flat)
-
-
 def _shade_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions,
                  strength) -> Array:
     """(V, T, K, 3): every view of ``batch`` under each of its lights."""
-    def one(gb, lights, images, weights, m):
-        return _pixel_model(m, gb, lights, material, opts.shading,
-                            jnp.asarray(strength, m.dtype))
+    def one(gb, lights, images, weights, taps):
+        return _shade_view(gb, mips, lights, material, opts, strength, taps)
 
-    return _over_chunks(batch, one, 2, _sample_batch(batch, mips))
+    return _over_chunks(batch, one, 2)
 
 
 def render_with_map(prep: Prepared, normals: Array, *, strength: float = 1.0,
@@ -349,12 +327,13 @@ def _render_view(gb, normals, lights, material, strength, *, opts):
 def _reduced_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions,
                    strength) -> Array:
     """Every view of ``batch`` as `reduced_pixel_residuals`, flat."""
-    def one(gb, lights, images, weights, m):
+    def one(gb, lights, images, weights, taps):
+        m = _sample(gb.plan, mips, taps)
         rho, e = reduced_pixel_residuals(m, gb, lights, material, opts.shading,
                                          jnp.asarray(strength, m.dtype), images, weights)
         return jnp.concatenate([rho, e[:, None]], -1)
 
-    return _over_chunks(batch, one, 1, _sample_batch(batch, mips)).reshape(-1)
+    return _over_chunks(batch, one, 1).reshape(-1)
 
 
 def residuals(z: Array, args: ModelArgs) -> tuple[Array, ...]:

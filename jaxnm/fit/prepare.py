@@ -62,10 +62,6 @@ class ViewBatch:
     - `chunks` (static): how many equal chunks each of the two groups is cut
       into; a step evaluates one chunk of every view at a time (see
       `prepare`'s ``chunk``). Each group is padded to a multiple of its count.
-    - `transpose`: the sample plans' transpose over all the batch's pixels
-      (`jaxnm.textures.plan_transpose`, built once on the host): a step's texel gradients
-      are summed by gathers, in a fixed order, not by a scatter-add. None: by the
-      scatter-add.
     """
 
     gbuffer: GBuffer
@@ -77,7 +73,6 @@ class ViewBatch:
     targets: tuple[int, ...] = dataclasses.field(metadata=dict(static=True))
     split: int = dataclasses.field(metadata=dict(static=True), default=0)
     chunks: tuple[int, int] = dataclasses.field(metadata=dict(static=True), default=(1, 1))
-    transpose: _tex.PlanTranspose | None = None
 
 
 @jax.tree_util.register_dataclass
@@ -325,7 +320,6 @@ def _assemble(views: list[View], options: tuple[RenderOptions, ...],
                     lambda x: np.empty((len(members),) + x.shape, x.dtype), row)
             jax.tree_util.tree_map(lambda out, x: out.__setitem__(i, x), stacked, row)
             del row
-        transpose = _plan_transpose(stacked["gbuffer"].plan)
         # moved to the device one array at a time, each host copy dropped once moved: the
         # peak holds the batch about twice, not four times (views, rows, stack, device)
         leaves, tree = jax.tree_util.tree_flatten(stacked)
@@ -335,15 +329,8 @@ def _assemble(views: list[View], options: tuple[RenderOptions, ...],
         stacked = jax.tree_util.tree_unflatten(tree, leaves)
         del leaves
         batches.append(ViewBatch(**stacked, views=tuple(members), targets=targets,
-                                 split=ka if eight else 0, chunks=(na, nb),
-                                 transpose=transpose))
+                                 split=ka if eight else 0, chunks=(na, nb)))
     return Prepared(tuple(batches), material, options, chunk)
-
-
-def _plan_transpose(plan: _tex.SamplePlan) -> _tex.PlanTranspose:
-    """`jaxnm.textures.plan_transpose` of a batch's stacked plan (V, K, T)."""
-    return _tex.plan_transpose(plan.index, plan.weight,
-                               sum(h * w for h, w in plan.level_shapes))
 
 
 def with_map_size(prep: Prepared, size) -> Prepared:
@@ -383,11 +370,9 @@ def shard_views(prep: Prepared, devices=None) -> Prepared:
         return prep
     mesh = Mesh(np.array(devices), ("views",))
     split = NamedSharding(mesh, PartitionSpec("views"))
-    replicated = NamedSharding(mesh, PartitionSpec())
     batches = []
     for b in prep.batches:
         pad = (-len(b.views)) % n
-        b = dataclasses.replace(b, transpose=None)  # over every view: rebuilt, replicated
         if pad:
             def extend(x, pad=pad):
                 x = np.asarray(x)
@@ -399,7 +384,6 @@ def shard_views(prep: Prepared, devices=None) -> Prepared:
                 pixels=np.concatenate([np.asarray(b.pixels)[:-pad],
                                        np.full_like(np.asarray(b.pixels)[-pad:], -1)]),
                 views=b.views + (-1,) * pad, targets=b.targets + (0,) * pad)
-        transpose = jax.device_put(_plan_transpose(_host(b.gbuffer.plan)), replicated)
-        batches.append(dataclasses.replace(jax.device_put(b, split), transpose=transpose))
-    material = jax.device_put(prep.material, replicated)
+        batches.append(jax.device_put(b, split))
+    material = jax.device_put(prep.material, NamedSharding(mesh, PartitionSpec()))
     return Prepared(tuple(batches), material, prep.options, prep.chunk)
