@@ -214,7 +214,7 @@ def covered_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *,
         raise ValueError("covered_gbuffer: 'gbuffer' derivatives need the whole image's "
                          "G-buffer (build_gbuffer)")
     check_mesh(mesh, opts)
-    tid, count = _visible(mesh, camera, width=opts.width, height=opts.height,
+    tid, count = _visible(mesh, camera, _NO_SHIFT, width=opts.width, height=opts.height,
                           cull_back=opts.cull_back)
     count = int(count)
     gb, index = _covered(mesh, camera, albedo, tid, opts=opts,
@@ -430,6 +430,7 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     # the mesh's shift to the camera is left to the compiled programs (``shift``): done here
     # it would be an eager operation and a transfer per frame (1.1 ms of host time on an H100)
     scene, origin, shift = _camera_relative(scene, defer_shift=True)
+    shift = _NO_SHIFT if shift is None else shift  # one program structure either way
     nm = None if scene.normal_map is None else jnp.asarray(scene.normal_map)
     args = (scene.mesh, scene.camera, nm, scene.albedo, scene.lights, scene.material,
             jnp.asarray(origin, jnp.float32) if isinstance(origin, jax.core.Tracer)
@@ -533,6 +534,12 @@ def _camera_relative(scene: Scene, *, defer_shift: bool):
         lights = dataclasses.replace(lights, point=dataclasses.replace(p, position=moved))
     return (dataclasses.replace(scene, mesh=mesh, camera=camera, lights=lights, model=None), eye,
             shift)
+
+
+#: The shift of a mesh already where it belongs: `_visible` and `_render` always take one
+#: (an array, never None), so that `render` and `covered_gbuffer` share one compiled
+#: visibility program per image size.
+_NO_SHIFT = np.zeros(3, np.float32)
 
 
 def _shifted(mesh: Mesh, shift) -> Mesh:

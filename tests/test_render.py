@@ -533,3 +533,37 @@ def test_covered_gbuffer_is_the_whole_images_at_the_covered_pixels(derivatives):
     with pytest.raises(ValueError, match="whole image"):
         covered_gbuffer(sc.mesh, sc.camera, albedo,
                         opts=RenderOptions.of(sc, derivatives="gbuffer"))
+
+
+def test_render_and_a_fits_prepare_share_one_visibility_program():
+    """`render` (a fit's targets) and `covered_gbuffer` (its `prepare`) run one compiled
+    visibility program per image size: the mesh's shift to the camera is an argument in both
+    (`render._NO_SHIFT` where there is none), so `covered_gbuffer`'s call compiles nothing
+    (a None there was a second program: 1.4 s of `jaxnm fit`)."""
+    import importlib
+
+    import jax
+
+    R = importlib.import_module("jaxnm.render")
+    compiles = []
+    counting = [False]
+
+    def listen(name, seconds, **kwargs):
+        if counting[0] and name == "/jax/core/compile/backend_compile_duration":
+            compiles.append(seconds)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)  # (0.8.0: cannot unregister)
+    scene = default_scene(width=40, height=24)
+    R._visible.clear_cache()
+    img = render(scene, pack=True)["color"]
+    assert float(jnp.max(img)) > 0
+    counting[0] = True
+    try:
+        tid, count = R._visible(scene.mesh, scene.camera, R._NO_SHIFT, width=40, height=24,
+                                cull_back=False)
+        assert compiles == []
+        R._visible(scene.mesh, scene.camera, None, width=40, height=24, cull_back=False)
+        assert len(compiles) > 0  # the check can fail: a None is another program
+    finally:
+        counting[0] = False
+    assert int(count) > 0
