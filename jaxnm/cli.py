@@ -219,9 +219,8 @@ def main(argv=None) -> int:
                        help="allow run-to-run differences on a GPU (faster scatter-adds); "
                        "by default results are reproducible on every backend")
     args = parser.parse_args(argv)
-    from .runtime import use_compilation_cache, use_deterministic_ops, use_fast_allocation
+    from .runtime import use_compilation_cache, use_deterministic_ops
 
-    use_fast_allocation()
     if not args.nondeterministic:
         use_deterministic_ops()  # before JAX initialises a backend
     if not args.no_compile_cache:

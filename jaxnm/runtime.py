@@ -1,10 +1,14 @@
 """The process around the computation: the persistent compilation cache, deterministic
-GPU arithmetic, the C allocator's reuse of freed memory, and handing freed memory back to
-the system between phases.
+GPU arithmetic, and handing freed memory back to the system between phases.
 
 These change process-wide state (JAX's configuration, ``XLA_FLAGS``, the C allocator), so
 the command line and the scripts call them; a library user opts in. Nothing here changes
 a result.
+
+glibc's allocator can only be told to keep large freed buffers for reuse at process start
+(``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``: see the README's speed notes);
+``mallopt`` at run time caps the threshold at 32 MiB, which measured no different from the
+default.
 """
 
 from __future__ import annotations
@@ -14,7 +18,7 @@ import os
 from pathlib import Path
 
 __all__ = ["CACHE_ENV", "DETERMINISTIC_FLAG", "compilation_cache_dir", "use_compilation_cache",
-           "use_deterministic_ops", "use_fast_allocation", "release_memory"]
+           "use_deterministic_ops", "release_memory"]
 
 #: Environment variable naming the cache folder; ``off`` (or empty) turns the cache off.
 CACHE_ENV = "JAXNM_COMPILATION_CACHE"
@@ -78,32 +82,6 @@ def use_deterministic_ops() -> None:
     flags = os.environ.get("XLA_FLAGS", "")
     if DETERMINISTIC_FLAG not in flags.split():
         os.environ["XLA_FLAGS"] = f"{flags} {DETERMINISTIC_FLAG}".strip()
-
-
-def use_fast_allocation() -> bool:
-    """Let the C allocator (glibc) keep freed memory for the next allocation instead of
-    giving it back to the system at once.
-
-    XLA's CPU programs allocate their large buffers afresh on every call. By default glibc
-    serves those from fresh pages (``mmap``) or trims freed heap memory, so every call of a
-    program pays the page faults of touching its buffers again: measured on the 2-core VM,
-    a (200k, 3, 4) gather ran in 6 ms instead of 1 ms, the whole 20k-triangle frame in 37
-    instead of 19 ms. This sets glibc's ``M_MMAP_THRESHOLD`` to its maximum (32 MiB) and
-    ``M_TRIM_THRESHOLD`` to 1 GiB; `release_memory` still hands memory back between the
-    phases of a job. The command line and the scripts call this; a library user opts in.
-
-    Does nothing (returns False) where glibc is not the C library, or where the user chose
-    glibc's settings already (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``,
-    ``MALLOC_TOP_PAD_`` or ``GLIBC_TUNABLES`` set).
-    """
-    if any(k in os.environ for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_",
-                                     "MALLOC_TOP_PAD_", "GLIBC_TUNABLES")):
-        return False
-    mallopt = _libc_function("mallopt")
-    if mallopt is None:
-        return False
-    m_trim_threshold, m_mmap_threshold = -1, -3  # <malloc.h>
-    return bool(mallopt(m_mmap_threshold, 32 << 20)) & bool(mallopt(m_trim_threshold, 1 << 30))
 
 
 def release_memory(*, drop_compiled: bool = False, collect: bool = True) -> None:
