@@ -724,7 +724,7 @@ def save_json(path: PathLike, obj: Any) -> None:
 def save_loss_plot(path: PathLike, history: list[dict]) -> bool:
     """Plot the loss (log scale) and, when recorded, the mean angular error per iteration.
 
-    Needs matplotlib (the ``plots`` extra: ``pip install jaxnm[plots]``); returns False,
+    Needs matplotlib (the ``cli`` extra: ``pip install jaxnm[cli]``); returns False,
     writing nothing, when it is not installed.
     """
     try:
