@@ -430,11 +430,9 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     # the mesh's shift to the camera is left to the compiled programs (``shift``): done here
     # it would be an eager operation and a transfer per frame (1.1 ms of host time on an H100)
     scene, origin, shift = _camera_relative(scene, defer_shift=True)
-    shift = _NO_SHIFT if shift is None else shift  # one program structure either way
     nm = None if scene.normal_map is None else jnp.asarray(scene.normal_map)
     args = (scene.mesh, scene.camera, nm, scene.albedo, scene.lights, scene.material,
-            jnp.asarray(origin, jnp.float32) if isinstance(origin, jax.core.Tracer)
-            else np.asarray(origin, np.float32), shift)
+            np.asarray(origin, np.float32), shift)
     pixels = opts.width * opts.height
     slots = _traced_capacity(pack, pixels, scene.source)
     if pack is None:
@@ -497,8 +495,8 @@ def camera_relative(scene: Scene) -> tuple[Scene, Array]:
 
 def _camera_relative(scene: Scene, *, defer_shift: bool):
     """`camera_relative`, and with ``defer_shift`` the mesh's translation to the camera left
-    undone where the model has no rotation: returned as a (3,) float32 NumPy ``shift`` (else
-    None) for the caller's compiled program to add (`_shifted`)."""
+    undone where the model has no rotation: returned as a (3,) float32 NumPy ``shift`` for
+    the caller's compiled program to add (`_shifted`; `_NO_SHIFT` where nothing is left)."""
     cam, model = scene.camera, scene.model
     if not _concrete(cam.eye, cam.view, model):  # traced: JAX, float32
         eye = jnp.asarray(cam.eye, jnp.float32)
@@ -509,12 +507,12 @@ def _camera_relative(scene: Scene, *, defer_shift: bool):
             nrm = None if mesh.normals is None else safe_normalize(jnp.matmul(
                 mesh.normals, jnp.linalg.inv(m[:3, :3]), precision=jax.lax.Precision.HIGHEST))
             mesh = dataclasses.replace(mesh, positions=pos + m[None, :3, 3], normals=nrm)
-        return dataclasses.replace(scene, mesh=mesh, model=None), jnp.zeros(3), None
+        return dataclasses.replace(scene, mesh=mesh, model=None), np.zeros(3), _NO_SHIFT
     eye = np.asarray(cam.eye, np.float64)
     m = np.eye(4) if model is None else np.asarray(model, np.float64)
     rel = m.copy()
     rel[:3, 3] = m[:3, 3] - eye  # large model offset and large eye cancel in float64 here
-    shift = None
+    shift = _NO_SHIFT
     if not np.array_equal(rel[:3, :3], np.eye(3)):
         mesh = scene.mesh.transformed(rel)
     elif defer_shift:
