@@ -286,11 +286,13 @@ def views_worker(args) -> None:
     chunk = None if args.chunk == "none" else int(args.chunk)
     t = time.perf_counter()
     prep = F.prepare(problem, chunk=chunk)
-    res = F.fit_normal_map(problem, F.FitOptions(max_steps=3, lsmr_steps=10, ftol=0.0),
+    res = F.fit_normal_map(problem, F.FitOptions(solver=args.solver, max_steps=3,
+                                                 lsmr_steps=10, ftol=0.0),
                            prepared=prep, progress=False)
     secs = [h["seconds"] for h in res.history]
     print("RESULT " + json.dumps({
-        "views": args.views, "size": size, "chunk": args.chunk, "targets": len(targets),
+        "views": args.views, "size": size, "chunk": args.chunk, "solver": args.solver,
+        "targets": len(targets),
         "prepared_mb": round(sum(x.nbytes for x in jax.tree_util.tree_leaves(prep)) / 2**20, 1),
         "pixels": int(sum(int(np.prod(b.images.shape[:1] + b.images.shape[2:3]))
                           for b in prep.batches)),
@@ -300,16 +302,18 @@ def views_worker(args) -> None:
 
 def bench_views(args) -> list[dict]:
     """Peak RSS and LM step time of a fit against its number of views and their size (fresh
-    processes): 4, 16, 64 views of 128 x 128 and 16 of 256 x 256 with `prepare`'s default
-    chunking, and 64 views evaluated whole and in chunks of 2^17 pixel-targets."""
+    processes), by optimistix's LM and by the texel-space LM (``lm-texel``): 4, 16, 64
+    views of 128 x 128 and 16 of 256 x 256 with `prepare`'s default chunking, and 64 views
+    evaluated whole and in chunks of 2^17 pixel-targets."""
     rows = []
     runs = ([(4, 128, "default"), (16, 128, "default"), (64, 128, "default"),
              (64, 128, "none"), (64, 128, str(1 << 17)), (16, 256, "default")]
             if not args.quick else [(2, 128, "default"), (8, 128, str(1 << 12))])
-    for n, size, chunk in runs:
+    runs = [run + (solver,) for solver in ("lm", "lm-texel") for run in runs]
+    for n, size, chunk, solver in runs:
         chunk = str(F.CHUNK) if chunk == "default" else chunk
         cmd = [sys.executable, str(Path(__file__).resolve()), "--views-worker", "--views",
-               str(n), "--view-size", str(size), "--chunk", chunk]
+               str(n), "--view-size", str(size), "--chunk", chunk, "--solver", solver]
         env = dict(os.environ, JAXNM_COMPILATION_CACHE="off")
         child = _timed_child(cmd, env, keep_output=True)
         row = json.loads(child["output"].split("RESULT ", 1)[1])
@@ -450,11 +454,13 @@ def markdown(res: dict) -> str:
                          f"{c[k]['summary']} |")
     v = res.get("views")
     if v:
-        lines += ["", "| views (x2 lights) | size | chunk (pixel-targets) | pixel-targets | "
-                  "prepared MB | LM s / step | fit s (3 steps, compile included) | "
-                  "peak RSS MB |", "|---|---|---|---|---|---|---|---|"]
+        lines += ["", "| solver | views (x2 lights) | size | chunk (pixel-targets) | "
+                  "pixel-targets | prepared MB | LM s / step | "
+                  "fit s (3 steps, compile included) | peak RSS MB |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         for r in v:
-            lines.append(f"| {r['views']} | {r.get('size', 128)} | {r.get('chunk', '-')} | "
+            lines.append(f"| {r.get('solver', 'lm')} | {r['views']} | {r.get('size', 128)} | "
+                         f"{r.get('chunk', '-')} | "
                          f"{r['pixels']} | {r.get('prepared_mb', '-')} | {r['s_per_step']} | "
                          f"{r['fit_s']} | {r['peak_rss_mb']} |")
     d = res.get("devices")
@@ -487,6 +493,7 @@ def main(argv=None) -> None:
     ap.add_argument("--views", type=int, default=4, help=argparse.SUPPRESS)
     ap.add_argument("--view-size", type=int, default=128, help=argparse.SUPPRESS)
     ap.add_argument("--chunk", default=str(F.CHUNK), help=argparse.SUPPRESS)
+    ap.add_argument("--solver", default="lm", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.fit_worker:
         return fit_worker(args)

@@ -563,7 +563,7 @@ def test_repeated_fits_on_one_prepared_problem_keep_it_alive(small):
     survive any number of fits with any solver (regression: a donated state that aliased
     the problem's arrays freed them)."""
     problem, _, _, prep, _ = small
-    for solver in ("lm", "gn", "lbfgs", "lm"):
+    for solver in ("lm", "gn", "lm-texel", "lbfgs", "lm"):
         res = F.fit_normal_map(problem, F.FitOptions(solver=solver, max_steps=2),
                                prepared=prep, progress=False)
         assert np.isfinite(res.best_loss)

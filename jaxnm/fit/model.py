@@ -34,7 +34,8 @@ from ..shading import Lights, Material, shade
 from .prepare import Prepared, ViewBatch, map_pixels
 
 __all__ = ["ModelArgs", "slopes_to_normals", "normals_to_slopes", "residuals", "loss",
-           "render_with_map", "sample_split", "reduced_pixel_residuals", "GRAM_REGULARISATION"]
+           "render_with_map", "sample_split", "reduced_pixel_residuals", "smoothness_residuals",
+           "GRAM_REGULARISATION"]
 
 
 @jax.tree_util.register_dataclass
@@ -354,10 +355,16 @@ def residuals(z: Array, args: ModelArgs) -> tuple[Array, ...]:
         img = _shade_batch(batch, mips, prep.material, opts, strength)
         res.append(((img - batch.images) * batch.weights).reshape(-1))
     if smooth is not None:
-        dx = slopes[:, 1:] - slopes[:, :-1]
-        dy = slopes[1:] - slopes[:-1]
-        res.append(jnp.sqrt(smooth) * jnp.concatenate([dx.reshape(-1), dy.reshape(-1)]))
+        res.append(smoothness_residuals(slopes, smooth))
     return tuple(res)
+
+
+def smoothness_residuals(slopes: Array, weight: Array) -> Array:
+    """The first-difference penalty's residuals: ``sqrt(weight)`` times the differences of
+    horizontally and vertically adjacent slopes, flat."""
+    dx = slopes[:, 1:] - slopes[:, :-1]
+    dy = slopes[1:] - slopes[:-1]
+    return jnp.sqrt(weight) * jnp.concatenate([dx.reshape(-1), dy.reshape(-1)])
 
 
 def loss(z: Array, args: ModelArgs) -> Array:

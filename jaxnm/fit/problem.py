@@ -18,9 +18,11 @@ from ..textures import NormalMapOptions
 __all__ = ["SOLVERS", "FitWarning", "FitTarget", "FitProblem", "FitOptions", "FitResult",
            "FitJob", "validate_problem", "problem_from_scene"]
 
-#: ``"lm"`` Levenberg-Marquardt, ``"gn"`` Gauss-Newton (both matrix-free, LSMR inner
-#: solves), ``"lbfgs"`` the first-order baseline.
-SOLVERS = ("lm", "gn", "lbfgs")
+#: ``"lm"`` Levenberg-Marquardt, ``"gn"`` Gauss-Newton (both optimistix's, matrix-free,
+#: LSMR inner solves), ``"lm-texel"`` Levenberg-Marquardt on the normal equations in texel
+#: space (`jaxnm.fit.texel_lm`: memory that does not grow with the views beyond their
+#: prepared pixels), ``"lbfgs"`` the first-order baseline.
+SOLVERS = ("lm", "gn", "lm-texel", "lbfgs")
 
 
 class FitWarning(UserWarning):
@@ -107,7 +109,8 @@ class FitOptions:
       (residuals ``sqrt(w) * (s[i+1] - s[i])``), 0 to disable.
     - `coarse_to_fine`: number of extra coarser levels solved first (each half
       the resolution), then upsampled as the next level's start.
-    - `lsmr_steps`: inner LSMR iterations per (Gauss-Newton/LM) step.
+    - `lsmr_steps`: inner LSMR iterations per (Gauss-Newton/LM) step (conjugate-gradient
+      iterations for ``"lm-texel"``).
     - `rtol`, `atol`: convergence tolerances of the outer solver.
     - `seed`: initial-guess jitter seed (0 jitter by default: a flat start).
     - `init_noise`: standard deviation of the initial slopes.

@@ -38,12 +38,15 @@ from .diagnostics import angular_error, check_identifiability, seen_texels, texe
 from .model import ModelArgs, loss, residuals
 from .prepare import Prepared, prepare, shard_views, with_map_size
 from .problem import FitOptions, FitProblem, FitResult
+from .texel_lm import TexelLM
 
 __all__ = ["fit_normal_map", "make_solver", "preconditioner", "level_sizes", "start_slopes"]
 
 
 def make_solver(options: FitOptions):
-    """The optimistix solver named by ``options.solver``."""
+    """The solver named by ``options.solver``: optimistix's, or a `TexelLM`."""
+    if options.solver == "lm-texel":
+        return TexelLM(cg_steps=options.lsmr_steps, rtol=options.rtol, atol=options.atol)
     lsmr = lx.LSMR(rtol=1e-4, atol=1e-6, max_steps=options.lsmr_steps)
     if options.solver == "lm":
         return optx.LevenbergMarquardt(rtol=options.rtol, atol=options.atol, linear_solver=lsmr)
@@ -67,6 +70,8 @@ def _objective(solver):
 
 @eqx.filter_jit
 def _init(solver, z, args: ModelArgs):
+    if isinstance(solver, TexelLM):
+        return solver.init(z, args)
     fn = _objective(solver)
     f_struct, aux_struct = jax.eval_shape(fn, z, args)
     return solver.init(fn, z, args, {}, f_struct, aux_struct, frozenset())
@@ -108,6 +113,8 @@ def _step(kept, z, state):
     doubling them); ``kept`` is not (the solver too may hold arrays, e.g. Gauss-Newton's
     learning rate), and `_unaliased` makes sure no state array is one of ``args``."""
     args, solver = kept
+    if isinstance(solver, TexelLM):
+        return solver.step(z, state, args)
     fn = _objective(solver)
     z, state, _ = solver.step(fn, z, args, {}, _restore(solver, state), frozenset())
     done, result = solver.terminate(fn, z, args, {}, state, frozenset())

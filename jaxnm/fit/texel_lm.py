@@ -1,0 +1,276 @@
+r"""Levenberg–Marquardt on the normal equations in texel space, streamed over pixel chunks.
+
+optimistix's ``"lm"`` linearises the residual function and solves each step by
+LSMR on it: the linearisation it keeps between steps, and LSMR's vectors, live
+in *residual* space — a few numbers per pixel and target, for every pixel of
+every view. A fit of many views then holds several copies of its pixels.
+
+This solver (``FitOptions(solver="lm-texel")``) keeps the Gauss–Newton model in
+the space of the *texels*. A pixel's residuals depend on its sampled map vector
+``m`` only (3 numbers), so with ``B = dr/dm`` and ``G = B^T B = L L^T`` (the
+factor of `jaxnm.fit.model.reduced_pixel_residuals`), the Gauss–Newton matrix and
+gradient are
+
+.. math:: H = \sum_\text{pixels} A^T L L^T A, \qquad g = \sum_\text{pixels} A^T B^T r,
+
+with ``A = dm/dz`` the sampling (a weighted gather of the mip chain built from
+the slopes ``z``). Each step makes **one pass** over the pixels — chunk by
+chunk (`ViewBatch.chunks`), every view of a chunk at once — that shades them,
+forms ``L`` (6 numbers per pixel, kept) and sums the loss and ``g`` in texel
+space; the damped system ``(H + lambda I) dz = -g`` is then solved by conjugate
+gradients (lineax), each product ``H v`` one more gather and scatter per pixel
+from the stored factors. Nothing else per pixel outlives a chunk: the solver's
+memory is the prepared problem, 24 bytes per pixel and a few texel-sized
+vectors, whatever the number of views.
+
+The damping ``lambda`` follows the classical trust-region rule optimistix's
+Levenberg–Marquardt uses (`_damping`). Like optimistix's solvers, a step
+evaluates the point the previous step proposed, accepts or rejects it, and
+proposes the next; the first step evaluates the start.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import optimistix as optx
+from jax import Array
+
+from .. import textures as _tex
+from .model import ModelArgs, _first_taps, _mips, _reduce, slopes_to_normals, smoothness_residuals
+from .prepare import ViewBatch, map_pixels
+
+__all__ = ["TexelLM", "TexelLMState", "gauss_newton_parts", "gauss_newton_product"]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class TexelLMState:
+    """What `TexelLM` carries between steps (a pytree).
+
+    - `f`: () the loss ``0.5 |r|^2`` at the accepted point (inf before the first step).
+    - `g`: (h, w, 2) its gradient in the solver's variables.
+    - `factors`: per `ViewBatch`, (V, K, 6) the lower triangles of each pixel's ``L``.
+    - `delta`: (h, w, 2) the move proposed for the next step; `predicted`: () the decrease
+      the model predicts for it.
+    - `lam`: () the damping.
+    """
+
+    f: Array
+    g: Array
+    factors: tuple[Array, ...]
+    delta: Array
+    predicted: Array
+    lam: Array
+
+
+def _groups(batch: ViewBatch):
+    """(start, size, count, taps) of each pixel group of ``batch`` (see `ViewBatch.split`)
+    that has pixels: ``count`` chunks of ``size`` pixels from ``start``."""
+    k = batch.pixels.shape[1]
+    for start, stop, n, taps in ((0, batch.split, batch.chunks[0], 4),
+                                 (batch.split, k, batch.chunks[1], None)):
+        if stop > start:
+            yield start, (stop - start) // n, n, taps
+
+
+def _fold(batch: ViewBatch, body, carry, per_pixel: Array | None = None):
+    """Run ``body(carry, gbuffer, lights, images, weights, taps, per_pixel_chunk)`` over every
+    chunk of every view of ``batch`` (one chunk of all views at a time), threading ``carry``.
+
+    ``per_pixel`` (V, K, ...) is cut like the G-buffer. Returns the final carry and
+    ``body``'s second outputs put together in pixel order, (V, K, ...), or None."""
+    outs = []
+    for start, size, n, taps in _groups(batch):
+        def chunk(carry, c, start=start, size=size, taps=taps):
+            def cut(x, axis=1):
+                return jax.lax.dynamic_slice_in_dim(x, start + c * size, size, axis)
+
+            gb = map_pixels(batch.gbuffer, cut)
+            extra = None if per_pixel is None else cut(per_pixel)
+            return body(carry, gb, batch.lights, cut(batch.images, 2), cut(batch.weights, 2),
+                        taps, extra)
+
+        if n == 1:
+            carry, out = chunk(carry, 0)
+        else:
+            carry, out = jax.lax.scan(chunk, carry, jnp.arange(n))
+            if out is not None:  # (n, V, size, ...) -> (V, n * size, ...)
+                out = jnp.moveaxis(out, 0, 1)
+                out = out.reshape(out.shape[:1] + (n * size,) + out.shape[3:])
+        outs.append(out)
+    if outs[0] is None:
+        return carry, None
+    return carry, outs[0] if len(outs) == 1 else jnp.concatenate(outs, 1)
+
+
+def _lower_times(f: Array, d: Array) -> Array:
+    """``L d`` per pixel for ``L``'s lower triangle ``f`` (..., 6) (l00, l10, l20, l11, l21,
+    l22) and ``d`` (..., 3)."""
+    l00, l10, l20, l11, l21, l22 = (f[..., i] for i in range(6))
+    d0, d1, d2 = d[..., 0], d[..., 1], d[..., 2]
+    return jnp.stack([l00 * d0, l10 * d0 + l11 * d1, l20 * d0 + l21 * d1 + l22 * d2], -1)
+
+
+def _lower_transpose_times(f: Array, d: Array) -> Array:
+    """``L^T d`` per pixel (see `_lower_times`)."""
+    l00, l10, l20, l11, l21, l22 = (f[..., i] for i in range(6))
+    d0, d1, d2 = d[..., 0], d[..., 1], d[..., 2]
+    return jnp.stack([l00 * d0 + l10 * d1 + l20 * d2, l11 * d1 + l21 * d2, l22 * d2], -1)
+
+
+def _mip_fn(args: ModelArgs):
+    """The mip chain of the map as a function of the solver's variables ``z``."""
+    opts = args.prepared.options[0]
+    return lambda z: _mips(slopes_to_normals(z * args.scale), opts)
+
+
+def _smooth_fn(args: ModelArgs):
+    return lambda z: smoothness_residuals(z * args.scale, args.smoothness)
+
+
+def _add(a, b):
+    return jax.tree_util.tree_map(jnp.add, a, b)
+
+
+def gauss_newton_parts(z: Array, args: ModelArgs) -> tuple[Array, Array, tuple[Array, ...]]:
+    """One pass over every pixel of ``args.prepared``: the loss ``0.5 |r|^2``, its gradient
+    w.r.t. ``z`` (h, w, 2), and each pixel's Gram factor ``L`` per `ViewBatch` (V, K, 6).
+
+    The gradient is ``A^T (L rho)`` (``L rho = B^T r``) summed in the mip chain, then
+    pulled back to ``z`` through the (texel-space) mip chain; the smoothness penalty's
+    share is added exactly."""
+    prep = args.prepared
+    opts = prep.options[0]
+    mips, mips_vjp = jax.vjp(_mip_fn(args), z)
+    f = jnp.zeros((), z.dtype)
+    cot = jax.tree_util.tree_map(jnp.zeros_like, mips)
+
+    def reduce(m, gb, lights, images, weights):
+        return _reduce(m, gb, lights, prep.material, opts.shading,
+                       jnp.asarray(args.strength, m.dtype), images, weights)
+
+    factors = []
+    for batch in prep.batches:
+        def body(carry, gb, lights, images, weights, taps, _):
+            f, cot = carry
+            plan = _first_taps(gb.plan, taps)
+            m, pull = jax.vjp(lambda mp: _tex.apply_plan(plan, mp), mips)
+            rho, e, lower = jax.vmap(reduce)(m, gb, lights, images, weights)
+            f = f + 0.5 * (jnp.sum(rho * rho) + jnp.sum(e * e))
+            return (f, _add(cot, pull(_lower_times(lower, rho))[0])), lower
+
+        (f, cot), lower = _fold(batch, body, (f, cot))
+        factors.append(lower)
+    g = mips_vjp(cot)[0]
+    if args.smoothness is not None:
+        s, s_vjp = jax.vjp(_smooth_fn(args), z)
+        f = f + 0.5 * jnp.sum(s * s)
+        g = g + s_vjp(s)[0]
+    return f, g, tuple(factors)
+
+
+def gauss_newton_product(z: Array, args: ModelArgs, factors):
+    """``v -> H v`` at ``z``: the Gauss-Newton matrix from the stored ``factors`` (one gather
+    and one scatter per pixel), plus the smoothness penalty's (exact) share."""
+    prep = args.prepared
+    _, mips_jvp = jax.linearize(_mip_fn(args), z)
+    mips_t = jax.linear_transpose(mips_jvp, z)
+    smooth_jvp = smooth_t = None
+    if args.smoothness is not None:
+        _, smooth_jvp = jax.linearize(_smooth_fn(args), z)
+        smooth_t = jax.linear_transpose(smooth_jvp, z)
+
+    def product(v):
+        dmips = mips_jvp(v)
+        cot = jax.tree_util.tree_map(jnp.zeros_like, dmips)
+        for batch, lower in zip(prep.batches, factors):
+            def body(cot, gb, lights, images, weights, taps, lower_c, dmips=dmips):
+                plan = _first_taps(gb.plan, taps)
+                dm, pull = jax.vjp(lambda mp: _tex.apply_plan(plan, mp), dmips)
+                y = _lower_times(lower_c, _lower_transpose_times(lower_c, dm))
+                return _add(cot, pull(y)[0]), None
+
+            cot, _ = _fold(batch, body, cot, lower)
+        out = mips_t(cot)[0]
+        if smooth_t is not None:
+            out = out + smooth_t(smooth_jvp(v))[0]
+        return out
+
+    return product
+
+
+def _damping(lam, ratio, accepted):
+    """The damping after a step of gain ``ratio`` (actual over predicted decrease), by the
+    rule of `optimistix.ClassicalTrustRegion` (its defaults; ``lambda`` is the inverse of
+    its step size): a rejected step (ratio < 0.01) multiplies it by 4, a step the model
+    predicted well (ratio > 0.99) divides it by 3.5, any other keeps it."""
+    good = accepted & (ratio > 0.99)
+    return jnp.where(accepted, jnp.where(good, lam / 3.5, lam), 4.0 * lam)
+
+
+@dataclasses.dataclass(frozen=True)
+class TexelLM:
+    """Levenberg–Marquardt on the texel-space normal equations (see the module).
+
+    - `cg_steps`: conjugate-gradient iterations per step (``FitOptions.lsmr_steps``).
+    - `rtol`, `atol`: the step's termination test, as optimistix's: the accepted move and
+      loss change are both below ``atol + rtol * |value|``.
+    - `lam0`: the first damping, relative to the Gauss-Newton curvature along the first
+      gradient.
+    """
+
+    cg_steps: int = 20
+    rtol: float = 1e-6
+    atol: float = 1e-9
+    lam0: float = 0.1
+
+    def init(self, z: Array, args: ModelArgs) -> TexelLMState:
+        """The state before the first step (which evaluates ``z``)."""
+        zero = jnp.zeros((), z.dtype)
+        factors = tuple(jnp.zeros(b.pixels.shape + (6,), z.dtype)
+                        for b in args.prepared.batches)
+        return TexelLMState(f=jnp.full((), jnp.inf, z.dtype), g=jnp.zeros_like(z),
+                            factors=factors, delta=jnp.zeros_like(z), predicted=zero, lam=zero)
+
+    def step(self, z: Array, state: TexelLMState, args: ModelArgs):
+        """Evaluate the proposed point, accept or reject it, propose the next move.
+
+        Returns ``(z, state, done, result, loss)`` with ``z`` the accepted point and
+        ``loss`` its loss."""
+        tiny = jnp.finfo(z.dtype).tiny
+        first = ~jnp.isfinite(state.f)
+        trial = z + state.delta
+        f_t, g_t, factors_t = gauss_newton_parts(trial, args)
+        ratio = (state.f - f_t) / jnp.maximum(state.predicted, tiny)
+        accepted = first | ((f_t < state.f) & (ratio >= 0.01))
+        pick = lambda new, old: jnp.where(accepted, new, old)  # noqa: E731
+        z_new = pick(trial, z)
+        f, g = pick(f_t, state.f), pick(g_t, state.g)
+        factors = tuple(pick(a, b) for a, b in zip(factors_t, state.factors))
+        product = gauss_newton_product(z_new, args, factors)
+
+        def start_damping():  # lam0 times the curvature along the gradient (first step only)
+            return self.lam0 * jnp.sum(g * product(g)) / jnp.maximum(jnp.sum(g * g), tiny)
+
+        lam = jax.lax.cond(first, start_damping,
+                           lambda: _damping(state.lam, ratio, accepted))
+        lam = jnp.maximum(lam, tiny)
+        operator = lx.FunctionLinearOperator(
+            lambda v: product(v) + lam * v, jax.ShapeDtypeStruct(z.shape, z.dtype),
+            tags=lx.positive_semidefinite_tag)
+        cg = lx.CG(rtol=1e-4, atol=0.0, max_steps=self.cg_steps)
+        delta = lx.linear_solve(operator, -g, cg, throw=False).value
+        # the decrease the model predicts, -(g.d + d.H d / 2): a CG iterate d from 0 has
+        # d.(H + lam I) d = -g.d (its residual is orthogonal to the Krylov space it lies in),
+        # which saves a product
+        predicted = 0.5 * (lam * jnp.sum(delta * delta) - jnp.sum(g * delta))
+        moved = jnp.max(jnp.abs(z_new - z)) <= self.atol + self.rtol * jnp.max(jnp.abs(z_new))
+        flat = jnp.abs(state.f - f) <= self.atol + self.rtol * jnp.abs(f)
+        done = ~first & accepted & moved & flat
+        new_state = TexelLMState(f=f, g=g, factors=factors, delta=delta, predicted=predicted,
+                                 lam=lam)
+        return z_new, new_state, done, optx.RESULTS.successful, f
