@@ -160,7 +160,7 @@ def _error_summary(normals, p: B.BenchProblem, seen, well) -> dict:
             "well_p95_deg": round(float(np.percentile(err[well], 95)), 4)}
 
 
-def _jaxnm_fit_once(p: B.BenchProblem, targets, well, budget: float) -> dict:
+def _jaxnm_fit_once(p: B.BenchProblem, targets, well, budget: float, solver: str) -> dict:
     """One LM fit; the clock includes `prepare` (the G-buffer) and every compilation."""
     compiles = []
 
@@ -175,7 +175,7 @@ def _jaxnm_fit_once(p: B.BenchProblem, targets, well, budget: float) -> dict:
     t0 = time.perf_counter()
     prep = F.prepare(problem)
     t_prep = time.perf_counter() - t0
-    res = F.fit_normal_map(problem, F.FitOptions(solver="lm", max_steps=40, lsmr_steps=10),
+    res = F.fit_normal_map(problem, F.FitOptions(solver=solver, max_steps=40, lsmr_steps=10),
                            ground_truth=p.gt_normals, prepared=prep, progress=False,
                            time_limit=budget, error_texels=well)
     below = [t_prep + h["seconds"] for h in res.history if h["mean_angular_error_deg"] < 1.0]
@@ -206,7 +206,7 @@ def fit_worker(args) -> None:
     jax.clear_caches()
     out = {}
     for run in ("first", "steady"):
-        r = _jaxnm_fit_once(p, targets, well, args.budget)
+        r = _jaxnm_fit_once(p, targets, well, args.budget, args.solver)
         normals = r.pop("normals")
         r.update(_error_summary(normals, p, seen, well))
         held = B.jaxnm_scene(p, p.held_out_dir)
@@ -262,11 +262,42 @@ def _ring_eyes(n: int, radius: float = 3.0) -> list[tuple[float, float, float]]:
     return eyes
 
 
+def _status_mb(key: str) -> float | None:
+    """``key`` (VmRSS, VmHWM) of this process from /proc, in MB (None off Linux)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(key + ":"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        return None
+    return None
+
+
+def _reset_peak() -> float | None:
+    """Hand freed memory back, reset this process's peak RSS to its current RSS (Linux's
+    /proc/self/clear_refs) and return that RSS in MB (None where it cannot)."""
+    from jaxnm.runtime import release_memory
+
+    release_memory()
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        return None
+    return _status_mb("VmRSS")
+
+
+def _peak_mb() -> float:
+    return _status_mb("VmHWM")
+
+
 def views_worker(args) -> None:
     """In a fresh process: an LM fit of the built-in torus and rivet map from ``--views``
     cameras (two lights each, ``--view-size`` square renders, a 128 x 128 map, 3 steps),
     prepared with ``--chunk`` pixel-targets per piece of a step ("none": whole); JSON on
-    stdout. The parent reads this process's peak RSS."""
+    stdout. The parent reads this process's peak RSS; ``fit_working_mb`` is the fit's own
+    peak above the memory held when it starts (the targets and the prepared problem)."""
     from jaxnm.camera import Camera, eye_to_world, look_at, perspective
     from jaxnm.procedural import default_problem
     from jaxnm.shading import directional_light
@@ -286,9 +317,11 @@ def views_worker(args) -> None:
     chunk = None if args.chunk == "none" else int(args.chunk)
     t = time.perf_counter()
     prep = F.prepare(problem, chunk=chunk)
+    start_mb = _reset_peak()
     res = F.fit_normal_map(problem, F.FitOptions(solver=args.solver, max_steps=3,
                                                  lsmr_steps=10, ftol=0.0),
                            prepared=prep, progress=False)
+    fit_mb = _peak_mb() - start_mb if start_mb is not None else None
     secs = [h["seconds"] for h in res.history]
     print("RESULT " + json.dumps({
         "views": args.views, "size": size, "chunk": args.chunk, "solver": args.solver,
@@ -297,6 +330,7 @@ def views_worker(args) -> None:
         "pixels": int(sum(int(np.prod(b.images.shape[:1] + b.images.shape[2:3]))
                           for b in prep.batches)),
         "fit_s": round(time.perf_counter() - t, 2),
+        "fit_working_mb": None if fit_mb is None else round(fit_mb),
         "s_per_step": round(statistics.median(np.diff(secs[1:])), 3)}))
 
 
@@ -325,7 +359,7 @@ def bench_views(args) -> list[dict]:
 
 def _run_worker(cache: str | None, args) -> dict:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--fit-worker", "--budget",
-           str(args.budget)] + (["--quick"] if args.quick else [])
+           str(args.budget), "--solver", args.solver] + (["--quick"] if args.quick else [])
     env = dict(os.environ, JAXNM_COMPILATION_CACHE=cache or "off")
     if cache:
         cmd += ["--cache", cache]
@@ -338,7 +372,8 @@ def bench_fit(args, mitsuba) -> dict:
     with tempfile.TemporaryDirectory() as cache:
         cold = _run_worker(cache, args)
         warm = _run_worker(cache, args)
-    result["jaxnm"] = {"cold": cold["first"], "warm": warm["first"], "steady": warm["steady"]}
+    result["jaxnm"] = {"cold": cold["first"], "warm": warm["first"], "steady": warm["steady"],
+                       "solver": args.solver}
     if mitsuba is not None:
         p = _problem(args.quick)
         seen, well = B.texel_masks(p)
@@ -456,13 +491,13 @@ def markdown(res: dict) -> str:
     if v:
         lines += ["", "| solver | views (x2 lights) | size | chunk (pixel-targets) | "
                   "pixel-targets | prepared MB | LM s / step | "
-                  "fit s (3 steps, compile included) | peak RSS MB |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+                  "fit s (3 steps, compile included) | peak RSS MB | fit's own MB |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
         for r in v:
             lines.append(f"| {r.get('solver', 'lm')} | {r['views']} | {r.get('size', 128)} | "
                          f"{r.get('chunk', '-')} | "
                          f"{r['pixels']} | {r.get('prepared_mb', '-')} | {r['s_per_step']} | "
-                         f"{r['fit_s']} | {r['peak_rss_mb']} |")
+                         f"{r['fit_s']} | {r['peak_rss_mb']} | {r.get('fit_working_mb', '-')} |")
     d = res.get("devices")
     if d:
         lines += ["", "| devices | platform | views per device | LM s / step |",
@@ -493,7 +528,9 @@ def main(argv=None) -> None:
     ap.add_argument("--views", type=int, default=4, help=argparse.SUPPRESS)
     ap.add_argument("--view-size", type=int, default=128, help=argparse.SUPPRESS)
     ap.add_argument("--chunk", default=str(F.CHUNK), help=argparse.SUPPRESS)
-    ap.add_argument("--solver", default="lm", help=argparse.SUPPRESS)
+    ap.add_argument("--solver", default="lm", choices=F.SOLVERS,
+                    help="the fit benchmark's solver (default: lm; --parts views runs lm "
+                         "and lm-texel)")
     args = ap.parse_args(argv)
     if args.fit_worker:
         return fit_worker(args)

@@ -109,3 +109,28 @@ def test_damping_rises_after_a_rejected_step(small):
     assert float(f2) == float(state.f) and not bool(done)
     assert float(state2.lam) == pytest.approx(4 * float(state.lam), rel=1e-6)
     assert float(jnp.linalg.norm(state2.delta)) < float(jnp.linalg.norm(state.delta))
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e-4])
+def test_conjugate_gradient_solves_at_any_scale(scale):
+    """`conjugate_gradient` solves an SPD system to its tolerance in at most n steps, at
+    any scale of the operator (lineax's CG reports a breakdown where p.Ap is small in
+    absolute terms); a few steps lower the quadratic it minimises."""
+    from jaxnm.fit.texel_lm import conjugate_gradient
+
+    rng = np.random.default_rng(0)
+    n = 40
+    q = rng.normal(size=(n, n))
+    a = scale * (q @ q.T / n + 0.1 * np.eye(n))
+    b = rng.normal(size=n)
+    def op(x):
+        return jnp.asarray(a, jnp.float32) @ x
+
+    x = conjugate_gradient(op, jnp.asarray(b, jnp.float32), max_steps=n, rtol=1e-5)
+    want = np.linalg.solve(a, b)
+    np.testing.assert_allclose(np.asarray(x), want, rtol=0, atol=1e-3 * np.abs(want).max())
+    # a few steps only: the iterate is not the solution yet, but it lowers the quadratic
+    x3 = np.asarray(conjugate_gradient(op, jnp.asarray(b, jnp.float32), max_steps=3),
+                    np.float64)
+    quad = lambda y: 0.5 * y @ a @ y - b @ y  # noqa: E731
+    assert quad(want) < quad(x3) < quad(np.zeros(n))

@@ -18,7 +18,7 @@ the slopes ``z``). Each step makes **one pass** over the pixels — chunk by
 chunk (`ViewBatch.chunks`), every view of a chunk at once — that shades them,
 forms ``L`` (6 numbers per pixel, kept) and sums the loss and ``g`` in texel
 space; the damped system ``(H + lambda I) dz = -g`` is then solved by conjugate
-gradients (lineax), each product ``H v`` one more gather and scatter per pixel
+gradients (`conjugate_gradient`), each product ``H v`` one more gather and scatter per pixel
 from the stored factors. Nothing else per pixel outlives a chunk: the solver's
 memory is the prepared problem, 24 bytes per pixel and a few texel-sized
 vectors, whatever the number of views.
@@ -35,7 +35,6 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import optimistix as optx
 from jax import Array
 
@@ -43,7 +42,8 @@ from .. import textures as _tex
 from .model import ModelArgs, _first_taps, _mips, _reduce, slopes_to_normals, smoothness_residuals
 from .prepare import ViewBatch, map_pixels
 
-__all__ = ["TexelLM", "TexelLMState", "gauss_newton_parts", "gauss_newton_product"]
+__all__ = ["TexelLM", "TexelLMState", "gauss_newton_parts", "gauss_newton_product",
+           "conjugate_gradient"]
 
 
 @jax.tree_util.register_dataclass
@@ -203,6 +203,37 @@ def gauss_newton_product(z: Array, args: ModelArgs, factors):
     return product
 
 
+def conjugate_gradient(operator, b: Array, max_steps: int, rtol: float = 1e-4) -> Array:
+    """Conjugate gradients for ``operator(x) = b`` (symmetric positive definite), from
+    ``x = 0``, for at most ``max_steps`` products or until ``|r| <= rtol |b|``.
+
+    Written out rather than lineax's ``CG``: that one spends a product on the residual of
+    its zero start and another every ten steps to re-stabilise it, and it reports a
+    breakdown (NaN) wherever ``p.Ap <= 100 eps n |r|^2`` — a test in absolute units that
+    a Gauss-Newton matrix with weakly observed texels (curvature ~ the damping) fails."""
+    gamma0 = jnp.sum(b * b)
+    stop = (rtol * rtol) * gamma0
+
+    def more(state):
+        _, _, _, gamma, k = state
+        return (k < max_steps) & (gamma > stop)
+
+    def body(state):
+        x, r, p, gamma, k = state
+        ap = operator(p)
+        pap = jnp.sum(p * ap)
+        alpha = jnp.where(pap > 0, gamma / jnp.where(pap > 0, pap, 1), 0)
+        x = x + alpha * p
+        r = r - alpha * ap
+        gamma_new = jnp.sum(r * r)
+        p = r + (gamma_new / jnp.maximum(gamma, jnp.finfo(b.dtype).tiny)) * p
+        # a breakdown (p.Ap <= 0) ends the loop with the iterate so far
+        return x, r, p, jnp.where(pap > 0, gamma_new, 0), k + 1
+
+    state = (jnp.zeros_like(b), b, b, gamma0, jnp.zeros((), jnp.int32))
+    return jax.lax.while_loop(more, body, state)[0]
+
+
 def _damping(lam, ratio, accepted):
     """The damping after a step of gain ``ratio`` (actual over predicted decrease), by the
     rule of `optimistix.ClassicalTrustRegion` (its defaults; ``lambda`` is the inverse of
@@ -259,11 +290,7 @@ class TexelLM:
         lam = jax.lax.cond(first, start_damping,
                            lambda: _damping(state.lam, ratio, accepted))
         lam = jnp.maximum(lam, tiny)
-        operator = lx.FunctionLinearOperator(
-            lambda v: product(v) + lam * v, jax.ShapeDtypeStruct(z.shape, z.dtype),
-            tags=lx.positive_semidefinite_tag)
-        cg = lx.CG(rtol=1e-4, atol=0.0, max_steps=self.cg_steps)
-        delta = lx.linear_solve(operator, -g, cg, throw=False).value
+        delta = conjugate_gradient(lambda v: product(v) + lam * v, -g, self.cg_steps)
         # the decrease the model predicts, -(g.d + d.H d / 2): a CG iterate d from 0 has
         # d.(H + lam I) d = -g.d (its residual is orthogonal to the Krylov space it lies in),
         # which saves a product
