@@ -127,10 +127,11 @@ def _add_fit(sub) -> None:
                        description="Fit a tangent-space normal map to target images.")
     p.add_argument("config", nargs="?", help="fit JSON file (default: the built-in problem)")
     p.add_argument("-o", "--output", default="fit_out", help="output folder (default: %(default)s)")
-    p.add_argument("--solver", choices=SOLVERS, help="optimiser (default: lm)")
+    p.add_argument("--solver", choices=SOLVERS, help="optimiser (default: lm-texel)")
     p.add_argument("--max-steps", type=int, dest="max_steps", help="outer iterations")
     p.add_argument("--lsmr-steps", type=int, dest="lsmr_steps",
-                   help="inner LSMR iterations per Gauss-Newton/LM step")
+                   help="inner iterations per LM/GN step (conjugate gradients for "
+                        "lm-texel, LSMR for lm and gn)")
     p.add_argument("--smoothness", type=float, help="slope smoothness weight (default 0)")
     p.add_argument("--coarse-to-fine", type=int, dest="coarse_to_fine",
                    help="number of coarser levels solved first")

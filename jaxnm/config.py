@@ -49,7 +49,7 @@ A **fit file**::
       "ground_truth": {"path": "gt.png", "encoding": "unsigned", "green": "up"},   // optional
       "held_out": [{"view": 0, "image": "h0.png", "color_space": "srgb",
                     "lights": [...]}],          // optional: scored, never fitted
-      "solver": {"method": "lm", "max_steps": 30, "lsmr_steps": 10, "smoothness": 0,
+      "solver": {"method": "lm-texel", "max_steps": 30, "lsmr_steps": 10, "smoothness": 0,
                  "coarse_to_fine": 0, "seed": 0, "time_limit": null,
                  "ftol": 0.001, "patience": 3}   // converged: < 0.1 % loss drop in 3 steps
     }

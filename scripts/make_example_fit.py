@@ -97,7 +97,7 @@ def write_example(outdir: Path, render_size: int = 256, map_size: int = 128,
         "ground_truth": {"path": "gt.png", "encoding": "unsigned", "green": "up"},
         "held_out": [{"view": 0, "image": "held_out.png", "color_space": "srgb",
                       "lights": [{"type": "directional", "direction": _list(held_dir)}]}],
-        "solver": {"method": "lm", "max_steps": 15, "lsmr_steps": 20},
+        "solver": {"method": "lm-texel", "max_steps": 15, "lsmr_steps": 20},
     }
     path = outdir / "fit.json"
     path.write_text(_dumps(fit))

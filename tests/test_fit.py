@@ -313,7 +313,7 @@ def test_example_fit_script_writes_the_built_in_problem(tmp_path, small):
                                    np.asarray(b.lights.directional.direction), atol=1e-6)
         np.testing.assert_allclose(a.image, b.image, atol=2e-3)  # 16-bit sRGB round trip
     np.testing.assert_allclose(job.ground_truth, gt, atol=1e-6)
-    assert len(job.held_out) == 1 and job.options.solver == "lm"
+    assert len(job.held_out) == 1 and job.options.solver == "lm-texel"
     np.testing.assert_allclose(np.asarray(loaded.material.shininess),
                                np.asarray(problem.material.shininess))
 

@@ -19,12 +19,17 @@ differ in kind or count form separate batches, see `ViewBatch`).
 ``normalize(s_x, s_y, 1)``: always a unit vector with positive z, with no
 constraint to enforce and no singular point.
 
-**Solvers** (optimistix): ``"lm"`` Levenberg–Marquardt and ``"gn"``
-Gauss–Newton, both matrix-free: the Jacobian is a linearised function
-(forward-mode JVP, transposed for the VJP) and each step is solved by
-lineax's iterative LSMR — no dense Jacobian is ever formed; ``"lbfgs"``:
-the first-order baseline, L-BFGS on the sum of squares. The step is compiled
-once per problem shape and reused across calls.
+**Solvers.** ``"lm-texel"`` (the default, `jaxnm.fit.texel_lm`):
+Levenberg–Marquardt on the normal equations in texel space — one pass over the
+pixels per step forms each pixel's 3x3 Gauss–Newton block and the gradient,
+and conjugate gradients solve the damped system from those blocks, so nothing
+per pixel but 6 numbers outlives a chunk of pixels, however many views.
+optimistix's ``"lm"`` Levenberg–Marquardt and ``"gn"`` Gauss–Newton, both
+matrix-free: the Jacobian is a linearised function (forward-mode JVP,
+transposed for the VJP) and each step is solved by lineax's iterative LSMR,
+whose vectors and linearisation live in residual space; ``"lbfgs"``: the
+first-order baseline, L-BFGS on the sum of squares. No dense Jacobian is ever
+formed. The step is compiled once per problem shape and reused across calls.
 
 **Identifiability.** A normal has two degrees of freedom. One light gives one
 equation per texel (a cone of possible normals); two lights leave a two-fold

@@ -86,7 +86,9 @@ def normals_to_slopes(normals: Array, max_slope: float = 1e3) -> Array:
     return jnp.clip(n[..., :2] / z, -max_slope, max_slope)
 
 
-def _mips(normals: Array, opts: RenderOptions) -> tuple[Array, ...]:
+def mip_chain(normals: Array, opts: RenderOptions) -> tuple[Array, ...]:
+    """The mip chain a fit samples: ``normals`` (h, w, 3) box-filtered into ``opts.levels``
+    levels, not renormalised (as `jaxnm.render` filters a normal map)."""
     return _tex.build_mipmaps(normals, levels=opts.levels)
 
 
@@ -150,8 +152,9 @@ _pixel_model.defjvp(_pixel_model_jvp, symbolic_zeros=True)
 GRAM_REGULARISATION = 1e-6
 
 
-def _reduce(m, gb, lights, material, shading, strength, images, weights):
-    """(rho, e, L): see `reduced_pixel_residuals`; ``L`` as its six lower-triangle entries."""
+def reduce_pixels(m, gb, lights, material, shading, strength, images, weights):
+    """(rho, e, L) of one view's pixels: see `reduced_pixel_residuals`; ``L`` (K, 6) as the
+    lower triangle (l00, l10, l20, l11, l21, l22) of each pixel's Gram factor."""
     def r_of(m_):  # (T, K, 3) weighted residuals of every target at every pixel
         return (_pixel_colors(m_, gb, lights, material, shading, strength) - images) * weights
 
@@ -206,7 +209,7 @@ ho|^2},
     **Returns:** ``(rho, e)``, (K, 3) and (K,). Differentiable w.r.t. ``m`` only (the
     JVP is the Gauss-Newton Jacobian above, which is also the exact gradient of the loss).
     """
-    rho, e, _ = _reduce(m, gb, lights, material, shading, strength, images, weights)
+    rho, e, _ = reduce_pixels(m, gb, lights, material, shading, strength, images, weights)
     return rho, e
 
 
@@ -216,7 +219,7 @@ def _reduced_jvp(shading, primals, tangents):
     if not all(_is_zero(t) for t in others):
         raise NotImplementedError("reduced_pixel_residuals is differentiable w.r.t. the map "
                                   "only; use ModelArgs(reduce=False) for other derivatives")
-    rho, e, L = _reduce(*primals[:4], shading, *primals[4:])
+    rho, e, L = reduce_pixels(*primals[:4], shading, *primals[4:])
     if _is_zero(dm):
         return (rho, e), (jnp.zeros_like(rho), jnp.zeros_like(e))
     l00, l10, l20, l11, l21, l22 = (L[:, i] for i in range(6))
@@ -228,7 +231,7 @@ def _reduced_jvp(shading, primals, tangents):
 reduced_pixel_residuals.defjvp(_reduced_jvp, symbolic_zeros=True)
 
 
-def _first_taps(plan: _tex.SamplePlan, taps: int | None) -> _tex.SamplePlan:
+def first_taps(plan: _tex.SamplePlan, taps: int | None) -> _tex.SamplePlan:
     """``plan`` with only its first ``taps`` filter taps (None: all of them)."""
     if taps is None:
         return plan
@@ -238,7 +241,7 @@ def _first_taps(plan: _tex.SamplePlan, taps: int | None) -> _tex.SamplePlan:
 def sample_split(plan: _tex.SamplePlan, mips, split: int) -> Array:
     """`jaxnm.textures.apply_plan` of the texels of ``mips``, with the first ``split`` pixels
     gathered from their 4 non-zero taps (see `ViewBatch.split`)."""
-    head = jax.tree_util.tree_map(lambda x: x[:split], _first_taps(plan, 4))
+    head = jax.tree_util.tree_map(lambda x: x[:split], first_taps(plan, 4))
     tail = jax.tree_util.tree_map(lambda x: x[split:], plan)
     parts = [_tex.apply_plan(p, mips) for p in (head, tail) if p.index.shape[0]]
     return parts[0] if len(parts) == 1 else jnp.concatenate(parts, 0)
@@ -289,7 +292,7 @@ def _over_chunks(batch: ViewBatch, fn, pixel_axis: int) -> Array:
 def _sample(plan: _tex.SamplePlan, mips, taps: int | None) -> Array:
     """The pixels' map vectors (K, 3) from the first ``taps`` taps of ``plan`` (None: all),
     materialised: fused into the shading, the gather would be recomputed per use."""
-    return materialize(_tex.apply_plan(_first_taps(plan, taps), mips))
+    return materialize(_tex.apply_plan(first_taps(plan, taps), mips))
 
 
 def _shade_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions,
@@ -322,7 +325,7 @@ def render_with_map(prep: Prepared, normals: Array, *, strength: float = 1.0,
 
 @functools.partial(jax.jit, static_argnames=("opts",))
 def _render_view(gb, normals, lights, material, strength, *, opts):
-    return _shade_view(gb, _mips(normals, opts), lights, material, opts, strength)
+    return _shade_view(gb, mip_chain(normals, opts), lights, material, opts, strength)
 
 
 def _reduced_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions,
@@ -346,7 +349,7 @@ def residuals(z: Array, args: ModelArgs) -> tuple[Array, ...]:
     prep, smooth, strength = args.prepared, args.smoothness, args.strength
     slopes = z * args.scale
     opts = prep.options[0]
-    mips = _mips(slopes_to_normals(slopes), opts)  # shared by every view
+    mips = mip_chain(slopes_to_normals(slopes), opts)  # shared by every view
     res = []
     for batch in prep.batches:
         if args.reduce and 3 * batch.images.shape[1] > 4:

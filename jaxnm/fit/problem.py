@@ -103,7 +103,7 @@ def _check_number(name: str, v, lo: float, *, strict: bool = False) -> None:
 class FitOptions:
     """How to fit (validated when constructed).
 
-    - `solver`: one of `SOLVERS`.
+    - `solver`: one of `SOLVERS` (default ``"lm-texel"``).
     - `max_steps`: outer iterations (per coarse-to-fine level).
     - `smoothness`: weight of the first-difference penalty on the slopes
       (residuals ``sqrt(w) * (s[i+1] - s[i])``), 0 to disable.
@@ -119,7 +119,7 @@ class FitOptions:
       solver's own test (``rtol``/``atol`` on the steps) applies too.
     """
 
-    solver: str = "lm"
+    solver: str = "lm-texel"
     max_steps: int = 30
     smoothness: float = 0.0
     coarse_to_fine: int = 0

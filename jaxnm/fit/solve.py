@@ -1,7 +1,8 @@
-"""The solver loop: optimistix solvers driven one step at a time, compiled once per shape.
+"""The solver loop: the solvers driven one step at a time, compiled once per shape.
 
-**Solvers** (optimistix): ``"lm"`` Levenberg–Marquardt and ``"gn"``
-Gauss–Newton, both matrix-free: the Jacobian is a linearised function
+**Solvers**: ``"lm-texel"`` (`jaxnm.fit.texel_lm`, the default) Levenberg–Marquardt on
+the texel-space normal equations; from optimistix, ``"lm"`` Levenberg–Marquardt and
+``"gn"`` Gauss–Newton, both matrix-free: the Jacobian is a linearised function
 (forward-mode JVP, transposed for the VJP) and each step is solved by
 lineax's iterative LSMR — no dense Jacobian is ever formed; ``"lbfgs"``:
 the first-order baseline, L-BFGS on the sum of squares.

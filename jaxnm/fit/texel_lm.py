@@ -39,7 +39,14 @@ import optimistix as optx
 from jax import Array
 
 from .. import textures as _tex
-from .model import ModelArgs, _first_taps, _mips, _reduce, slopes_to_normals, smoothness_residuals
+from .model import (
+    ModelArgs,
+    first_taps,
+    mip_chain,
+    reduce_pixels,
+    slopes_to_normals,
+    smoothness_residuals,
+)
 from .prepare import ViewBatch, map_pixels
 
 __all__ = ["TexelLM", "TexelLMState", "gauss_newton_parts", "gauss_newton_product",
@@ -125,7 +132,7 @@ def _lower_transpose_times(f: Array, d: Array) -> Array:
 def _mip_fn(args: ModelArgs):
     """The mip chain of the map as a function of the solver's variables ``z``."""
     opts = args.prepared.options[0]
-    return lambda z: _mips(slopes_to_normals(z * args.scale), opts)
+    return lambda z: mip_chain(slopes_to_normals(z * args.scale), opts)
 
 
 def _smooth_fn(args: ModelArgs):
@@ -150,14 +157,14 @@ def gauss_newton_parts(z: Array, args: ModelArgs) -> tuple[Array, Array, tuple[A
     cot = jax.tree_util.tree_map(jnp.zeros_like, mips)
 
     def reduce(m, gb, lights, images, weights):
-        return _reduce(m, gb, lights, prep.material, opts.shading,
+        return reduce_pixels(m, gb, lights, prep.material, opts.shading,
                        jnp.asarray(args.strength, m.dtype), images, weights)
 
     factors = []
     for batch in prep.batches:
         def body(carry, gb, lights, images, weights, taps, _):
             f, cot = carry
-            plan = _first_taps(gb.plan, taps)
+            plan = first_taps(gb.plan, taps)
             m, pull = jax.vjp(lambda mp: _tex.apply_plan(plan, mp), mips)
             rho, e, lower = jax.vmap(reduce)(m, gb, lights, images, weights)
             f = f + 0.5 * (jnp.sum(rho * rho) + jnp.sum(e * e))
@@ -189,7 +196,7 @@ def gauss_newton_product(z: Array, args: ModelArgs, factors):
         cot = jax.tree_util.tree_map(jnp.zeros_like, dmips)
         for batch, lower in zip(prep.batches, factors):
             def body(cot, gb, lights, images, weights, taps, lower_c, dmips=dmips):
-                plan = _first_taps(gb.plan, taps)
+                plan = first_taps(gb.plan, taps)
                 dm, pull = jax.vjp(lambda mp: _tex.apply_plan(plan, mp), dmips)
                 y = _lower_times(lower_c, _lower_transpose_times(lower_c, dm))
                 return _add(cot, pull(y)[0]), None

@@ -112,19 +112,19 @@ def default_problem(*, render_size: int = 512, map_size: int = 256, n_lights: in
 
 def default_fit_job(*, quick: bool = False) -> FitJob:
     """``jaxnm fit`` with no fit file: `default_problem` (512x512 renders and a 256x256 map,
-    or 128x128 and 64x64 with ``quick``), 15 LM steps of 20 LSMR iterations, scored
-    against the ground truth and a held-out light (`HELD_OUT_LIGHT`)."""
+    or 128x128 and 64x64 with ``quick``), 15 texel-space LM steps of 20 conjugate-gradient
+    iterations, scored against the ground truth and a held-out light (`HELD_OUT_LIGHT`)."""
     size, msize = (128, 64) if quick else (512, 256)
     problem, gt, scene = default_problem(render_size=size, map_size=msize, n_lights=6, views=2)
     cam = problem.targets[0].camera
     lights = directional_light(eye_to_world(cam, HELD_OUT_LIGHT))
     img = np.asarray(render(scene.replace(camera=cam, lights=lights))["color"])
     held = (FitTarget(cam, size, size, lights, img, name="held-out light"),)
-    # 20 LSMR iterations a step: a step's linearisation (shading 12 targets and its Jacobian
-    # blocks, ~0.2 s) costs as much as ~20 iterations, so more of them per step reach each
-    # accuracy sooner: < 0.2 deg after 10.1-10.9 s of fitting instead of 12.9 s with 10.
-    # 15 such steps end at 0.116 deg where 30 steps of 10 ended at 0.134 deg, and `jaxnm fit`
-    # takes 24 s instead of 27-28 s (2-core VM, 2026-11-25)
-    return FitJob(problem=problem, options=FitOptions(solver="lm", max_steps=15, lsmr_steps=20),
+    # Levenberg-Marquardt in texel space (the default solver), 20 conjugate-gradient
+    # iterations a step: a step's pass over the pixels (shading 12 targets and forming their
+    # Gauss-Newton blocks, ~0.2 s) costs as much as ~20 iterations, so more of them per step
+    # reach each accuracy sooner
+    options = FitOptions(solver="lm-texel", max_steps=15, lsmr_steps=20)
+    return FitJob(problem=problem, options=options,
                   ground_truth=gt, held_out=held)
 
