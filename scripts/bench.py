@@ -498,7 +498,7 @@ def markdown(res: dict) -> str:
     v = res.get("views")
     if v:
         lines += ["", "| solver | views (x2 lights) | size | chunk (pixel-targets) | "
-                  "pixel-targets | prepared MB | LM s / step | "
+                  "pixels (all views) | prepared MB | LM s / step | "
                   "fit s (3 steps, compile included) | peak RSS MB | "
                   "fit's own MB: first fit / again |",
                   "|---|---|---|---|---|---|---|---|---|---|"]

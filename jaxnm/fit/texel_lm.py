@@ -60,7 +60,8 @@ class TexelLMState:
 
     - `f`: () the loss ``0.5 |r|^2`` at the accepted point (inf before the first step).
     - `g`: (h, w, 2) its gradient in the solver's variables.
-    - `factors`: per `ViewBatch`, (V, K, 6) the lower triangles of each pixel's ``L``.
+    - `factors`: per `ViewBatch`, the lower triangles of each pixel's ``L``, chunk-major:
+      a (count, V, size, 6) array per pixel group (see `_fold`).
     - `delta`: (h, w, 2) the move proposed for the next step; `predicted`: () the decrease
       the model predicts for it.
     - `lam`: () the damping.
@@ -68,7 +69,7 @@ class TexelLMState:
 
     f: Array
     g: Array
-    factors: tuple[Array, ...]
+    factors: tuple[tuple[Array, ...], ...]
     delta: Array
     predicted: Array
     lam: Array
@@ -84,34 +85,40 @@ def _groups(batch: ViewBatch):
             yield start, (stop - start) // n, n, taps
 
 
-def _fold(batch: ViewBatch, body, carry, per_pixel: Array | None = None):
+def _fold(batch: ViewBatch, body, carry, per_pixel: tuple[Array, ...] | None = None):
     """Run ``body(carry, gbuffer, lights, images, weights, taps, per_pixel_chunk)`` over every
     chunk of every view of ``batch`` (one chunk of all views at a time), threading ``carry``.
 
-    ``per_pixel`` (V, K, ...) is cut like the G-buffer. Returns the final carry and
-    ``body``'s second outputs put together in pixel order, (V, K, ...), or None."""
+    Per-pixel arrays stay **chunk-major**: ``per_pixel`` holds one (count, V, size, ...) array
+    per pixel group (`_groups`), read a chunk at a time, and ``body``'s second outputs come
+    back the same way (or None) — no reordering into (V, K, ...), which would copy them.
+    Returns the final carry and that tuple."""
     outs = []
-    for start, size, n, taps in _groups(batch):
-        def chunk(carry, c, start=start, size=size, taps=taps):
+    for g, (start, size, n, taps) in enumerate(_groups(batch)):
+        def chunk(carry, xs, start=start, size=size, taps=taps):
+            c, extra = xs
+
             def cut(x, axis=1):
                 return jax.lax.dynamic_slice_in_dim(x, start + c * size, size, axis)
 
             gb = map_pixels(batch.gbuffer, cut)
-            extra = None if per_pixel is None else cut(per_pixel)
             return body(carry, gb, batch.lights, cut(batch.images, 2), cut(batch.weights, 2),
                         taps, extra)
 
+        extra = None if per_pixel is None else per_pixel[g]
         if n == 1:
-            carry, out = chunk(carry, 0)
+            carry, out = chunk(carry, (0, None if extra is None else extra[0]))
+            out = None if out is None else out[None]
         else:
-            carry, out = jax.lax.scan(chunk, carry, jnp.arange(n))
-            if out is not None:  # (n, V, size, ...) -> (V, n * size, ...)
-                out = jnp.moveaxis(out, 0, 1)
-                out = out.reshape(out.shape[:1] + (n * size,) + out.shape[3:])
+            carry, out = jax.lax.scan(chunk, carry, (jnp.arange(n), extra))
         outs.append(out)
-    if outs[0] is None:
-        return carry, None
-    return carry, outs[0] if len(outs) == 1 else jnp.concatenate(outs, 1)
+    return carry, None if outs[0] is None else tuple(outs)
+
+
+def _factor_shapes(batch: ViewBatch) -> tuple[tuple[int, ...], ...]:
+    """The shapes of a batch's kept factors: (count, V, size, 6) per pixel group."""
+    views = batch.pixels.shape[0]
+    return tuple((n, views, size, 6) for _, size, n, _ in _groups(batch))
 
 
 def _lower_times(f: Array, d: Array) -> Array:
@@ -145,7 +152,8 @@ def _add(a, b):
 
 def gauss_newton_parts(z: Array, args: ModelArgs) -> tuple[Array, Array, tuple[Array, ...]]:
     """One pass over every pixel of ``args.prepared``: the loss ``0.5 |r|^2``, its gradient
-    w.r.t. ``z`` (h, w, 2), and each pixel's Gram factor ``L`` per `ViewBatch` (V, K, 6).
+    w.r.t. ``z`` (h, w, 2), and each pixel's Gram factor ``L`` per `ViewBatch` (as
+    `TexelLMState.factors`).
 
     The gradient is ``A^T (L rho)`` (``L rho = B^T r``) summed in the mip chain, then
     pulled back to ``z`` through the (texel-space) mip chain; the smoothness penalty's
@@ -269,7 +277,7 @@ class TexelLM:
     def init(self, z: Array, args: ModelArgs) -> TexelLMState:
         """The state before the first step (which evaluates ``z``)."""
         zero = jnp.zeros((), z.dtype)
-        factors = tuple(jnp.zeros(b.pixels.shape + (6,), z.dtype)
+        factors = tuple(tuple(jnp.zeros(shape, z.dtype) for shape in _factor_shapes(b))
                         for b in args.prepared.batches)
         return TexelLMState(f=jnp.full((), jnp.inf, z.dtype), g=jnp.zeros_like(z),
                             factors=factors, delta=jnp.zeros_like(z), predicted=zero, lam=zero)
@@ -288,7 +296,7 @@ class TexelLM:
         pick = lambda new, old: jnp.where(accepted, new, old)  # noqa: E731
         z_new = pick(trial, z)
         f, g = pick(f_t, state.f), pick(g_t, state.g)
-        factors = tuple(pick(a, b) for a, b in zip(factors_t, state.factors))
+        factors = jax.tree_util.tree_map(pick, factors_t, state.factors)
         product = gauss_newton_product(z_new, args, factors)
 
         def start_damping():  # lam0 times the curvature along the gradient (first step only)
