@@ -205,7 +205,9 @@ def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
             cover = np.zeros(t0.height * t0.width, bool)
             cover[pix] = True
             cover = cover.reshape(t0.height, t0.width)
-            covered = lambda x: x[:count]  # noqa: E731
+            # a copy: a view of the first ``count`` slots would keep every slot (up to twice
+            # the covered pixels) alive until the views are stacked
+            covered = lambda x: np.array(x[:count])  # noqa: E731
         gb = _host(_fit_fields(gb))  # the rest is host-side indexing, in NumPy
         ws = []
         for i, t in enumerate(ts):
