@@ -1,7 +1,8 @@
 """Normal-map fit benchmark: angular error versus wall time for each solver.
 
     python scripts/bench_fit.py [--render 512] [--map 256] [--lights 6] [--views 2]
-                                [--budget 60] [--solvers lm gn lbfgs] [--plot fit_bench.png]
+                                [--budget 60] [--solvers lm-texel lm gn lbfgs]
+                                [--plot fit_bench.png]
 
 On the built-in problem (the default torus and its rivet map, noise-free
 targets) every solver starts from a flat map and runs until ``--budget``
