@@ -266,7 +266,8 @@ class TexelLM:
     - `rtol`, `atol`: the step's termination test, as optimistix's: the accepted move and
       loss change are both below ``atol + rtol * |value|``.
     - `lam0`: the first damping, relative to the Gauss-Newton curvature along the first
-      gradient.
+      gradient (0.1: with 1e-3, on test_fit's small problem, the damping fell so low that
+      six steps in a row were rejected before it had grown back).
     """
 
     cg_steps: int = 20
