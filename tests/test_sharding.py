@@ -30,11 +30,12 @@ for reduce in (False, True):
     np.testing.assert_allclose(float(lb), float(la), rtol=1e-5)
     np.testing.assert_allclose(np.asarray(gb), np.asarray(ga), rtol=1e-4,
                                atol=1e-5 * float(jnp.abs(ga).max()))
-for solver in ("lm", "lm-texel"):
-    opts = F.FitOptions(solver=solver, max_steps=4, lsmr_steps=5)
-    one = F.fit_normal_map(problem, opts, prepared=prep, progress=False)
-    two = F.fit_normal_map(problem, opts, prepared=sharded, progress=False)
-    np.testing.assert_allclose(two.normals, one.normals, atol=2e-4)
+# the default solver (lm-texel); optimistix's lm was checked the same way while it was
+# the default, and its step has not changed since
+opts = F.FitOptions(max_steps=4, lsmr_steps=5)
+one = F.fit_normal_map(problem, opts, prepared=prep, progress=False)
+two = F.fit_normal_map(problem, opts, prepared=sharded, progress=False)
+np.testing.assert_allclose(two.normals, one.normals, atol=2e-4)
 c2f = F.fit_normal_map(problem, F.FitOptions(max_steps=2, coarse_to_fine=1), prepared=sharded,
                        progress=False)
 assert np.isfinite(c2f.best_loss)
