@@ -31,7 +31,7 @@ from ..frames import perturb_normal
 from ..numerics import materialize, safe_normalize, safe_sqrt, tiny
 from ..render import GBuffer, RenderOptions
 from ..shading import Lights, Material, shade
-from .prepare import Prepared, ViewBatch, map_pixels
+from .prepare import Prepared, ViewBatch
 
 __all__ = ["ModelArgs", "slopes_to_normals", "normals_to_slopes", "residuals", "loss",
            "render_with_map", "sample_split", "reduced_pixel_residuals", "smoothness_residuals",
@@ -264,21 +264,10 @@ def _over_chunks(batch: ViewBatch, fn, pixel_axis: int) -> Array:
     ``taps`` is 4 for the pixels that read one mip level (the first `ViewBatch.split`), None
     (the plan's own) for the rest. A loop iteration holds one chunk's intermediates, so
     the working memory of a step stays bounded however many views and pixels there are."""
-    k = batch.pixels.shape[1]
     parts = []
-    for start, stop, n, taps in ((0, batch.split, batch.chunks[0], 4),
-                                 (batch.split, k, batch.chunks[1], None)):
-        if stop == start:
-            continue
-        size = (stop - start) // n
-
+    for start, size, n, taps in batch.pixel_groups():
         def chunk(c, start=start, size=size, taps=taps):
-            def cut(x, axis):
-                return jax.lax.dynamic_slice_in_dim(x, start + c * size, size, axis)
-
-            gb = map_pixels(batch.gbuffer, lambda x: cut(x, 1))
-            return jax.vmap(lambda *a: fn(*a, taps))(gb, batch.lights, cut(batch.images, 2),
-                                                     cut(batch.weights, 2))
+            return jax.vmap(lambda *a: fn(*a, taps))(*batch.chunk(start, size, c))
 
         if n == 1:
             parts.append(chunk(0))

@@ -74,6 +74,25 @@ class ViewBatch:
     split: int = dataclasses.field(metadata=dict(static=True), default=0)
     chunks: tuple[int, int] = dataclasses.field(metadata=dict(static=True), default=(1, 1))
 
+    def pixel_groups(self) -> tuple[tuple[int, int, int, int | None], ...]:
+        """``(start, size, count, taps)`` of each pixel group that has pixels: ``count``
+        chunks of ``size`` pixels from ``start``, read with ``taps`` filter taps (4 for the
+        first `split` pixels, None — the plan's own — for the rest)."""
+        k = self.pixels.shape[1]
+        return tuple((start, (stop - start) // n, n, taps)
+                     for start, stop, n, taps in ((0, self.split, self.chunks[0], 4),
+                                                  (self.split, k, self.chunks[1], None))
+                     if stop > start)
+
+    def chunk(self, start: int, size: int, c) -> tuple[GBuffer, Lights, Array, Array]:
+        """The G-buffer, lights, images and weights of pixels ``start + c * size`` to
+        ``start + (c + 1) * size`` of every view (``c`` may be traced)."""
+        def cut(x, axis):
+            return jax.lax.dynamic_slice_in_dim(x, start + c * size, size, axis)
+
+        return (map_pixels(self.gbuffer, lambda x: cut(x, 1)), self.lights,
+                cut(self.images, 2), cut(self.weights, 2))
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)

@@ -47,7 +47,7 @@ from .model import (
     slopes_to_normals,
     smoothness_residuals,
 )
-from .prepare import ViewBatch, map_pixels
+from .prepare import ViewBatch
 
 __all__ = ["TexelLM", "TexelLMState", "gauss_newton_parts", "gauss_newton_product",
            "conjugate_gradient"]
@@ -75,35 +75,20 @@ class TexelLMState:
     lam: Array
 
 
-def _groups(batch: ViewBatch):
-    """(start, size, count, taps) of each pixel group of ``batch`` (see `ViewBatch.split`)
-    that has pixels: ``count`` chunks of ``size`` pixels from ``start``."""
-    k = batch.pixels.shape[1]
-    for start, stop, n, taps in ((0, batch.split, batch.chunks[0], 4),
-                                 (batch.split, k, batch.chunks[1], None)):
-        if stop > start:
-            yield start, (stop - start) // n, n, taps
-
-
 def _fold(batch: ViewBatch, body, carry, per_pixel: tuple[Array, ...] | None = None):
     """Run ``body(carry, gbuffer, lights, images, weights, taps, per_pixel_chunk)`` over every
     chunk of every view of ``batch`` (one chunk of all views at a time), threading ``carry``.
 
     Per-pixel arrays stay **chunk-major**: ``per_pixel`` holds one (count, V, size, ...) array
-    per pixel group (`_groups`), read a chunk at a time, and ``body``'s second outputs come
-    back the same way (or None) — no reordering into (V, K, ...), which would copy them.
+    per pixel group (`ViewBatch.pixel_groups`), read a chunk at a time, and ``body``'s
+    second outputs come back the same way (or None) — no reordering into (V, K, ...),
+    which would copy them.
     Returns the final carry and that tuple."""
     outs = []
-    for g, (start, size, n, taps) in enumerate(_groups(batch)):
+    for g, (start, size, n, taps) in enumerate(batch.pixel_groups()):
         def chunk(carry, xs, start=start, size=size, taps=taps):
             c, extra = xs
-
-            def cut(x, axis=1):
-                return jax.lax.dynamic_slice_in_dim(x, start + c * size, size, axis)
-
-            gb = map_pixels(batch.gbuffer, cut)
-            return body(carry, gb, batch.lights, cut(batch.images, 2), cut(batch.weights, 2),
-                        taps, extra)
+            return body(carry, *batch.chunk(start, size, c), taps, extra)
 
         extra = None if per_pixel is None else per_pixel[g]
         if n == 1:
@@ -118,7 +103,7 @@ def _fold(batch: ViewBatch, body, carry, per_pixel: tuple[Array, ...] | None = N
 def _factor_shapes(batch: ViewBatch) -> tuple[tuple[int, ...], ...]:
     """The shapes of a batch's kept factors: (count, V, size, 6) per pixel group."""
     views = batch.pixels.shape[0]
-    return tuple((n, views, size, 6) for _, size, n, _ in _groups(batch))
+    return tuple((n, views, size, 6) for _, size, n, _ in batch.pixel_groups())
 
 
 def _lower_times(f: Array, d: Array) -> Array:
