@@ -538,9 +538,9 @@ def main(argv=None) -> None:
     ap.add_argument("--views", type=int, default=4, help=argparse.SUPPRESS)
     ap.add_argument("--view-size", type=int, default=128, help=argparse.SUPPRESS)
     ap.add_argument("--chunk", default=str(F.CHUNK), help=argparse.SUPPRESS)
-    ap.add_argument("--solver", default="lm", choices=F.SOLVERS,
-                    help="the fit benchmark's solver (default: lm; --parts views runs lm "
-                         "and lm-texel)")
+    ap.add_argument("--solver", default=F.FitOptions().solver, choices=F.SOLVERS,
+                    help="the fit benchmark's solver (default: FitOptions', "
+                         f"{F.FitOptions().solver}; --parts views runs lm and lm-texel)")
     args = ap.parse_args(argv)
     if args.fit_worker:
         return fit_worker(args)

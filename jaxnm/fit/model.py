@@ -329,6 +329,7 @@ def _reduced_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptio
     return _over_chunks(batch, one, 1).reshape(-1)
 
 
+@jax.jit  # one program per problem shape: op by op, the reduced form took ~10 s a call
 def residuals(z: Array, args: ModelArgs) -> tuple[Array, ...]:
     """The weighted differences between the renders and the targets, one flat array per
     `ViewBatch`, and the smoothness residuals (if any); ``z`` (h, w, 2) are the
@@ -359,7 +360,7 @@ def smoothness_residuals(slopes: Array, weight: Array) -> Array:
     return jnp.sqrt(weight) * jnp.concatenate([dx.reshape(-1), dy.reshape(-1)])
 
 
-@jax.jit  # op by op, the reduced residuals' per-pixel factorisation took ~10 s
+@jax.jit
 def loss(z: Array, args: ModelArgs) -> Array:
     """``0.5 * sum(residuals(z, args)^2)``, the objective every solver minimises (one
     compiled program per problem shape)."""
