@@ -567,3 +567,23 @@ def test_render_and_a_fits_prepare_share_one_visibility_program():
     finally:
         counting[0] = False
     assert int(count) > 0
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e4])
+def test_to_clip_matches_float64_far_from_the_origin(offset):
+    """`jaxnm.to_clip` (written out term by term, camera-relative) agrees with the float64
+    transform to float32 rounding of the clip coordinates, near the origin and 1e4 away
+    from it (camera and mesh moved together)."""
+    rng = np.random.default_rng(3)
+    o = np.array([offset, -0.5 * offset, 0.25 * offset])
+    eye, target = o + np.array([0.3, -2.0, 1.2]), o
+    cam = jaxnm.Camera.look_at(eye, target, up=(0, 0, 1), near=0.05, far=50.0)
+    p = (o + rng.uniform(-1, 1, (500, 3))).astype(np.float32)
+    got = np.asarray(jaxnm.to_clip(jnp.asarray(p), cam), np.float64)
+    view, proj = (np.asarray(m, np.float64) for m in (cam.view, cam.projection))
+    eye64 = np.asarray(cam.eye, np.float32).astype(np.float64)  # the eye jaxnm uses
+    ref = (np.asarray(p, np.float64) - eye64) @ view[:3, :3].T @ proj[:, :3].T + proj[:, 3]
+    # a few float32 roundings of the largest term of each coordinate
+    scale = np.abs(np.asarray(p, np.float64) - eye64).max(1, keepdims=True) * 4
+    err = np.abs(got - ref) / scale
+    assert err.max() < 8 * np.finfo(np.float32).eps, err.max()
