@@ -34,6 +34,8 @@ __all__ = [
     "safe_norm",
     "safe_normalize",
     "angle_between",
+    "cumsum",
+    "flat_nonzero",
 ]
 
 
@@ -80,6 +82,48 @@ def cross(a: ArrayLike, b: ArrayLike) -> Array:
     a0, a1, a2 = a[..., 0:1], a[..., 1:2], a[..., 2:3]
     b0, b1, b2 = b[..., 0:1], b[..., 1:2], b[..., 2:3]
     return jnp.concatenate([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], -1)
+
+
+def cumsum(x: ArrayLike, block: int = 8) -> Array:
+    """Inclusive running sum of a 1-D integer array: `jnp.cumsum`, faster on XLA's CPU.
+
+    Exact (integer adds in the array's dtype, wrapping as they do). ``jnp.cumsum``
+    lowers to a tree of reduce-windows and a gather-like combine: 0.9-1.0 ms for 2^18
+    int32 values on a 2-core VM. Here: running sums within blocks of ``block`` by
+    ``log2(block)`` shifted adds, the blocks' totals summed the same way, one level
+    down (until a level fits in one block), then added back: 0.2-0.3 ms
+    (``scripts/bench_raster.py --scans``).
+    """
+    x = jnp.asarray(x)
+    if x.ndim != 1 or not jnp.issubdtype(x.dtype, jnp.integer):
+        raise ValueError(f"cumsum: expected a 1-D integer array, got {x.dtype}{x.shape}")
+    n = x.shape[0]
+    if n <= block:
+        return jnp.cumsum(x)  # (a reduce-window: also the fusion boundary for the levels above)
+    m = -(-n // block)
+    run = jnp.pad(x, (0, m * block - n)).reshape(m, block)
+    k = 1
+    while k < block:
+        run = run + jnp.pad(run[:, :-k], ((0, 0), (k, 0)))
+        k *= 2
+    total = run[:, -1]
+    before = cumsum(total, block) - total  # the blocks ahead of each block
+    return (run + before[:, None]).reshape(-1)[:n]
+
+
+def flat_nonzero(mask: ArrayLike, size: int, fill_value: int) -> Array:
+    """The indices (int32, ascending) of the true entries of a 1-D boolean ``mask``, the
+    first ``size`` of them, then ``fill_value``: ``jnp.nonzero(mask, size=size,
+    fill_value=fill_value)[0]``, as one running sum (`cumsum`) and one scatter instead of
+    two running sums and a bincount (2^18 entries: 1.35 -> 0.8 ms on a 2-core VM;
+    ``scripts/bench_raster.py --scans``)."""
+    mask = jnp.asarray(mask)
+    if mask.ndim != 1 or mask.dtype != jnp.bool_:
+        raise ValueError(f"flat_nonzero: expected a 1-D boolean mask, got {mask.dtype}{mask.shape}")
+    n = mask.shape[0]
+    slot = cumsum(mask.astype(jnp.int32)) - 1  # each true entry's place in the output
+    return jnp.full((size,), fill_value, jnp.int32).at[jnp.where(mask, slot, size)].set(
+        jnp.arange(n, dtype=jnp.int32), mode="drop")
 
 
 @jax.custom_jvp

@@ -51,7 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .numerics import dot, materialize, roll_last, xyw
+from .numerics import cumsum, dot, flat_nonzero, materialize, roll_last, xyw
 
 __all__ = ["Fragments", "rasterize", "window_homogeneous", "pixel_centers", "compact",
            "expand", "TIE_RULE"]
@@ -163,7 +163,7 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
     height, width = triangle_id.shape
     n = height * width
     ids = triangle_id.reshape(-1)
-    index = jnp.nonzero(ids >= 0, size=capacity, fill_value=n)[0].astype(jnp.int32)
+    index = flat_nonzero(ids >= 0, capacity, n)
     used = index < n
     at = jnp.minimum(index, n - 1)
     row, col = at // width, at % width
@@ -415,7 +415,7 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     k0 = jnp.searchsorted(ends, slot0, side="right").astype(jnp.int32)
     ahead = jax.lax.dynamic_slice_in_dim(starts_ahead, k0 + 1, slots)
     marks = jnp.zeros((slots,), jnp.int32).at[ahead - slot0].add(1, mode="drop")
-    k = jnp.minimum(k0 + jnp.cumsum(marks), order.shape[0] - 1)
+    k = jnp.minimum(k0 + cumsum(marks), order.shape[0] - 1)
     t = order[k]
     local = s - starts[k]
     nx = jnp.maximum(nbx[t], 1)
@@ -475,9 +475,9 @@ def _fragment_source(tri, tri_depth, setup, *, width, height, block, slots):
     counts = nbx * nby
     n = counts.shape[0]
     # the triangles that have slots, in order (then padding: no slots)
-    order = jnp.nonzero(counts > 0, size=n, fill_value=0)[0].astype(jnp.int32)
+    order = flat_nonzero(counts > 0, n, 0)
     counts = jnp.where(jnp.arange(n) < jnp.sum(counts > 0), counts[order], 0)
-    ends = jnp.cumsum(counts)
+    ends = cumsum(counts)
     starts = ends - counts
     total = ends[-1]
     # the starts again, padded so that any `slots` of them after one triangle can be sliced

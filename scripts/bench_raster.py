@@ -3,6 +3,7 @@
 Prints one JSON object per (mesh, resolution) line and a final JSON summary:
 
     python scripts/bench_raster.py [--repeats 15] [--sizes 512 1024] [--tris 4k 20k 200k]
+    python scripts/bench_raster.py --scans   # jaxnm.numerics' running sums against jnp's
 
 Reported per case: median and min wall time (ms) of ``rasterize`` (visibility:
 triangle ids + depth; also with back-face culling), of the G-buffer (rasterize +
@@ -88,12 +89,46 @@ def bench_case(tris: str, size: int, repeats: int) -> dict:
     }
 
 
+def bench_scans(repeats: int) -> list[dict]:
+    """`jaxnm.numerics.cumsum` / `flat_nonzero` against `jnp.cumsum` / `jnp.nonzero` on the
+    sizes the rasterizer scans: an image's pixels (512^2), a mesh's triangles (200k), a
+    round of slots (2^15); a fifth of the entries set."""
+    import numpy as np
+
+    from jaxnm.numerics import cumsum, flat_nonzero
+
+    rows = []
+    for n in (512 * 512, 200_000, 1 << 15):
+        mask = jnp.asarray(np.random.default_rng(n).random(n) < 0.2)
+        x = mask.astype(jnp.int32)
+        size = n // 4
+        pairs = {
+            "cumsum": (jax.jit(jnp.cumsum), jax.jit(cumsum), (x,)),
+            "nonzero": (jax.jit(lambda m: jnp.nonzero(m, size=size, fill_value=n)[0]),
+                        jax.jit(lambda m: flat_nonzero(m, size, n)), (mask,)),
+        }
+        for name, (ref, ours, a) in pairs.items():
+            assert bool((ref(*a) == ours(*a)).all()), name
+            t_ref, t_ours = _time(lambda: ref(*a), repeats)[0], _time(lambda: ours(*a), repeats)[0]
+            rows.append({"scan": name, "n": n, "jnp_ms": round(t_ref, 3),
+                         "jaxnm_ms": round(t_ours, 3), "ratio": round(t_ref / t_ours, 2)})
+    return rows
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--sizes", type=int, nargs="+", default=[512, 1024])
     ap.add_argument("--tris", nargs="+", default=list(MESHES), choices=list(MESHES))
+    ap.add_argument("--scans", action="store_true",
+                    help="time the running sums (cumsum, nonzero) instead")
     args = ap.parse_args(argv)
+    if args.scans:
+        rows = bench_scans(max(args.repeats, 50))
+        for r in rows:
+            print(json.dumps(r))
+        print(json.dumps({"machine": _machine(), "results": rows}))
+        return
     results = []
     for tris in args.tris:
         for size in args.sizes:

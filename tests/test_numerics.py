@@ -5,8 +5,9 @@ import re
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
-from jaxnm.numerics import materialize
+from jaxnm.numerics import cumsum, flat_nonzero, materialize
 
 
 def _while_carry_types(hlo: str) -> list[str]:
@@ -36,3 +37,43 @@ def test_materialize_is_an_identity_that_keeps_every_leaf_in_its_own_buffer():
     # untouched would be hoisted out of it and fused (recomputed) into every consumer.
     kinds = _while_carry_types(jax.jit(f).lower(x).compile().as_text())
     assert {"f32", "s32", "pred"} <= set(kinds), kinds
+
+
+@pytest.mark.parametrize("n", [1, 7, 8, 9, 63, 64, 65, 513, 4097])
+def test_cumsum_equals_the_sequential_running_sum_wrapping_included(n):
+    rng = np.random.default_rng(n)
+    small = rng.integers(-5, 6, n).astype(np.int32)
+    # values near the int32 range: the running sum wraps, as integer adds (and NumPy's) do
+    big = rng.integers(-(2**31), 2**31 - 1, n, dtype=np.int64).astype(np.int32)
+    f = jax.jit(cumsum)
+    for x in (small, big):
+        with np.errstate(over="ignore"):
+            want = np.cumsum(x, dtype=np.int32)
+        got = f(jnp.asarray(x))
+        assert got.dtype == jnp.int32
+        np.testing.assert_array_equal(np.asarray(got), want)
+    np.testing.assert_array_equal(np.asarray(cumsum(jnp.asarray(small), block=2)),
+                                  np.cumsum(small))
+
+
+@pytest.mark.parametrize("n", [1, 1000])
+def test_flat_nonzero_equals_numpys_indices_cut_or_filled_to_size(n):
+    rng = np.random.default_rng(n)
+    f = jax.jit(flat_nonzero, static_argnums=(1, 2))
+    for mask in (rng.random(n) < 0.3, np.zeros(n, bool), np.ones(n, bool)):
+        count = int(mask.sum())
+        for size in sorted({1, max(count - 1, 1), count + 5}):
+            want = np.full(size, n)
+            want[:min(size, count)] = np.flatnonzero(mask)[:size]
+            got = f(jnp.asarray(mask), size, n)
+            assert got.dtype == jnp.int32 and got.shape == (size,)
+            np.testing.assert_array_equal(np.asarray(got), want)
+
+
+def test_cumsum_and_flat_nonzero_reject_what_they_do_not_handle():
+    with pytest.raises(ValueError, match="1-D integer"):
+        cumsum(jnp.ones((3,), jnp.float32))
+    with pytest.raises(ValueError, match="1-D integer"):
+        cumsum(jnp.ones((2, 3), jnp.int32))
+    with pytest.raises(ValueError, match="1-D boolean"):
+        flat_nonzero(jnp.ones((3,), jnp.int32), 3, 0)
