@@ -166,7 +166,8 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
     index = flat_nonzero(ids >= 0, capacity, n)
     used = index < n
     at = jnp.minimum(index, n - 1)
-    row, col = at // width, at % width
+    row = jax.lax.div(at, jnp.int32(width))  # (non-negative: C division, no floor fix-ups)
+    col = at - row * width
     tid = jnp.where(used, ids[at], -1)
     placed = Fragments(triangle_id=tid, depth=None, front_facing=None, clip=clip, faces=faces,
                        pixels=jnp.stack([col, height - 1 - row], -1),
@@ -373,9 +374,12 @@ def _triangle_setup(v: list[list[Array]], width: int, height: int, block: int,
     if cull_back:
         valid = valid & (sigma > 0)
     # the tiles of the image's block x block grid that the box touches
-    nbx = jnp.where(valid, i1 // block - i0 // block + 1, 0)
-    nby = jnp.where(valid, j1 // block - j0 // block + 1, 0)
-    return sigma, i0 // block, j0 // block, nbx, nby
+    # (C division: i0, j0 >= 0, and i1, j1 too wherever valid; jnp's floor division would
+    # add sign fix-ups to every one of these F-sized loops)
+    tx0, ty0 = jax.lax.div(i0, jnp.int32(block)), jax.lax.div(j0, jnp.int32(block))
+    nbx = jnp.where(valid, jax.lax.div(i1, jnp.int32(block)) - tx0 + 1, 0)
+    nby = jnp.where(valid, jax.lax.div(j1, jnp.int32(block)) - ty0 + 1, 0)
+    return sigma, tx0, ty0, nbx, nby
 
 
 # --------------------------------------------------------------------------------------
@@ -422,8 +426,9 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     t = order[k]
     local = s - starts[k]
     nx = jnp.maximum(nbx[t], 1)
-    tx = tx0[t] + local % nx
-    ty = ty0[t] + local // nx
+    row = jax.lax.div(local, nx)  # local >= 0, nx >= 1: C division (no floor fix-ups)
+    tx = tx0[t] + (local - row * nx)
+    ty = ty0[t] + row
     bx, by = tx * block, ty * block  # the tile's first pixel
     x0 = bx.astype(tri_h.dtype) + 0.5
     y0 = by.astype(tri_h.dtype) + 0.5
@@ -462,7 +467,9 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     # (the reshape after the barrier: the loop runs over the (S, block**2) shape, whose minor
     # axis of 16 vectorises better than (S, block, block)'s 4)
     depth = materialize(jnp.where(inside, depth, jnp.inf)).reshape(slots, block, block)
-    return by // block * tiles_x + bx // block, depth, t  # (from the materialised bx, by)
+    # (from the materialised bx, by >= 0)
+    tile = jax.lax.div(by, jnp.int32(block)) * tiles_x + jax.lax.div(bx, jnp.int32(block))
+    return tile, depth, t
 
 
 def _window_corners(clip, faces, *, width, height, subpixel_bits):
