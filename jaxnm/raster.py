@@ -51,7 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .numerics import cumsum, dot, flat_nonzero, materialize, roll_last, xyw
+from .numerics import cumsum, dot, flat_nonzero, materialize, roll_last
 
 __all__ = ["Fragments", "rasterize", "window_homogeneous", "pixel_centers", "compact",
            "expand", "TIE_RULE"]
@@ -206,28 +206,26 @@ def window_homogeneous(clip: Array, width: int, height: int) -> Array:
 # --------------------------------------------------------------------------------------
 
 
-def _lex_less(a: Array, b: Array) -> Array:
-    """Lexicographic ``a < b`` over the last axis (length 3)."""
-    return (a[..., 0] < b[..., 0]) | (
-        (a[..., 0] == b[..., 0])
-        & ((a[..., 1] < b[..., 1]) | ((a[..., 1] == b[..., 1]) & (a[..., 2] < b[..., 2])))
-    )
+def _lex_less(a, b) -> Array:
+    """Lexicographic ``a < b`` of 3-component points given as sequences of arrays."""
+    return (a[0] < b[0]) | ((a[0] == b[0]) & ((a[1] < b[1]) | ((a[1] == b[1]) & (a[2] < b[2]))))
 
 
-def _edge_coefficients(hj: Array, hk: Array, x0: Array, y0: Array):
+def _edge_coefficients(hj, hk, x0: Array, y0: Array):
     """Coefficients of ``E(x0 + dx, y0 + dy) = c + a dx + b dy = det[p; hj; hk]``.
 
-    ``hj, hk``: (..., 3) homogeneous window (x, y, w). The two vertices are
-    put in canonical order before any arithmetic, so that the same edge gives
-    bit-identical magnitudes in both triangles that share it.
+    ``hj, hk``: homogeneous window (x, y, w), each a sequence of three arrays (structure of
+    arrays: XLA's CPU loops vectorise over their one axis, not over a minor axis of 3).
+    The two vertices are put in canonical order before any arithmetic, so that the same
+    edge gives bit-identical magnitudes in both triangles that share it.
     """
     swap = _lex_less(hk, hj)
-    u = jnp.where(swap[..., None], hk, hj)
-    v = jnp.where(swap[..., None], hj, hk)
-    sign = jnp.where(swap, -1.0, 1.0).astype(hj.dtype)
+    u = [jnp.where(swap, q, p) for p, q in zip(hj, hk)]
+    v = [jnp.where(swap, p, q) for p, q in zip(hj, hk)]
+    sign = jnp.where(swap, -1.0, 1.0).astype(hj[0].dtype)
     # translate so that the evaluation point is the origin (better conditioned)
-    ux, uy, uw = u[..., 0] - x0 * u[..., 2], u[..., 1] - y0 * u[..., 2], u[..., 2]
-    vx, vy, vw = v[..., 0] - x0 * v[..., 2], v[..., 1] - y0 * v[..., 2], v[..., 2]
+    ux, uy, uw = u[0] - x0 * u[2], u[1] - y0 * u[2], u[2]
+    vx, vy, vw = v[0] - x0 * v[2], v[1] - y0 * v[2], v[2]
     a = uy * vw - uw * vy
     b = uw * vx - ux * vw
     c = ux * vy - uy * vx
@@ -388,18 +386,26 @@ def _triangle_setup(v: list[list[Array]], width: int, height: int, block: int,
 
 
 def _depth_plane(th: Array, x0: Array, y0: Array):
-    """Window depth ``dz_c + dz_a dx + dz_b dy`` around ``(x0, y0)``; triangles ``th`` (S, 3, 4)."""
-    hx = th[..., 0] - x0[:, None] * th[..., 3]
-    hy = th[..., 1] - y0[:, None] * th[..., 3]
-    hw, hz = th[..., 3], th[..., 2]
-    hxj, hyj, hwj = roll_last(hx, 1), roll_last(hy, 1), roll_last(hw, 1)
-    hxk, hyk, hwk = roll_last(hx, 2), roll_last(hy, 2), roll_last(hw, 2)
-    c = hxj * hyk - hyj * hxk
-    a = hyj * hwk - hwj * hyk
-    b = hwj * hxk - hxj * hwk
-    det = dot(c, hw)  # sum_i E_i(p) w_i = det M at any p
+    """Window depth ``dz_c + dz_a dx + dz_b dy`` around ``(x0, y0)``; triangles ``th`` (S, 3, 4).
+
+    Corner by corner on (S,) vectors (see `_edge_coefficients`), sums in corner order."""
+    hx = [th[:, k, 0] - x0 * th[:, k, 3] for k in range(3)]
+    hy = [th[:, k, 1] - y0 * th[:, k, 3] for k in range(3)]
+    hw = [th[:, k, 3] for k in range(3)]
+    hz = [th[:, k, 2] for k in range(3)]
+    c, a, b = [], [], []
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        c.append(hx[j] * hy[k] - hy[j] * hx[k])
+        a.append(hy[j] * hw[k] - hw[j] * hy[k])
+        b.append(hw[j] * hx[k] - hx[j] * hw[k])
+
+    def dot3(p, q):
+        return p[0] * q[0] + p[1] * q[1] + p[2] * q[2]
+
+    det = dot3(c, hw)  # sum_i E_i(p) w_i = det M at any p
     det = jnp.where(det == 0, 1.0, det)
-    return dot(c, hz) / det, dot(a, hz) / det, dot(b, hz) / det
+    return dot3(c, hz) / det, dot3(a, hz) / det, dot3(b, hz) / det
 
 
 def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts, ends,
@@ -434,22 +440,17 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     y0 = by.astype(tri_h.dtype) + 0.5
 
     th = tri_h[t]  # (S, 3, 4)
-    sg = sigma[t][:, None]
-    hxyw = xyw(th)
-    a, b, c = [], [], []
-    for i in range(3):
-        ai, bi, ci = _edge_coefficients(hxyw[:, (i + 1) % 3, :], hxyw[:, (i + 2) % 3, :], x0,
-                                        y0)
-        a.append(ai)
-        b.append(bi)
-        c.append(ci)
-    a, b, c = jnp.stack(a, -1), jnp.stack(b, -1), jnp.stack(c, -1)  # (S, 3)
-    tie = _tie_inside(sg * a, sg * b)  # (S, 3)
+    sg = sigma[t]
+    # per edge, (S,) vectors: edge i joins corners i + 1 and i + 2
+    corner = [(th[:, k, 0], th[:, k, 1], th[:, k, 3]) for k in range(3)]
+    a, b, c = zip(*(_edge_coefficients(corner[(i + 1) % 3], corner[(i + 2) % 3], x0, y0)
+                    for i in range(3)))
+    tie = [_tie_inside(sg * ai, sg * bi) for ai, bi in zip(a, b)]
     # depth from the unsnapped vertices, as GPUs do (only coverage uses snapped positions)
     dz_c, dz_a, dz_b = _depth_plane(tri_depth[t], x0, y0)
     # Fold the orientation into the coefficients: inside <=> e > 0, or e >= 0 on tie edges.
-    a, b, c = sg * a, sg * b, sg * c
-    live = live & (sg[:, 0] != 0)
+    a, b, c = [sg * q for q in a], [sg * q for q in b], [sg * q for q in c]
+    live = live & (sg != 0)
     tiles_x = -(-width // block)
     # Per-slot values computed once into their own buffers: fused into the per-pixel kernel,
     # XLA would recompute them for every pixel of the tile.
@@ -458,10 +459,10 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     fx = jnp.tile(jnp.arange(block, dtype=jnp.int32), block)[None, :]  # (1, block**2):
     fy = jnp.repeat(jnp.arange(block, dtype=jnp.int32), block)[None, :]  # dx, then dy
     inside = live[:, None] & (bx[:, None] + fx < width) & (by[:, None] + fy < height)
-    fx, fy = fx.astype(a.dtype), fy.astype(a.dtype)
+    fx, fy = fx.astype(dz_c.dtype), fy.astype(dz_c.dtype)
     for i in range(3):
-        e = c[:, i:i + 1] + a[:, i:i + 1] * fx + b[:, i:i + 1] * fy  # (S, block**2)
-        inside = inside & jnp.where(tie[:, i:i + 1], e >= 0, e > 0)
+        e = c[i][:, None] + a[i][:, None] * fx + b[i][:, None] * fy  # (S, block**2)
+        inside = inside & jnp.where(tie[i][:, None], e >= 0, e > 0)
     depth = dz_c[:, None] + dz_a[:, None] * fx + dz_b[:, None] * fy
     inside = inside & (depth >= 0.0) & (depth <= 1.0)
     # (the reshape after the barrier: the loop runs over the (S, block**2) shape, whose minor
