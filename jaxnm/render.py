@@ -595,11 +595,12 @@ def _visible(mesh: Mesh, camera: Camera, shift=None, *, width: int, height: int,
 PIXEL_CHUNK = {"cpu": 1 << 16}
 
 
-def _over_chunks(fn, frags: Fragments, chunk: int):
+def _over_chunks(fn, frags: Fragments, chunk: int, *, skip_empty: bool = False):
     """``fn(frags)`` for packed fragments (per-slot fields (S, ...)), evaluated ``chunk``
     slots at a time (a `jax.lax.map`; one chunk: a plain call). ``fn`` returns a pytree of
-    per-slot arrays (S, ...); the chunks' results are put back together (padding slots are
-    background and are cut off)."""
+    per-slot arrays (S, ...), zero on background slots; the chunks' results are put back
+    together (padding slots are background and are cut off). ``skip_empty``: a chunk
+    without a covered slot is not evaluated (a `jax.lax.cond`; its results are zeros)."""
     n = frags.triangle_id.shape[0]
     k = -(-n // chunk)
     if k <= 1:
@@ -614,24 +615,23 @@ def _over_chunks(fn, frags: Fragments, chunk: int):
     per_slot = (split(frags.triangle_id, -1), split(frags.depth, 1.0),
                 split(frags.front_facing, False), split(frags.pixels, 0))
 
-    def one(chunk_fields):
+    def run(chunk_fields):
         tid, depth, front, pixels = chunk_fields
         return fn(dataclasses.replace(frags, triangle_id=tid, depth=depth, front_facing=front,
                                       pixels=pixels))
 
+    if skip_empty:
+        shapes = jax.eval_shape(run, jax.tree_util.tree_map(lambda x: x[0], per_slot))
+
+        def one(chunk_fields):
+            return jax.lax.cond(
+                jnp.any(chunk_fields[0] >= 0), run,
+                lambda _: jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes),
+                chunk_fields)
+    else:
+        one = run
     out = jax.lax.map(one, per_slot)
     return jax.tree_util.tree_map(lambda y: y.reshape((k * size,) + y.shape[2:])[:n], out)
-
-
-def _whole_image(frags: Fragments) -> Fragments:
-    """A whole image's fragments as packed ones: every pixel a slot, in row-major image order."""
-    height, width = frags.shape
-    i, j = frags.window_pixels()
-    return dataclasses.replace(frags, triangle_id=frags.triangle_id.reshape(-1),
-                               depth=frags.depth.reshape(-1),
-                               front_facing=frags.front_facing.reshape(-1),
-                               pixels=jnp.stack([i.reshape(-1), j.reshape(-1)], -1),
-                               packed_from=(height, width))
 
 
 @functools.partial(jax.jit, static_argnames=("opts", "capacity"))
@@ -642,19 +642,26 @@ def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, or
     the scene is camera-relative (`_camera_relative`; the mesh still to be moved by
     ``shift``), ``origin`` the camera's world position. With ``capacity``, the per-pixel
     stages run on the covered pixels of ``triangle_id`` (from `_visible`), packed by
-    `compact`, and their results are put back in image layout; without, on every pixel of
-    the image. Either way in chunks of `PIXEL_CHUNK` slots, except for "gbuffer"
-    derivatives (stored neighbours), which need the whole image at once."""
+    `compact`, and their results are put back in image layout. Without, on the CPU, on
+    every pixel of the image packed the same way, covered first, where chunks without a
+    covered pixel are skipped; on other backends on the image as it is. The per-pixel
+    stages run in chunks of `PIXEL_CHUNK` slots, except for "gbuffer" derivatives (stored
+    neighbours), which need the whole image at once."""
     mesh = _shifted(mesh, shift)
     height, width = opts.height, opts.width
-    if capacity is None:
+    chunk = PIXEL_CHUNK.get(jax.default_backend())
+    skip_empty = capacity is None
+    if capacity is None and (opts.derivatives == "gbuffer" or chunk is None):
         frags = _visibility(mesh, camera, opts)
         packed, index = frags, None
-        if opts.derivatives != "gbuffer":
-            packed = _whole_image(frags)
         image = {"mask": lambda: frags.mask, "triangle_id": lambda: frags.triangle_id,
                  "depth": lambda: frags.depth, "front_facing": lambda: frags.front_facing}
     else:
+        if capacity is None:
+            # the coverage is not known when tracing: every pixel a slot, the covered ones
+            # first (`compact`), so that the chunks past them are skipped
+            triangle_id = _visibility(mesh, camera, opts).triangle_id
+            capacity = height * width
         packed, index = _compact(mesh, camera, triangle_id, capacity)
         image = {"mask": lambda: triangle_id >= 0, "triangle_id": lambda: triangle_id,
                  "depth": lambda: expand(packed.depth, index, height, width, 1.0),
@@ -679,12 +686,10 @@ def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, or
         }
         return {n: res[n] if n in res else values[n]() for n in wanted}
 
-    if packed.pixels is None:  # "gbuffer" derivatives: the image at once
+    if packed.pixels is None or chunk is None:  # the image, or all the slots, at once
         values = per_pixel(packed)
     else:
-        chunk = PIXEL_CHUNK.get(jax.default_backend())
-        values = (per_pixel(packed) if chunk is None
-                  else _over_chunks(per_pixel, packed, chunk))
+        values = _over_chunks(per_pixel, packed, chunk, skip_empty=skip_empty)
     result = {}
     for name in opts.outputs:
         if name in image:
@@ -693,8 +698,6 @@ def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, or
             v = values[name]
             if index is not None:
                 v = expand(v, index, height, width)
-            elif packed.pixels is not None:
-                v = v.reshape((height, width) + v.shape[1:])
         if v.ndim == 2:
             v = v[..., None]
         result[name] = v.astype(jnp.float32)
