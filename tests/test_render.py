@@ -376,11 +376,14 @@ def test_near_plane_check_finds_the_one_vertex_in_front():
     ("exact", "coarse", "float16", (0.5, -4.5, 3.0)),
     ("vertex", "analytic", "float32", (0.5, -4.5, 3.0)),
     ("cotangent", "fine", "float32", (0.0, -2.35, 1.75))])  # over half covered: all slots
-def test_packed_pixels_render_what_the_whole_image_renders(frame, derivatives, precision, eye):
-    """`render` runs the per-pixel stages on the covered pixels only (packed) when they are at
-    most half the image (or into all slots): every output must be what the whole-image
-    pipeline gives (each pixel sees its own triangle and its own window position, quad
-    partners included): coverage, ids and facing exactly, the rest to float32 rounding."""
+def test_packed_pixels_render_what_the_whole_image_renders(frame, derivatives, precision, eye,
+                                                          small_pixel_chunks):
+    """`render` runs the per-pixel stages on the covered pixels only (packed, in chunks of
+    `PIXEL_CHUNK` slots) when they are at most half the image (or into all slots), and
+    without a host count on every pixel packed covered first, skipping the chunks past
+    them: every output must be what the per-pixel stages give on the image as it is (each
+    pixel sees its own triangle and its own window position, quad partners included):
+    coverage, ids and facing exactly, the rest to float32 rounding."""
     from jaxnm.camera import Camera, look_at, perspective
     from jaxnm.render import OUTPUTS
 
@@ -389,19 +392,70 @@ def test_packed_pixels_render_what_the_whole_image_renders(frame, derivatives, p
         look_at(eye, (0.3, 0.0, -0.1), (0.0, 0.0, 1.0)),
         perspective(45.0, 1.5, 0.1, 50.0)))
     kw = dict(outputs=OUTPUTS, frame=frame, derivatives=derivatives, precision=precision)
-    packed, whole = render(sc, pack=True, **kw), render(sc, pack=False, **kw)
+    whole = small_pixel_chunks(None, lambda: render(sc, pack=False, **kw))  # image layout
     covered = np.asarray(whole["mask"][..., 0]) > 0
     assert 0.05 < covered.mean() < 0.25 or covered.mean() > 0.5  # 1/4 of the slots, or all
-    for name in OUTPUTS:
-        if name in ("mask", "triangle_id", "front_facing"):
-            np.testing.assert_array_equal(packed[name], whole[name], err_msg=name)
-        else:  # the same arithmetic, fused differently by XLA: a few float32 ulps of the terms
-            scale = float(np.abs(np.asarray(whole[name])).max())
-            np.testing.assert_allclose(packed[name], whole[name], rtol=0,
-                                       atol=2e-6 * max(scale, 1e-3), err_msg=name)
+    for pack in (True, False):  # chunks of 256 slots: 6 (or 24), or 24 with some skipped
+        packed = small_pixel_chunks(256, lambda: render(sc, pack=pack, **kw))
+        for name in OUTPUTS:
+            if name in ("mask", "triangle_id", "front_facing"):
+                np.testing.assert_array_equal(packed[name], whole[name], err_msg=name)
+            else:  # the same arithmetic, fused differently by XLA: float32 ulps of the terms
+                scale = float(np.abs(np.asarray(whole[name])).max())
+                np.testing.assert_allclose(packed[name], whole[name], rtol=0,
+                                           atol=2e-6 * max(scale, 1e-3), err_msg=name)
     assert np.abs(np.asarray(whole["duvdx"])[covered]).min() >= 0  # derivatives are there
     assert np.abs(np.asarray(whole["duvdx"])[covered]).max() > 0
 
+
+
+@pytest.fixture
+def small_pixel_chunks(monkeypatch):
+    """``run(chunk, fn)``: ``fn()`` with `render`'s per-pixel chunks set to ``chunk`` slots
+    on the CPU (None: no chunks, and the image as it is where the count is unknown), its
+    programs compiled afresh; the cache is cleared again afterwards."""
+    import importlib
+
+    R = importlib.import_module("jaxnm.render")
+
+    def run(chunk, fn):
+        monkeypatch.setattr(R, "PIXEL_CHUNK", {} if chunk is None else {"cpu": chunk})
+        R._render.clear_cache()
+        return fn()
+
+    yield run
+    R._render.clear_cache()
+
+
+def test_chunked_pixels_give_the_image_layouts_gradient(small_pixel_chunks):
+    """Forward and reverse mode through the chunks (a `lax.map`, with a `lax.cond` skipping
+    chunks without a covered pixel) give the gradient with respect to the map, the albedo
+    and the light of the per-pixel stages run on the image as it is, under the caller's
+    jit (the count traced: every pixel a slot) and with the count read on the host."""
+    import jax
+
+    sc = default_scene(width=48, height=32)
+    texels = jnp.asarray(sc.normal_map)
+    target = render(sc)["color"] * 0.9
+
+    def loss(t, albedo, pack):
+        s = sc.replace(normal_map=t, albedo=albedo)
+        return jnp.sum((render(s, pack=pack)["color"] - target) ** 2)
+
+    args = (texels, jnp.asarray([0.7, 0.6, 0.5], jnp.float32))
+    ref = small_pixel_chunks(None, lambda: jax.jit(jax.value_and_grad(
+        loss, argnums=(0, 1)), static_argnums=2)(*args, False))
+    assert float(jnp.abs(ref[1][0]).max()) > 0 and float(jnp.abs(ref[1][1]).max()) > 0
+    covered = int(jnp.count_nonzero(render(sc, outputs=("mask",))["mask"]))
+    assert covered <= 48 * 32 - 2 * 256  # of 6 chunks of 256 slots, the last 2 are skipped
+    for pack, jit in ((False, True), (None, False)):
+        grad = jax.value_and_grad(loss, argnums=(0, 1))
+        value, (g_map, g_albedo) = small_pixel_chunks(
+            256, lambda: (jax.jit(grad, static_argnums=2) if jit else grad)(*args, pack))
+        np.testing.assert_allclose(value, ref[0], rtol=1e-5)
+        np.testing.assert_allclose(g_map, ref[1][0], rtol=1e-4,
+                                   atol=1e-5 * float(jnp.abs(ref[1][0]).max()))
+        np.testing.assert_allclose(g_albedo, ref[1][1], rtol=1e-4)
 
 def test_compact_and_expand_round_trip():
     """`compact` packs the covered pixels with their window positions, depth and facing (as
