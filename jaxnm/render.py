@@ -398,10 +398,12 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
       The slot count is read on the host where the mesh and camera are concrete (the
       map, lights and material may be traced). Inside the caller's `jax.jit` (or with
       a traced mesh or camera) the count is not known when tracing: there the default
-      runs the whole image, and ``pack=True`` (or an int, the slot count) compiles
-      both a packed program of image / 4 slots (or that many) and an all-pixel one
-      and runs the first when the covered pixels fit (`jax.lax.cond`): a faster
-      step for a jitted loop, for about twice the per-pixel stages' compile time.
+      runs every pixel of the image (on the CPU packed covered first, in chunks of
+      `PIXEL_CHUNK` slots, skipping the chunks past the covered ones), and
+      ``pack=True`` (or an int, the slot count) compiles both a packed program of
+      image / 4 slots (or that many) and an all-pixel one and runs the first when the
+      covered pixels fit (`jax.lax.cond`): on the CPU a step 1.1-1.3x faster than the
+      default for about 1 s more compilation.
       "gbuffer" derivatives (stored neighbours) always run on the whole image. The
       results are the same either way (coverage, ids and facing exactly, the rest to
       float32 rounding).
