@@ -166,7 +166,7 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
     index = flat_nonzero(ids >= 0, capacity, n)
     used = index < n
     at = jnp.minimum(index, n - 1)
-    row = jax.lax.div(at, jnp.int32(width))  # (non-negative: C division, no floor fix-ups)
+    row = _div(at, width)
     col = at - row * width
     tid = jnp.where(used, ids[at], -1)
     placed = Fragments(triangle_id=tid, depth=None, front_facing=None, clip=clip, faces=faces,
@@ -204,6 +204,13 @@ def window_homogeneous(clip: Array, width: int, height: int) -> Array:
 # --------------------------------------------------------------------------------------
 # per-triangle setup
 # --------------------------------------------------------------------------------------
+
+
+def _div(a: Array, b) -> Array:
+    """``a // b`` for non-negative integers ``a`` and positive ``b``, as C division: jnp's
+    floor division adds sign fix-ups to every loop it is in (the rasterizer's tile and
+    pixel index arithmetic: 200k triangles, 15.2 -> 14.2 ms a frame without them)."""
+    return jax.lax.div(a, jnp.asarray(b, a.dtype))
 
 
 def _lex_less(a, b) -> Array:
@@ -372,11 +379,10 @@ def _triangle_setup(v: list[list[Array]], width: int, height: int, block: int,
     if cull_back:
         valid = valid & (sigma > 0)
     # the tiles of the image's block x block grid that the box touches
-    # (C division: i0, j0 >= 0, and i1, j1 too wherever valid; jnp's floor division would
-    # add sign fix-ups to every one of these F-sized loops)
-    tx0, ty0 = jax.lax.div(i0, jnp.int32(block)), jax.lax.div(j0, jnp.int32(block))
-    nbx = jnp.where(valid, jax.lax.div(i1, jnp.int32(block)) - tx0 + 1, 0)
-    nby = jnp.where(valid, jax.lax.div(j1, jnp.int32(block)) - ty0 + 1, 0)
+    # (i0, j0 >= 0, and i1, j1 too wherever valid)
+    tx0, ty0 = _div(i0, block), _div(j0, block)
+    nbx = jnp.where(valid, _div(i1, block) - tx0 + 1, 0)
+    nby = jnp.where(valid, _div(j1, block) - ty0 + 1, 0)
     return sigma, tx0, ty0, nbx, nby
 
 
@@ -432,7 +438,7 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     t = order[k]
     local = s - starts[k]
     nx = jnp.maximum(nbx[t], 1)
-    row = jax.lax.div(local, nx)  # local >= 0, nx >= 1: C division (no floor fix-ups)
+    row = _div(local, nx)  # local >= 0, nx >= 1
     tx = tx0[t] + (local - row * nx)
     ty = ty0[t] + row
     bx, by = tx * block, ty * block  # the tile's first pixel
@@ -469,7 +475,7 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     # axis of 16 vectorises better than (S, block, block)'s 4)
     depth = materialize(jnp.where(inside, depth, jnp.inf)).reshape(slots, block, block)
     # (from the materialised bx, by >= 0)
-    tile = jax.lax.div(by, jnp.int32(block)) * tiles_x + jax.lax.div(bx, jnp.int32(block))
+    tile = _div(by, block) * tiles_x + _div(bx, block)
     return tile, depth, t
 
 
