@@ -50,7 +50,7 @@ from jax import Array
 from .interpolate import Attribute
 from .numerics import cross as _cross
 from .numerics import dot as _ndot
-from .numerics import eps, safe_norm, safe_normalize, safe_rsqrt, tiny
+from .numerics import eps, safe_norm, safe_normalize, safe_rsqrt, spread, tiny
 
 __all__ = [
     "FRAMES",
@@ -496,7 +496,9 @@ def perturb_normal(frame: Frame, m: Array, *, fallback: Array | None = None) -> 
     **Returns:** ``(..., 3)`` unit perturbed normals.
     """
     m = jnp.asarray(m)
-    v = frame.T * m[..., 0:1] + frame.B * m[..., 1:2] + frame.N * m[..., 2:3]
+    # (`spread`: a gradient with respect to the map without reductions over the minor axis)
+    v = frame.T * spread(m[..., 0:1]) + frame.B * spread(m[..., 1:2]) + frame.N * spread(
+        m[..., 2:3])
     if fallback is None:
         fallback = safe_normalize(frame.N)
     return safe_normalize(v, fallback=fallback)

@@ -61,7 +61,7 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from .numerics import dot as _ndot
-from .numerics import safe_div, safe_normalize, tiny
+from .numerics import safe_div, safe_normalize, spread, tiny
 
 __all__ = [
     "DirectionalLight",
@@ -250,7 +250,7 @@ def _incident(light, p: Array) -> tuple[Array, Array]:
         radiance = jnp.asarray(light.color, p.dtype) * jnp.asarray(light.intensity, p.dtype)
         radiance = _expand_to(radiance, shape)
         if light.falloff == "inverse_square":
-            radiance = radiance * safe_div(1.0, _dot(d, d))
+            radiance = radiance * spread(safe_div(1.0, _dot(d, d)))
         return L, radiance
     raise TypeError(f"shading: expected a DirectionalLight, PointLight, Lights or a sequence "
                     f"of them, got {type(light).__name__}")
@@ -313,18 +313,19 @@ def _shade(model: str, N, p, eye, lights, material: Material, albedo) -> Array:
 
     def one_light(light):
         L, E = _incident(light, p)
+        # (`spread`: per-pixel scalars scaling colours, see there)
         ndl = _dot(N, L)
         lit = ndl > 0
-        out = kd * a * E * jnp.where(lit, ndl, 0.0)
+        out = kd * a * E * spread(jnp.where(lit, ndl, 0.0))
         if model == "lambert":
             return out
         if model == "blinn_phong":
             H = safe_normalize(L + V)
             x = _dot(N, H)
         else:  # phong: reflect(-L, N) . V
-            R = 2.0 * ndl * N - L
+            R = 2.0 * spread(ndl) * N - L
             x = _dot(R, V)
-        spec = ks * E * _pos_pow(x, n)
+        spec = ks * E * spread(_pos_pow(x, n))
         return out + jnp.where(lit, spec, 0.0)
 
     total = ka * a

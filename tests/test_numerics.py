@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnm.numerics import cumsum, flat_nonzero, materialize
+from jaxnm.numerics import cumsum, flat_nonzero, materialize, safe_normalize, spread
 
 
 def _while_carry_types(hlo: str) -> list[str]:
@@ -77,3 +77,48 @@ def test_cumsum_and_flat_nonzero_reject_what_they_do_not_handle():
         cumsum(jnp.ones((2, 3), jnp.int32))
     with pytest.raises(ValueError, match="1-D boolean"):
         flat_nonzero(jnp.ones((3,), jnp.int32), 3, 0)
+
+
+def _minor_axis_sums(closed) -> list:
+    """The ``reduce_sum`` equations of a jaxpr (nested ones included) that sum over the last
+    axis alone (a per-element reduction, e.g. per pixel), where it is longer than 1."""
+    found = []
+
+    def walk(jaxpr):
+        for eqn in jaxpr.eqns:
+            if eqn.primitive.name == "reduce_sum":
+                shape = eqn.invars[0].aval.shape
+                if len(shape) > 1 and tuple(eqn.params["axes"]) == (len(shape) - 1,) \
+                        and shape[-1] > 1:
+                    found.append(eqn)
+            for p in eqn.params.values():
+                inner = getattr(p, "jaxpr", p)
+                if hasattr(inner, "eqns"):
+                    walk(inner)
+
+    walk(closed.jaxpr)
+    return found
+
+
+def test_spread_is_a_broadcast_whose_gradient_has_no_reduction():
+    rng = np.random.default_rng(3)
+    s = jnp.asarray(rng.normal(size=(257, 1)), jnp.float32)
+    v = jnp.asarray(rng.normal(size=(257, 3)), jnp.float32)
+    np.testing.assert_array_equal(spread(s), jnp.broadcast_to(s, (257, 3)))
+    np.testing.assert_array_equal(spread(s, 4), jnp.broadcast_to(s, (257, 4)))
+
+    def loss(f):
+        return lambda s: jnp.sum(jnp.sin(f(s) * v))
+
+    g = jax.grad(loss(spread))(s)
+    g_ref = jax.grad(loss(lambda s: s * jnp.ones((1, 3))))(s)
+    np.testing.assert_allclose(g, g_ref, rtol=1e-6, atol=1e-6)
+    # the point of it: reverse mode adds the three components instead of reducing over a
+    # minor axis of 3 (which XLA's CPU runs as a slow library reduction)
+    assert _minor_axis_sums(jax.make_jaxpr(jax.grad(loss(lambda s: s * jnp.ones((1, 3)))))(s))
+    assert not _minor_axis_sums(jax.make_jaxpr(jax.grad(loss(spread)))(s))
+    # ... and so does the gradient of a normalisation through it
+    assert not _minor_axis_sums(jax.make_jaxpr(
+        jax.grad(lambda v: jnp.sum(safe_normalize(v)[:, 0])))(v))
+    with pytest.raises(ValueError, match="last axis of 1"):
+        spread(v)
