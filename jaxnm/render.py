@@ -589,20 +589,26 @@ def _visible(mesh: Mesh, camera: Camera, shift=None, *, width: int, height: int,
 
 
 #: The per-pixel stages run over packed pixels in chunks of at most this many slots on
-#: the CPU (a `jax.lax.map`): their intermediates, a few (slots, 3) float32 arrays each,
-#: then stay in the caches. On the 2-core VM (1 MiB of L2 a core), the per-pixel program
-#: for the same 51k covered pixels took 4.5 ms in 2^16 slots and 18.6 ms in 2^17; the
-#: 20k torus at 1024^2 (205k covered pixels) 41.5 -> 15.8 ms in chunks of 2^16 (2^15:
-#: the same, 2^14: 17 ms). Other backends (a GPU wants all the slots at once): no chunks.
-PIXEL_CHUNK = {"cpu": 1 << 16}
+#: the CPU (a `jax.lax.map`), ``(counted, traced)``: where the covered pixels were counted
+#: on the host (`render`'s default) and where they were not (under the caller's jit, all
+#: the image's pixels). Chunks without a covered pixel are skipped. Their intermediates, a
+#: few (slots, 3) float32 arrays each, then stay in the caches: on the 2-core VM (1 MiB
+#: of L2 a core), the per-pixel program for the same 51k covered pixels took 4.5 ms in
+#: 2^16 slots and 18.6 ms in 2^17. Counted, chunks of 2^14 waste fewer slots past the
+#: covered pixels (4k sphere at 512^2, 39k covered pixels in 2^16 slots: per-pixel
+#: program 3.7 -> 2.7 ms; elsewhere the same within noise); traced, 2^16, because each
+#: chunk's backward pass adds up the whole map's gradient (20k torus at 1024^2,
+#: forward+backward: 71 ms in chunks of 2^16, 81 ms in 2^14). Other backends (a GPU wants
+#: all the slots at once): no chunks.
+PIXEL_CHUNK = {"cpu": (1 << 14, 1 << 16)}
 
 
-def _over_chunks(fn, frags: Fragments, chunk: int, *, skip_empty: bool = False):
+def _over_chunks(fn, frags: Fragments, chunk: int):
     """``fn(frags)`` for packed fragments (per-slot fields (S, ...)), evaluated ``chunk``
     slots at a time (a `jax.lax.map`; one chunk: a plain call). ``fn`` returns a pytree of
     per-slot arrays (S, ...), zero on background slots; the chunks' results are put back
-    together (padding slots are background and are cut off). ``skip_empty``: a chunk
-    without a covered slot is not evaluated (a `jax.lax.cond`; its results are zeros)."""
+    together (padding slots are background and are cut off). A chunk without a covered
+    slot is not evaluated (a `jax.lax.cond`; its results are zeros)."""
     n = frags.triangle_id.shape[0]
     k = -(-n // chunk)
     if k <= 1:
@@ -622,16 +628,14 @@ def _over_chunks(fn, frags: Fragments, chunk: int, *, skip_empty: bool = False):
         return fn(dataclasses.replace(frags, triangle_id=tid, depth=depth, front_facing=front,
                                       pixels=pixels))
 
-    if skip_empty:
-        shapes = jax.eval_shape(run, jax.tree_util.tree_map(lambda x: x[0], per_slot))
+    shapes = jax.eval_shape(run, jax.tree_util.tree_map(lambda x: x[0], per_slot))
 
-        def one(chunk_fields):
-            return jax.lax.cond(
-                jnp.any(chunk_fields[0] >= 0), run,
-                lambda _: jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes),
-                chunk_fields)
-    else:
-        one = run
+    def one(chunk_fields):
+        return jax.lax.cond(
+            jnp.any(chunk_fields[0] >= 0), run,
+            lambda _: jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes),
+            chunk_fields)
+
     # (`jax.checkpoint`: under reverse mode each chunk's forward is evaluated again in the
     # backward pass rather than its intermediates kept; stacking them chunk by chunk
     # (zero-filled buffers, dynamic updates, copies) cost twice the recomputation: 4k
@@ -651,12 +655,12 @@ def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, or
     `compact`, and their results are put back in image layout. Without, on the CPU, on
     every pixel of the image packed the same way, covered first, where chunks without a
     covered pixel are skipped; on other backends on the image as it is. The per-pixel
-    stages run in chunks of `PIXEL_CHUNK` slots, except for "gbuffer" derivatives (stored
-    neighbours), which need the whole image at once."""
+    stages run in chunks of `PIXEL_CHUNK` slots (those without a covered pixel skipped),
+    except for "gbuffer" derivatives (stored neighbours), which need the whole image."""
     mesh = _shifted(mesh, shift)
     height, width = opts.height, opts.width
-    chunk = PIXEL_CHUNK.get(jax.default_backend())
-    skip_empty = capacity is None
+    counted = capacity is not None
+    chunk = PIXEL_CHUNK.get(jax.default_backend(), (None, None))[0 if counted else 1]
     if capacity is None and (opts.derivatives == "gbuffer" or chunk is None):
         frags = _visibility(mesh, camera, opts)
         packed, index = frags, None
@@ -695,7 +699,7 @@ def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, or
     if packed.pixels is None or chunk is None:  # the image, or all the slots, at once
         values = per_pixel(packed)
     else:
-        values = _over_chunks(per_pixel, packed, chunk, skip_empty=skip_empty)
+        values = _over_chunks(per_pixel, packed, chunk)
     result = {}
     for name in opts.outputs:
         if name in image:

@@ -419,7 +419,7 @@ def small_pixel_chunks(monkeypatch):
     R = importlib.import_module("jaxnm.render")
 
     def run(chunk, fn):
-        monkeypatch.setattr(R, "PIXEL_CHUNK", {} if chunk is None else {"cpu": chunk})
+        monkeypatch.setattr(R, "PIXEL_CHUNK", {} if chunk is None else {"cpu": (chunk, chunk)})
         R._render.clear_cache()
         return fn()
 
