@@ -482,6 +482,29 @@ def test_compact_and_expand_round_trip():
                                rtol=0, atol=4e-7)  # the same plane, fused differently
     with pytest.raises(ValueError, match="packed fragments"):
         jaxnm.interpolate(sc.mesh.uv, packed, derivatives="gbuffer")
+    # derivatives of expand (a scatter told its indices are unique, the unused slots' too):
+    # forward and reverse mode against the same map written as a dense 0/1 matrix
+    import jax
+
+    vals = jnp.asarray(np.random.default_rng(0).normal(size=(n + 5, 3)), jnp.float32)
+    tan = jnp.asarray(np.random.default_rng(1).normal(size=(n + 5, 3)), jnp.float32)
+    place = np.zeros((12 * 16, n + 5), np.float32)
+    used = np.asarray(index) < 12 * 16
+    place[np.asarray(index)[used], np.flatnonzero(used)] = 1.0
+
+    def dense(v):
+        return (place @ np.asarray(v, np.float64)).reshape(12, 16, 3)
+
+    def fn(v):
+        return expand(v, index, 12, 16)
+
+    _, jvp_out = jax.jvp(fn, (vals,), (tan,))
+    np.testing.assert_allclose(jvp_out, dense(tan), rtol=1e-6)
+    np.testing.assert_allclose(fn(vals), dense(vals), rtol=1e-6)
+    ct = jnp.asarray(np.random.default_rng(2).normal(size=(12, 16, 3)), jnp.float32)
+    (g,) = jax.vjp(fn, vals)[1](ct)
+    np.testing.assert_allclose(g, place.T @ np.asarray(ct, np.float64).reshape(-1, 3),
+                               rtol=1e-6, atol=1e-7)
 
 
 @pytest.mark.parametrize("backend, size, packs", [("cpu", 256, True), ("cpu", 128, False),
