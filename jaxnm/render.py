@@ -402,7 +402,7 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
       `PIXEL_CHUNK` slots, skipping the chunks past the covered ones), and
       ``pack=True`` (or an int, the slot count) compiles both a packed program of
       image / 4 slots (or that many) and an all-pixel one and runs the first when the
-      covered pixels fit (`jax.lax.cond`): on the CPU a step 1.1-1.3x faster than the
+      covered pixels fit (`jax.lax.cond`): on the CPU a step 1.1-1.6x faster than the
       default for about 1 s more compilation.
       "gbuffer" derivatives (stored neighbours) always run on the whole image. The
       results are the same either way (coverage, ids and facing exactly, the rest to

@@ -132,9 +132,10 @@ def keep_freed_memory(*, top_pad_mb: int = 64, trim_threshold_mb: int = 256,
         return False
     m_trim_threshold, m_top_pad, m_mmap_threshold = -1, -2, -3  # glibc's <malloc.h>
     mib = 1 << 20
-    return all(bool(mallopt(option, mb * mib)) for option, mb in (
+    done = [bool(mallopt(option, mb * mib)) for option, mb in (  # each set, whatever fails
         (m_mmap_threshold, mmap_threshold_mb), (m_trim_threshold, trim_threshold_mb),
-        (m_top_pad, top_pad_mb)))
+        (m_top_pad, top_pad_mb))]
+    return all(done)
 
 
 @functools.cache
