@@ -16,10 +16,11 @@ camera) it times, medians of ``--repeats`` runs, each forced to completion:
 the CPU), with each variant's compile time. ``--host`` breaks `render`'s host part
 (before its program is dispatched) into its steps.
 
+``--fit`` also times steps of the fit benchmark (``--solver``, default lm-texel).
 ``--trace`` also records a profiler trace of the whole-frame program (and, with ``--fit``,
-of LM steps of the fit benchmark) and prints the kernels that take the most device time
-per frame (per step): on a GPU, its kernels and copies; on the CPU, XLA's thunks, which nest
-(an executor's span holds its kernels'). JSON on stdout, one object per line; the traces
+of the fit's steps) and prints the kernels that take the most device time per frame (per
+step): on a GPU, its kernels and copies; on the CPU, XLA's thunks, which nest (an
+executor's span holds its kernels'). JSON on stdout, one object per line; the traces
 (``perfetto_trace.json.gz``, for https://ui.perfetto.dev) stay in ``--out``.
 """
 
@@ -30,6 +31,7 @@ import collections
 import gzip
 import importlib
 import json
+import os
 import statistics
 import sys
 import time
@@ -213,7 +215,7 @@ def profile_fit(args) -> dict:
                                    p.gt_texels.shape[:2], source="<benchmark>")
     prep = F.prepare(problem)
     steps = 10
-    opts = F.FitOptions(solver="lm", max_steps=steps, lsmr_steps=10)
+    opts = F.FitOptions(solver=args.solver, max_steps=steps, lsmr_steps=10)
 
     def run():
         return F.fit_normal_map(problem, opts, prepared=prep, progress=False)
@@ -221,7 +223,8 @@ def profile_fit(args) -> dict:
     run()  # compiles
     t = time.perf_counter()
     res = run()
-    row = {"fit": "benchmark LM", "backend": jax.default_backend(),
+    row = {"fit": f"benchmark {args.solver}", "backend": jax.default_backend(),
+           "xla_flags": os.environ.get("XLA_FLAGS", ""),
            "s_per_step": round((time.perf_counter() - t) / steps, 4),
            "history_steps": len(res.history) - 1}
     if args.trace:
@@ -238,6 +241,8 @@ def main(argv=None) -> None:
     ap.add_argument("--repeats", type=int, default=50)
     ap.add_argument("--trace", action="store_true")
     ap.add_argument("--fit", action="store_true", help="also the fit benchmark's LM steps")
+    ap.add_argument("--solver", choices=F.SOLVERS, default=F.FitOptions().solver,
+                    help="the solver --fit times (default: FitOptions')")
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--slots", default="", help="e.g. 15,17,19: rounds of 2^k slots")
     ap.add_argument("--host", action="store_true", help="render's host steps, one by one")
