@@ -140,8 +140,12 @@ def flat_nonzero(mask: ArrayLike, size: int, fill_value: int) -> Array:
         raise ValueError(f"flat_nonzero: expected a 1-D boolean mask, got {mask.dtype}{mask.shape}")
     n = mask.shape[0]
     slot = cumsum(mask.astype(jnp.int32)) - 1  # each true entry's place in the output
-    return jnp.full((size,), fill_value, jnp.int32).at[jnp.where(mask, slot, size)].set(
-        jnp.arange(n, dtype=jnp.int32), mode="drop")
+    # the false entries go to distinct places past the end (dropped), so the scatter's
+    # indices are unique, as XLA is told: deterministic GPU ops then leave it alone
+    # (a set with repeated indices they sort or serialise)
+    past = max(size, n) + jnp.arange(n, dtype=jnp.int32)
+    return jnp.full((size,), fill_value, jnp.int32).at[jnp.where(mask, slot, past)].set(
+        jnp.arange(n, dtype=jnp.int32), mode="drop", unique_indices=True)
 
 
 @jax.custom_jvp

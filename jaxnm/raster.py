@@ -67,6 +67,7 @@ TIE_RULE = "left_bottom_yup"
 SUBPIXEL_BITS = 8
 
 _NO_TRIANGLE = np.iinfo(np.int32).max
+_ANY_TRIANGLE = np.iinfo(np.int32).min  # below every id: a no-op in a max
 
 
 def pixel_centers(height: int, width: int, dtype=jnp.float32) -> tuple[Array, Array]:
@@ -538,9 +539,12 @@ def _depth_test(tri, tri_depth, setup, zbuf, ids, *, width, height, block, slots
         before = zbuf[tile]
         zbuf = zbuf.at[tile].min(depth, mode="drop")
         after = zbuf[tile]
-        # where this round brought a pixel nearer, the earlier winner is gone (every slot on
-        # a tile writes the same values: a function of the tile's state alone)
-        ids = ids.at[tile].set(jnp.where(after < before, _NO_TRIANGLE, ids[tile]), mode="drop")
+        # where this round brought a pixel nearer, the earlier winner is gone. A max, not a
+        # set: every scatter here combines by min or max, which XLA knows to be independent
+        # of the order of repeated tiles, so deterministic GPU ops leave them alone (a set
+        # with repeated indices it would serialise)
+        ids = ids.at[tile].max(jnp.where(after < before, _NO_TRIANGLE, _ANY_TRIANGLE),
+                               mode="drop")
         win = (depth == after) & (depth < jnp.inf)
         ids = ids.at[tile].min(jnp.where(win, t[:, None, None], _NO_TRIANGLE),
                                mode="drop")
