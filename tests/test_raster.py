@@ -154,6 +154,27 @@ def test_triangle_crossing_near_plane():
     assert np.all(p[np.asarray(fr.mask)][:, 2] <= 0.5 + 1e-5)
 
 
+def test_a_clipped_triangle_elsewhere_changes_no_other_pixel():
+    """A mesh wholly in front of the near plane takes the corners' box (no crossings); one
+    triangle crossing the plane, added where it draws nothing, switches the whole mesh to
+    the clipped box: every fragment must stay the same."""
+    w, h = 48, 40
+    pos, faces = random_soup(3)
+    clip = clip_of(pos, perspective_mvp((0.3, 0.4, 2.5), aspect=w / h)).astype(np.float32)
+    assert np.all(clip[:, 2] >= -clip[:, 3])  # all in front of the near plane
+    # off to the side, crossing the near plane: its clipped box lies outside the image
+    extra = np.array([[-50.0, 0.0, -0.5, 1.0], [-49.0, 0.0, -0.5, 1.0], [-50.0, 1.0, -3.0, 1.0]],
+                     np.float32)
+    more = np.concatenate([clip, extra])
+    assert (more[:, 2] < -more[:, 3]).sum() == 1  # one corner behind the near plane
+    more_faces = np.concatenate([faces, len(clip) + np.arange(3)[None]])
+    a = jaxnm.rasterize(clip, faces, width=w, height=h)
+    b = jaxnm.rasterize(more, more_faces, width=w, height=h)
+    assert np.asarray(a.mask).sum() > 0.2 * w * h
+    for field in ("triangle_id", "depth", "front_facing"):
+        np.testing.assert_array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)))
+
+
 def test_fully_clipped_and_degenerate_triangles_draw_nothing():
     clip = np.array([
         [0, 0, -3, 1], [1, 0, -3, 1], [0, 1, -3, 1],   # in front of near plane entirely
