@@ -65,19 +65,6 @@ GOALS = {
 }
 
 
-def _median_ms(fn, repeats: int) -> tuple[float, float]:
-    """(first call s, median ms of the next ``repeats``), each forced to completion."""
-    t = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - t
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t)
-    return first, statistics.median(times) * 1e3
-
-
 # --------------------------------------------------------------------------------------
 # forward frames
 # --------------------------------------------------------------------------------------
@@ -99,10 +86,15 @@ def _with_mesh(p: B.BenchProblem, mesh, size: int) -> B.BenchProblem:
         width=size, height=size)
 
 
-def jaxnm_forward(p: B.BenchProblem, repeats: int) -> dict:
+def jaxnm_calls(p: B.BenchProblem) -> dict:
+    """jaxnm's timed calls, each forced to completion: ``"forward"`` (`render`), and the
+    loss's value and gradient w.r.t. the map under one jit, by default and with
+    ``pack=True`` (``"forward_backward"``, ``"forward_backward_packed"``); and the first
+    render's time in s (``"first_forward_s"``, compilation included: it made the target)."""
     scene = B.jaxnm_scene(p, p.light_dirs[0])
-    first, fwd = _median_ms(lambda: jaxnm.render(scene)["color"], repeats)
-    target = jaxnm.render(scene)["color"]
+    t = time.perf_counter()
+    target = jax.block_until_ready(jaxnm.render(scene)["color"])
+    first_forward = time.perf_counter() - t
 
     # the scene is an argument, not a closure: closed-over arrays are compile-time constants,
     # and XLA would constant-fold the rasterizer over them (47 s compiles at 200k triangles)
@@ -116,28 +108,62 @@ def jaxnm_forward(p: B.BenchProblem, repeats: int) -> dict:
         return jax.value_and_grad(loss)(texels)
 
     flat = jnp.asarray(p.flat_texels)
-    first_b, fb = _median_ms(lambda: loss_and_grad(scene, flat, target), repeats)
-    first_p, fp = _median_ms(lambda: loss_and_grad(scene, flat, target, pack=True), repeats)
-    return {"forward_ms": round(fwd, 2), "forward_backward_ms": round(fb, 2),
-            "forward_backward_packed_ms": round(fp, 2),
-            "first_forward_s": round(first, 2), "first_backward_s": round(first_b, 2),
-            "first_backward_packed_s": round(first_p, 2),
-            "triangles": int(p.faces.shape[0]), "size": f"{p.width}x{p.height}"}
+    return {"forward": lambda: jax.block_until_ready(jaxnm.render(scene)["color"]),
+            "forward_backward": lambda: jax.block_until_ready(
+                loss_and_grad(scene, flat, target)),
+            "forward_backward_packed": lambda: jax.block_until_ready(
+                loss_and_grad(scene, flat, target, pack=True)),
+            "first_forward_s": first_forward}
+
+
+def _interleaved_ms(calls: dict, repeats: int) -> tuple[dict, dict]:
+    """(first call s, median ms of the next ``repeats``) of each call, the calls taking
+    turns (round robin) so that a slow phase of the machine falls on all of them alike."""
+    first, times = {}, {k: [] for k in calls}
+    for k, fn in calls.items():
+        t = time.perf_counter()
+        fn()
+        first[k] = time.perf_counter() - t
+    for _ in range(repeats):
+        for k, fn in calls.items():
+            t = time.perf_counter()
+            fn()
+            times[k].append(time.perf_counter() - t)
+    return first, {k: 1e3 * statistics.median(v) for k, v in times.items()}
 
 
 def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool) -> list[dict]:
+    """Per mesh and size: jaxnm's and Mitsuba's forward and forward+backward calls, taking
+    turns in one loop (the ratios compare the same moments of a noisy machine)."""
     rows = []
     for name, mesh in _meshes(quick).items():
         for size in sizes:
             q = _with_mesh(p, mesh, size)
-            row = {"mesh": name, "jaxnm": jaxnm_forward(q, repeats)}
+            jc = jaxnm_calls(q)
+            calls = {f"jaxnm {k}": jc[k]
+                     for k in ("forward", "forward_backward", "forward_backward_packed")}
+            mi = None
             if mitsuba is not None:
-                row["mitsuba"] = mitsuba.forward_times(q, repeats=repeats)
-                row["forward_ratio"] = round(row["jaxnm"]["forward_ms"]
-                                             / row["mitsuba"]["forward_ms"], 2)
+                mi = mitsuba.forward_calls(q)
+                calls.update({f"mitsuba {k}": mi[k] for k in ("forward", "forward_backward")})
+            first, ms = _interleaved_ms(calls, repeats)
+            j = {f"{k}_ms": round(ms[f"jaxnm {k}"], 2)
+                 for k in ("forward", "forward_backward", "forward_backward_packed")}
+            j.update({"first_forward_s": round(jc["first_forward_s"], 2),
+                      "first_backward_s": round(first["jaxnm forward_backward"], 2),
+                      "first_backward_packed_s": round(first["jaxnm forward_backward_packed"], 2),
+                      "triangles": int(q.faces.shape[0]), "size": f"{q.width}x{q.height}"})
+            row = {"mesh": name, "jaxnm": j}
+            if mi is not None:
+                row["mitsuba"] = {
+                    "forward_ms": ms["mitsuba forward"],
+                    "forward_backward_ms": ms["mitsuba forward_backward"],
+                    "first_forward_s": mi["first_s"]["forward"],
+                    "first_backward_s": mi["first_s"]["forward_backward"],
+                    "kernel_cache_files_at_start": mi["kernel_cache_files_at_start"]}
+                row["forward_ratio"] = round(j["forward_ms"] / ms["mitsuba forward"], 2)
                 for key in ("forward_backward", "forward_backward_packed"):
-                    row[f"{key}_ratio"] = round(
-                        row["jaxnm"][f"{key}_ms"] / row["mitsuba"]["forward_backward_ms"], 2)
+                    row[f"{key}_ratio"] = round(j[f"{key}_ms"] / ms["mitsuba forward_backward"], 2)
             rows.append(row)
             print(json.dumps(row), file=sys.stderr, flush=True)
     return rows

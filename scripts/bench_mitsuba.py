@@ -5,7 +5,8 @@ uses too. Mitsuba is imported lazily, so this module imports without it:
 
 - `available()`: whether Mitsuba 3 (``llvm_ad_rgb``) runs here, and why not.
 - `render(problem, texels, light_dir)`: one image.
-- `forward_times(problem)`: forward and forward + backward timings.
+- `forward_calls(problem)`: the forward and forward + backward calls to time;
+  `forward_times(problem)`: their timings.
 - `fit(problem, budget_s=...)`: the benchmark's Adam fit of the map.
 
 **Setup** (``pip install 'jaxnm[bench]'``, i.e. ``mitsuba==3.9.1 drjit==1.5.0``): Dr.Jit's
@@ -307,11 +308,12 @@ def _loss_and_grad(scene, params, key, value, target):
     return dr.detach(loss), dr.grad(leaf)
 
 
-def forward_times(problem, *, repeats: int = 10) -> dict:
-    """Median wall ms of one forward render (the true map, light 0) and of forward +
-    backward w.r.t. the map's texels (the flat map, loss = MSE to the render of the true
-    map), each with the result forced to host inside the timer; the first call of each
-    separately (kernel compilation, or a load from Dr.Jit's disk cache)."""
+def forward_calls(problem) -> dict:
+    """The two timed calls, each forcing its result to the host: ``"forward"``, one render
+    (the true map, light 0), and ``"forward_backward"``, forward + backward w.r.t. the map's
+    texels (the flat map, loss = MSE to the render of the true map). Both are run once here
+    (kernel compilation, or a load from Dr.Jit's disk cache): their times are in ``"first_s"``,
+    with the number of cached kernel files found at the start."""
     mi, dr = _mitsuba()
     cache_files = _kernel_cache_files()
     scene, params, key = _scene(problem, problem.gt_texels, problem.light_dirs[0])
@@ -322,12 +324,6 @@ def forward_times(problem, *, repeats: int = 10) -> dict:
     t = time.perf_counter()
     target = mi.TensorXf(forward())
     first_forward = time.perf_counter() - t
-    fwd = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        forward()
-        fwd.append(time.perf_counter() - t)
-
     flat = mi.TensorXf(np.asarray(problem.flat_texels, np.float32))
 
     def forward_backward():
@@ -337,16 +333,27 @@ def forward_times(problem, *, repeats: int = 10) -> dict:
     t = time.perf_counter()
     forward_backward()
     first_backward = time.perf_counter() - t
-    fb = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        forward_backward()
-        fb.append(time.perf_counter() - t)
-    return {"forward_ms": 1e3 * statistics.median(fwd),
-            "forward_backward_ms": 1e3 * statistics.median(fb),
-            "first_forward_s": first_forward, "first_backward_s": first_backward,
-            "triangles": int(len(problem.faces)), "size": f"{problem.width}x{problem.height}",
+    return {"forward": forward, "forward_backward": forward_backward,
+            "first_s": {"forward": first_forward, "forward_backward": first_backward},
             "kernel_cache_files_at_start": cache_files}
+
+
+def forward_times(problem, *, repeats: int = 10) -> dict:
+    """Median wall ms of `forward_calls`' two calls (``repeats`` each, one after the
+    other), and their first calls in s."""
+    calls = forward_calls(problem)
+    out = {}
+    for name in ("forward", "forward_backward"):
+        times = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            calls[name]()
+            times.append(time.perf_counter() - t)
+        out[f"{name}_ms"] = 1e3 * statistics.median(times)
+        out[f"first_{'backward' if name != 'forward' else 'forward'}_s"] = calls["first_s"][name]
+    return {**out, "triangles": int(len(problem.faces)),
+            "size": f"{problem.width}x{problem.height}",
+            "kernel_cache_files_at_start": calls["kernel_cache_files_at_start"]}
 
 
 def _project(mi, dr, texels):
