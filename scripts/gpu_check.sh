@@ -9,8 +9,8 @@
 # is a summary. Steps: the device; the test suite (pytest-xdist, processes sharing the
 # card); `bench.py` forward frames and the fit benchmark (cold, warm, steady; deterministic
 # GPU ops, as the CLI runs); `profile_render.py`: render's parts and host steps, and the
-# fit's steps with and without deterministic ops; last, where time is left, the cold fit
-# benchmark under XLA flags that may cut GPU compilation.
+# fit's steps and the frame with and without deterministic ops; last, where time is left,
+# the cold fit benchmark under XLA flags that may cut GPU compilation.
 set -u
 out=${1:?usage: scripts/gpu_check.sh OUTDIR [SECONDS]}
 total=${2:-560}
@@ -40,6 +40,8 @@ step profile 75 env XLA_FLAGS="$det" python scripts/profile_render.py --host --f
   --repeats 20 --out "$out/profile"
 step fit_nondeterministic 25 python scripts/profile_render.py --scenes "" --fit \
   --out "$out/profile"
+step frame_nondeterministic 40 python scripts/profile_render.py --repeats 20 \
+  --out "$out/profile"
 for flags in "--xla_gpu_autotune_level=0" "--xla_gpu_enable_command_buffer="; do
   step "fit_${flags//[^a-z0-9]/_}" "$(left 5)" env XLA_FLAGS="$det $flags" \
     python scripts/bench.py --no-mitsuba --no-cli --parts fit --budget 3 --out "$out/flags"
@@ -47,6 +49,7 @@ done
 
 echo "=== summary"
 tail -n 30 "$out/bench.log"
-grep -h '^{' "$out/profile.log" "$out/fit_nondeterministic.log"
+grep -h '^{' "$out/profile.log" "$out/fit_nondeterministic.log" \
+  "$out/frame_nondeterministic.log"
 for f in "$out"/fit__*.log; do echo "$f"; grep '^| jaxnm' "$f"; done
 grep -E "^(FAILED|ERROR)|passed|failed" "$out/tests.log" | grep -v '^\[gw' | tail -n 25
