@@ -9,7 +9,8 @@
 # is a summary. Steps: the device; the test suite (pytest-xdist, processes sharing the
 # card); `bench.py` forward frames and the fit benchmark (cold, warm, steady; deterministic
 # GPU ops, as the CLI runs); `profile_render.py`: render's parts and host steps, and the
-# fit's steps and the frame with and without deterministic ops; last, where time is left,
+# fit's steps and the frame with and without deterministic ops (with deterministic ops,
+# traced: the kernels that take the device's time); last, where time is left,
 # the cold fit benchmark under XLA flags that may cut GPU compilation.
 set -u
 out=${1:?usage: scripts/gpu_check.sh OUTDIR [SECONDS]}
@@ -36,7 +37,7 @@ step tests 320 python -m pytest -v -n 14 -p no:benchmark -p no:cacheprovider \
   --durations=15 --junitxml "$out/junit.xml"
 step bench 150 env XLA_FLAGS="$det" python scripts/bench.py --no-mitsuba --no-cli \
   --parts forward,fit --budget 6 --repeats 10 --out "$out/bench"
-step profile 75 env XLA_FLAGS="$det" python scripts/profile_render.py --host --fit \
+step profile 90 env XLA_FLAGS="$det" python scripts/profile_render.py --host --fit --trace \
   --repeats 20 --out "$out/profile"
 step fit_nondeterministic 25 python scripts/profile_render.py --scenes "" --fit \
   --out "$out/profile"
