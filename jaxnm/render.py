@@ -214,24 +214,27 @@ def covered_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *,
         raise ValueError("covered_gbuffer: 'gbuffer' derivatives need the whole image's "
                          "G-buffer (build_gbuffer)")
     check_mesh(mesh, opts)
-    tid, count = _visible(mesh, camera, _NO_SHIFT, width=opts.width, height=opts.height,
-                          cull_back=opts.cull_back)
+    tid, count, clip = _visible(mesh, camera, _NO_SHIFT, width=opts.width,
+                                height=opts.height, cull_back=opts.cull_back)
     count = int(count)
-    gb, index = _covered(mesh, camera, albedo, tid, opts=opts,
+    gb, index = _covered(mesh, camera, albedo, tid, clip, opts=opts,
                          capacity=_capacity(count, opts.width * opts.height))
     return gb, index, count
 
 
 @functools.partial(jax.jit, static_argnames=("opts", "capacity"))
-def _covered(mesh: Mesh, camera: Camera, albedo, triangle_id, *, opts, capacity):
-    packed, index = _compact(mesh, camera, triangle_id, capacity)
+def _covered(mesh: Mesh, camera: Camera, albedo, triangle_id, clip, *, opts, capacity):
+    packed, index = _compact(mesh, camera, triangle_id, capacity, clip)
     return gbuffer_from_fragments(mesh, camera, albedo, packed, opts=opts), index
 
 
-def _compact(mesh: Mesh, camera: Camera, triangle_id: Array, capacity: int):
-    """`jaxnm.raster.compact` of ``mesh`` seen by ``camera``: (packed fragments, index)."""
-    return compact(triangle_id, to_clip(mesh.positions, camera), mesh.faces.astype(jnp.int32),
-                   capacity)
+def _compact(mesh: Mesh, camera: Camera, triangle_id: Array, capacity: int,
+             clip: Array | None = None):
+    """`jaxnm.raster.compact` of ``mesh`` seen by ``camera``: (packed fragments, index);
+    ``clip``: the mesh's clip-space vertices where the caller has them (`_visible`)."""
+    if clip is None:
+        clip = to_clip(mesh.positions, camera)
+    return compact(triangle_id, clip, mesh.faces.astype(jnp.int32), capacity)
 
 
 def _visibility(mesh: Mesh, camera: Camera, opts: RenderOptions):
@@ -442,16 +445,17 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     if (pack is False or opts.derivatives == "gbuffer"
             or (slots is None and not _concrete(scene.mesh, scene.camera))):
         return _render(*args, opts=opts)
-    tid, count = _visible(scene.mesh, scene.camera, shift, width=opts.width,
-                          height=opts.height, cull_back=opts.cull_back)
+    tid, count, clip = _visible(scene.mesh, scene.camera, shift, width=opts.width,
+                                height=opts.height, cull_back=opts.cull_back)
     if not isinstance(count, jax.core.Tracer):
-        return _render(*args, tid, opts=opts, capacity=_capacity(int(count), pixels))
+        return _render(*args, tid, clip, opts=opts, capacity=_capacity(int(count), pixels))
     if slots is None:  # the count is traced (the caller's jit): the whole image
         return _render(*args, opts=opts)
     # packed when the covered pixels fit, else every pixel (the ids are reused either way)
     return jax.lax.cond(count <= slots,
-                        lambda a, t: _render(*a, t, opts=opts, capacity=slots),
-                        lambda a, t: _render(*a, t, opts=opts, capacity=pixels), args, tid)
+                        lambda a, t, c: _render(*a, t, c, opts=opts, capacity=slots),
+                        lambda a, t, c: _render(*a, t, c, opts=opts, capacity=pixels),
+                        args, tid, clip)
 
 
 def _traced_capacity(pack, pixels: int, source: str) -> int | None:
@@ -578,14 +582,16 @@ def _capacity(count: int, pixels: int) -> int:
 @functools.partial(jax.jit, static_argnames=("width", "height", "cull_back"))
 def _visible(mesh: Mesh, camera: Camera, shift=None, *, width: int, height: int,
              cull_back: bool):
-    """Each pixel's triangle (-1: background) and how many pixels are covered; the depth
-    and facing are left to the packed pixels (`compact`). Only the options visibility
-    depends on are static: one compilation serves every output, frame and map. ``shift``:
-    see `_camera_relative`."""
+    """Each pixel's triangle (-1: background), how many pixels are covered, and the
+    (shifted) mesh's clip-space vertices, which the per-pixel program then need not
+    compute again; the depth and facing are left to the packed pixels (`compact`). Only
+    the options visibility depends on are static: one compilation serves every output,
+    frame and map. ``shift``: see `_camera_relative`."""
     mesh = _shifted(mesh, shift)
-    tid = rasterize(to_clip(mesh.positions, camera), mesh.faces, width=width, height=height,
+    clip = to_clip(mesh.positions, camera)
+    tid = rasterize(clip, mesh.faces, width=width, height=height,
                     cull_back=cull_back).triangle_id
-    return tid, jnp.count_nonzero(tid >= 0)
+    return tid, jnp.count_nonzero(tid >= 0), clip
 
 
 #: The per-pixel stages run over packed pixels in chunks of at most this many slots on
@@ -646,12 +652,13 @@ def _over_chunks(fn, frags: Fragments, chunk: int):
 
 @functools.partial(jax.jit, static_argnames=("opts", "capacity"))
 def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, origin,
-            shift=None, triangle_id: Array | None = None, *, opts: RenderOptions,
-            capacity: int | None = None) -> dict[str, Array]:
+            shift=None, triangle_id: Array | None = None, clip: Array | None = None, *,
+            opts: RenderOptions, capacity: int | None = None) -> dict[str, Array]:
     """`render` as one XLA program (one compilation per scene shape, options and capacity);
     the scene is camera-relative (`_camera_relative`; the mesh still to be moved by
     ``shift``), ``origin`` the camera's world position. With ``capacity``, the per-pixel
-    stages run on the covered pixels of ``triangle_id`` (from `_visible`), packed by
+    stages run on the covered pixels of ``triangle_id`` (from `_visible`, with the clip-space
+    vertices ``clip``), packed by
     `compact`, and their results are put back in image layout. Without, on the CPU, on
     every pixel of the image packed the same way, covered first, where chunks without a
     covered pixel are skipped; on other backends on the image as it is. The per-pixel
@@ -670,9 +677,10 @@ def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, or
         if capacity is None:
             # the coverage is not known when tracing: every pixel a slot, the covered ones
             # first (`compact`), so that the chunks past them are skipped
-            triangle_id = _visibility(mesh, camera, opts).triangle_id
+            frags = _visibility(mesh, camera, opts)
+            triangle_id, clip = frags.triangle_id, frags.clip
             capacity = height * width
-        packed, index = _compact(mesh, camera, triangle_id, capacity)
+        packed, index = _compact(mesh, camera, triangle_id, capacity, clip)
         image = {"mask": lambda: triangle_id >= 0, "triangle_id": lambda: triangle_id,
                  "depth": lambda: expand(packed.depth, index, height, width, 1.0),
                  "front_facing": lambda: expand(packed.front_facing, index, height, width)}
