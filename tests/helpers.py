@@ -26,6 +26,19 @@ def load_script(name: str):
     return mod
 
 
+def jaxpr_equations(jaxpr):
+    """Every equation of ``jaxpr`` (a `Jaxpr` or `ClosedJaxpr`) and of the jaxprs nested in
+    its equations' parameters (loops, conds, maps, checkpoints, inner jits)."""
+    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)
+    for eqn in jaxpr.eqns:
+        yield eqn
+        for p in eqn.params.values():
+            for sub in p if isinstance(p, (list, tuple)) else [p]:
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    yield from jaxpr_equations(inner)
+
+
 def perspective_mvp(eye, target=(0.0, 0.0, 0.0), *, fov=50.0, aspect=1.0, near=0.1, far=20.0):
     """``projection @ view`` (float64) for a camera at ``eye``."""
     return jaxnm.perspective(fov, aspect, near, far) @ jaxnm.look_at(eye, target, (0, 1, 0))

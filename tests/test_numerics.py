@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import jaxpr_equations
 
 from jaxnm.numerics import cumsum, flat_nonzero, materialize, safe_normalize, spread
 
@@ -83,20 +84,12 @@ def _minor_axis_sums(closed) -> list:
     """The ``reduce_sum`` equations of a jaxpr (nested ones included) that sum over the last
     axis alone (a per-element reduction, e.g. per pixel), where it is longer than 1."""
     found = []
-
-    def walk(jaxpr):
-        for eqn in jaxpr.eqns:
-            if eqn.primitive.name == "reduce_sum":
-                shape = eqn.invars[0].aval.shape
-                if len(shape) > 1 and tuple(eqn.params["axes"]) == (len(shape) - 1,) \
-                        and shape[-1] > 1:
-                    found.append(eqn)
-            for p in eqn.params.values():
-                inner = getattr(p, "jaxpr", p)
-                if hasattr(inner, "eqns"):
-                    walk(inner)
-
-    walk(closed.jaxpr)
+    for eqn in jaxpr_equations(closed):
+        if eqn.primitive.name == "reduce_sum":
+            shape = eqn.invars[0].aval.shape
+            if len(shape) > 1 and tuple(eqn.params["axes"]) == (len(shape) - 1,) \
+                    and shape[-1] > 1:
+                found.append(eqn)
     return found
 
 

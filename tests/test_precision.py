@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import jaxpr_equations
 
 import jaxnm
 from jaxnm import fit as F
@@ -19,19 +20,8 @@ HIGHEST = jax.lax.Precision.HIGHEST
 
 def _dot_precisions(jaxpr) -> list:
     """(precision, operand dtypes) of every dot_general in ``jaxpr`` and its sub-jaxprs."""
-    out = []
-    for eqn in jaxpr.eqns:
-        if eqn.primitive.name == "dot_general":
-            out.append((eqn.params.get("precision"),
-                        tuple(str(v.aval.dtype) for v in eqn.invars)))
-        for p in eqn.params.values():
-            subs = p if isinstance(p, (list, tuple)) else [p]
-            for sub in subs:
-                if isinstance(sub, jax.extend.core.ClosedJaxpr):
-                    out += _dot_precisions(sub.jaxpr)
-                elif isinstance(sub, jax.extend.core.Jaxpr):
-                    out += _dot_precisions(sub)
-    return out
+    return [(eqn.params.get("precision"), tuple(str(v.aval.dtype) for v in eqn.invars))
+            for eqn in jaxpr_equations(jaxpr) if eqn.primitive.name == "dot_general"]
 
 
 def _low_precision(jaxpr) -> list:
@@ -94,18 +84,6 @@ def test_results_do_not_depend_on_the_default_matmul_precision():
     np.testing.assert_array_equal(a, b)
 
 
-def _equations(jaxpr):
-    """Every equation of ``jaxpr`` and of its sub-jaxprs (loops, conds, maps, checkpoints)."""
-    for eqn in jaxpr.eqns:
-        yield eqn
-        for p in eqn.params.values():
-            for sub in p if isinstance(p, (list, tuple)) else [p]:
-                if isinstance(sub, jax.extend.core.ClosedJaxpr):
-                    yield from _equations(sub.jaxpr)
-                elif isinstance(sub, jax.extend.core.Jaxpr):
-                    yield from _equations(sub)
-
-
 def _order_dependent_scatters(jaxpr) -> list:
     """The scatters whose result may depend on the order in which repeated indices are
     applied, by XLA's rule (``IsScatterDeterministic``: unique indices, or a min / max, or an
@@ -114,7 +92,7 @@ def _order_dependent_scatters(jaxpr) -> list:
     one such scatter (an id reset by a set over repeated tiles) made visibility of the 200k
     torus at 1024^2 4.5x slower (1.4 -> 6.3 ms)."""
     bad = []
-    for eqn in _equations(jaxpr):
+    for eqn in jaxpr_equations(jaxpr):
         name = eqn.primitive.name
         if not name.startswith("scatter") or eqn.params.get("unique_indices"):
             continue
