@@ -12,7 +12,9 @@ machine. Compilation is reported separately *and* included:
 
 - ``forward``: one frame (512 x 512 and 1024 x 1024; the 4k sphere, the 20k torus and a
   200k torus; one directional light, the 256 x 256 normal map, Lambert): `jaxnm.render`
-  against ``mi.render``, and forward + backward w.r.t. the map (an image loss).
+  against ``mi.render``, and forward + backward w.r.t. the map (an image loss); and the
+  frame after the mesh moved (its positions taking turns between two arrays), where
+  Mitsuba rebuilds its acceleration structure.
 - ``fit``: each renderer fits the map to its own four renders of the true map, from the
   flat map. jaxnm runs Levenberg-Marquardt in fresh processes: with an empty persistent
   compilation cache (``cold``), again with the cache it filled (``warm``), and a second
@@ -87,7 +89,8 @@ def _with_mesh(p: B.BenchProblem, mesh, size: int) -> B.BenchProblem:
 
 
 def jaxnm_calls(p: B.BenchProblem) -> dict:
-    """jaxnm's timed calls, each forced to completion: ``"forward"`` (`render`), and the
+    """jaxnm's timed calls, each forced to completion: ``"forward"`` (`render`),
+    ``"forward_moved"`` (`render` of the mesh taking turns between two positions), and the
     loss's value and gradient w.r.t. the map under one jit, by default and with
     ``pack=True`` (``"forward_backward"``, ``"forward_backward_packed"``); and the first
     render's time in s (``"first_forward_s"``, compilation included: it made the target)."""
@@ -107,8 +110,21 @@ def jaxnm_calls(p: B.BenchProblem) -> dict:
                              - target) ** 2)
         return jax.value_and_grad(loss)(texels)
 
+    # the same frame with the mesh taking turns between two positions, as Mitsuba's
+    # "forward_moved" (`bench_mitsuba.forward_calls`); jaxnm keeps nothing of a mesh
+    # between frames, so this only checks that nothing depends on it staying put
+    moved = [scene, scene.replace(mesh=dataclasses.replace(
+        scene.mesh, positions=scene.mesh.positions + jnp.asarray([B.MOVED_OFFSET, 0, 0],
+                                                                 scene.mesh.positions.dtype)))]
+    turn = [0]
+
+    def forward_moved():
+        turn[0] ^= 1
+        return jax.block_until_ready(jaxnm.render(moved[turn[0]])["color"])
+
     flat = jnp.asarray(p.flat_texels)
     return {"forward": lambda: jax.block_until_ready(jaxnm.render(scene)["color"]),
+            "forward_moved": forward_moved,
             "forward_backward": lambda: jax.block_until_ready(
                 loss_and_grad(scene, flat, target)),
             "forward_backward_packed": lambda: jax.block_until_ready(
@@ -137,6 +153,12 @@ def _interleaved_ms(calls: dict, repeats: int, block: int = 5) -> tuple[dict, di
     return first, {k: 1e3 * statistics.median(v) for k, v in times.items()}
 
 
+#: The timed calls of `bench_forward`: jaxnm's (`jaxnm_calls`) and Mitsuba's
+#: (`bench_mitsuba.forward_calls`).
+JAXNM_CALLS = ("forward", "forward_moved", "forward_backward", "forward_backward_packed")
+MITSUBA_CALLS = ("forward", "forward_moved", "forward_backward")
+
+
 def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool) -> list[dict]:
     """Per mesh and size: jaxnm's and Mitsuba's forward and forward+backward calls, taking
     turns in blocks (`_interleaved_ms`: the ratios compare the same phases of a noisy
@@ -146,15 +168,13 @@ def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool) 
         for size in sizes:
             q = _with_mesh(p, mesh, size)
             jc = jaxnm_calls(q)
-            calls = {f"jaxnm {k}": jc[k]
-                     for k in ("forward", "forward_backward", "forward_backward_packed")}
+            calls = {f"jaxnm {k}": jc[k] for k in JAXNM_CALLS}
             mi = None
             if mitsuba is not None:
                 mi = mitsuba.forward_calls(q)
-                calls.update({f"mitsuba {k}": mi[k] for k in ("forward", "forward_backward")})
+                calls.update({f"mitsuba {k}": mi[k] for k in MITSUBA_CALLS})
             first, ms = _interleaved_ms(calls, repeats)
-            j = {f"{k}_ms": round(ms[f"jaxnm {k}"], 2)
-                 for k in ("forward", "forward_backward", "forward_backward_packed")}
+            j = {f"{k}_ms": round(ms[f"jaxnm {k}"], 2) for k in JAXNM_CALLS}
             j.update({"first_forward_s": round(jc["first_forward_s"], 2),
                       "first_backward_s": round(first["jaxnm forward_backward"], 2),
                       "first_backward_packed_s": round(first["jaxnm forward_backward_packed"], 2),
@@ -163,11 +183,14 @@ def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool) 
             if mi is not None:
                 row["mitsuba"] = {
                     "forward_ms": ms["mitsuba forward"],
+                    "forward_moved_ms": ms["mitsuba forward_moved"],
                     "forward_backward_ms": ms["mitsuba forward_backward"],
                     "first_forward_s": mi["first_s"]["forward"],
                     "first_backward_s": mi["first_s"]["forward_backward"],
                     "kernel_cache_files_at_start": mi["kernel_cache_files_at_start"]}
                 row["forward_ratio"] = round(j["forward_ms"] / ms["mitsuba forward"], 2)
+                row["forward_moved_ratio"] = round(
+                    j["forward_moved_ms"] / ms["mitsuba forward_moved"], 2)
                 for key in ("forward_backward", "forward_backward_packed"):
                     row[f"{key}_ratio"] = round(j[f"{key}_ms"] / ms["mitsuba forward_backward"], 2)
             rows.append(row)
@@ -494,8 +517,9 @@ def markdown(res: dict) -> str:
     lines = [f"Machine: {res['machine']}; JAX {res['jax']}; {res['mitsuba']}; {res['date']}.", ""]
     lines += ["| frame | size | jaxnm forward ms | Mitsuba forward ms | ratio | jaxnm fwd+bwd ms "
               "(pack=True) | Mitsuba fwd+bwd ms | ratio (pack=True) | jaxnm first call s "
-              "(compile): forward, fwd+bwd (pack=True) |",
-              "|---|---|---|---|---|---|---|---|---|"]
+              "(compile): forward, fwd+bwd (pack=True) | mesh moved: jaxnm / Mitsuba forward "
+              "ms (ratio) |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in res.get("forward", []):
         j, m = r["jaxnm"], r.get("mitsuba", {})
         lines.append(f"| {r['mesh']} ({j['triangles']} tris) | {j['size']} | {j['forward_ms']} | "
@@ -504,7 +528,9 @@ def markdown(res: dict) -> str:
                      f"{_r(m.get('forward_backward_ms'))} | "
                      f"{r.get('forward_backward_ratio', '-')} "
                      f"({r.get('forward_backward_packed_ratio', '-')}) | {j['first_forward_s']}, "
-                     f"{j['first_backward_s']} ({j['first_backward_packed_s']}) |")
+                     f"{j['first_backward_s']} ({j['first_backward_packed_s']}) | "
+                     f"{_r(j.get('forward_moved_ms'))} / {_r(m.get('forward_moved_ms'))} "
+                     f"({r.get('forward_moved_ratio', '-')}) |")
     f = res.get("fit", {})
     if f:
         lines += ["", "| fit | time to well-observed < 1 deg (s) | first loss after (s) | "

@@ -5,7 +5,8 @@ uses too. Mitsuba is imported lazily, so this module imports without it:
 
 - `available()`: whether Mitsuba 3 (``llvm_ad_rgb``) runs here, and why not.
 - `render(problem, texels, light_dir)`: one image.
-- `forward_calls(problem)`: the forward and forward + backward calls to time;
+- `forward_calls(problem)`: the forward, forward + backward and moved-mesh forward calls
+  to time;
   `forward_times(problem)`: their timings.
 - `fit(problem, budget_s=...)`: the benchmark's Adam fit of the map.
 
@@ -70,6 +71,7 @@ import time
 import types
 
 import numpy as np
+from bench_problem import MOVED_OFFSET
 
 MITSUBA_VERSION = "3.9.1"
 DRJIT_VERSION = "1.5.0"
@@ -309,10 +311,12 @@ def _loss_and_grad(scene, params, key, value, target):
 
 
 def forward_calls(problem) -> dict:
-    """The two timed calls, each forcing its result to the host: ``"forward"``, one render
-    (the true map, light 0), and ``"forward_backward"``, forward + backward w.r.t. the map's
-    texels (the flat map, loss = MSE to the render of the true map). Both are run once here
-    (kernel compilation, or a load from Dr.Jit's disk cache): their times are in ``"first_s"``,
+    """The timed calls, each forcing its result to the host: ``"forward"``, one render
+    (the true map, light 0); ``"forward_backward"``, forward + backward w.r.t. the map's
+    texels (the flat map, loss = MSE to the render of the true map); ``"forward_moved"``,
+    one render after the mesh moved (its positions alternate between two arrays, the
+    second moved by ``bench_problem.MOVED_OFFSET``). All are run once here (kernel
+    compilation, or a load from Dr.Jit's disk cache): their times are in ``"first_s"``,
     with the number of cached kernel files found at the start."""
     mi, dr = _mitsuba()
     cache_files = _kernel_cache_files()
@@ -333,8 +337,31 @@ def forward_calls(problem) -> dict:
     t = time.perf_counter()
     forward_backward()
     first_backward = time.perf_counter() - t
+
+    # A scene of its own whose mesh takes turns between two positions (the second moved by
+    # bench_problem.MOVED_OFFSET along x): each frame pays for what a new mesh costs Mitsuba (its
+    # acceleration structure rebuilt in `params.update()`). Both position arrays are made
+    # up front, so the call times the update and the render, not a copy from NumPy.
+    moved_scene, moved_params, _ = _scene(problem, problem.gt_texels, problem.light_dirs[0])
+    vk = next(k for k in moved_params.keys() if k.endswith("vertex_positions"))
+    xyz = np.asarray(problem.positions, np.float32)
+    positions = [mi.Float(xyz.ravel()), mi.Float((xyz + [MOVED_OFFSET, 0, 0]).astype(
+        np.float32).ravel())]
+    turn = [0]
+
+    def forward_moved():
+        turn[0] ^= 1
+        moved_params[vk] = positions[turn[0]]
+        moved_params.update()
+        return np.asarray(mi.render(moved_scene, spp=1))
+
+    t = time.perf_counter()
+    forward_moved()
+    first_moved = time.perf_counter() - t
     return {"forward": forward, "forward_backward": forward_backward,
-            "first_s": {"forward": first_forward, "forward_backward": first_backward},
+            "forward_moved": forward_moved,
+            "first_s": {"forward": first_forward, "forward_backward": first_backward,
+                        "forward_moved": first_moved},
             "kernel_cache_files_at_start": cache_files}
 
 

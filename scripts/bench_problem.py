@@ -39,6 +39,8 @@ ELEVATION_DEG = 45.0
 AZIMUTHS_DEG = (0.0, 90.0, 180.0, 270.0)
 HELD_OUT = (0.4, -0.6, 0.7)
 ALBEDO = 0.8
+#: How far the benchmark's moved-mesh frames move the mesh along x, in world units.
+MOVED_OFFSET = 1e-3
 
 
 @dataclasses.dataclass(frozen=True)

@@ -54,8 +54,11 @@ def test_markdown_reports_the_forward_rows_with_the_packed_gradient():
                         "jaxnm": {"triangles": 20480, "size": "512x512", "forward_ms": 14.0,
                                   "forward_backward_ms": 55.0,
                                   "forward_backward_packed_ms": 26.0, "first_forward_s": 2.2,
-                                  "first_backward_s": 2.1, "first_backward_packed_s": 3.0},
-                        "mitsuba": {"forward_ms": 7.0, "forward_backward_ms": 22.0}}]}
+                                  "first_backward_s": 2.1, "first_backward_packed_s": 3.0,
+                                  "forward_moved_ms": 14.5},
+                        "forward_moved_ratio": 0.85,
+                        "mitsuba": {"forward_ms": 7.0, "forward_backward_ms": 22.0,
+                                    "forward_moved_ms": 17.0}}]}
     md = bench.markdown(res)
     assert ("| 20k torus (20480 tris) | 512x512 | 14.0 | 7.0 | 2.0 | 55.0 (26.0) | 22.0 | "
-            "2.5 (1.2) | 2.2, 2.1 (3.0) |") in md
+            "2.5 (1.2) | 2.2, 2.1 (3.0) | 14.5 / 17.0 (0.85) |") in md
