@@ -62,3 +62,16 @@ def test_markdown_reports_the_forward_rows_with_the_packed_gradient():
     md = bench.markdown(res)
     assert ("| 20k torus (20480 tris) | 512x512 | 14.0 | 7.0 | 2.0 | 55.0 (26.0) | 22.0 | "
             "2.5 (1.2) | 2.2, 2.1 (3.0) | 14.5 / 17.0 (0.85) |") in md
+
+
+def test_markdown_forward_row_without_mitsuba_leaves_its_columns_empty():
+    bench = load_script("bench")
+    res = {"machine": "m", "jax": "j", "mitsuba": "none", "date": "d",
+           "forward": [{"mesh": "4k sphere",
+                        "jaxnm": {"triangles": 3968, "size": "256x256", "forward_ms": 3.0,
+                                  "forward_moved_ms": 3.1, "forward_backward_ms": 5.0,
+                                  "forward_backward_packed_ms": 4.0, "first_forward_s": 2.0,
+                                  "first_backward_s": 2.5, "first_backward_packed_s": 3.5}}]}
+    md = bench.markdown(res)
+    assert ("| 4k sphere (3968 tris) | 256x256 | 3.0 | - | - | 5.0 (4.0) | - | - (-) | "
+            "2.0, 2.5 (3.5) | 3.1 / - (-) |") in md
