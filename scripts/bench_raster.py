@@ -91,14 +91,14 @@ def bench_case(tris: str, size: int, repeats: int) -> dict:
 
 def bench_scans(repeats: int) -> list[dict]:
     """`jaxnm.numerics.cumsum` / `flat_nonzero` against `jnp.cumsum` / `jnp.nonzero` on the
-    sizes the rasterizer scans: an image's pixels (512^2), a mesh's triangles (200k), a
+    sizes the rasterizer scans: an image's pixels (512^2, 1024^2), a mesh's triangles (200k), a
     round of slots (2^15); a fifth of the entries set."""
     import numpy as np
 
     from jaxnm.numerics import cumsum, flat_nonzero
 
     rows = []
-    for n in (512 * 512, 200_000, 1 << 15):
+    for n in (512 * 512, 1024 * 1024, 200_000, 1 << 15):
         mask = jnp.asarray(np.random.default_rng(n).random(n) < 0.2)
         x = mask.astype(jnp.int32)
         size = n // 4

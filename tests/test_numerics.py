@@ -71,6 +71,31 @@ def test_flat_nonzero_equals_numpys_indices_cut_or_filled_to_size(n):
             np.testing.assert_array_equal(np.asarray(got), want)
 
 
+@pytest.mark.parametrize("n", [32, 4099])
+def test_both_ways_of_flat_nonzero_give_numpys_indices(n):
+    """The word-packed way (each output slot finds its entry) and the running-sum way
+    (each entry is scattered into its slot), whichever `flat_nonzero` picks: runs of true
+    entries across word boundaries, words with every bit set or none, a tail word, and
+    sizes below, at and above the count."""
+    from jaxnm.numerics import _nonzero_by_scatter, _nonzero_by_words
+
+    rng = np.random.default_rng(n)
+    runs = np.zeros(n, bool)
+    runs[5:n // 2] = True  # a run spanning whole words
+    masks = [rng.random(n) < 0.3, rng.random(n) < 0.97, runs, np.zeros(n, bool)]
+    ways = [jax.jit(fn, static_argnums=(1, 2)) for fn in (_nonzero_by_words,
+                                                           _nonzero_by_scatter)]
+    for mask in masks:
+        count = int(mask.sum())
+        for size in sorted({max(count // 2, 1), count + 7}):
+            want = np.full(size, -1)
+            want[:min(size, count)] = np.flatnonzero(mask)[:size]
+            for way in ways:
+                got = way(jnp.asarray(mask), size, -1)
+                assert got.dtype == jnp.int32 and got.shape == (size,)
+                np.testing.assert_array_equal(np.asarray(got), want)
+
+
 def test_cumsum_and_flat_nonzero_reject_what_they_do_not_handle():
     with pytest.raises(ValueError, match="1-D integer"):
         cumsum(jnp.ones((3,), jnp.float32))
