@@ -132,19 +132,27 @@ def jaxnm_calls(p: B.BenchProblem) -> dict:
             "first_forward_s": first_forward}
 
 
-def _interleaved_ms(calls: dict, repeats: int, block: int = 5) -> tuple[dict, dict]:
+def _interleaved_ms(calls: dict, repeats: int, block: int = 5,
+                    seed: int = 0) -> tuple[dict, dict]:
     """(first call s, median ms of the next ``repeats``) of each call. The calls take turns
     in blocks of ``block`` timed runs, each block after one untimed run: a slow phase of the
     machine falls on all of them alike, and each is timed in its own steady state (run right
     after another renderer, a call pays for its caches and for the other's worker threads
-    still spinning: jaxnm's 4k frame 4.3 -> 7.2 ms, Mitsuba's 4.7 -> 5.5 ms)."""
+    still spinning: jaxnm's 4k frame 4.3 -> 7.2 ms, Mitsuba's 4.7 -> 5.5 ms). The order of
+    the turns is shuffled in every cycle, so that no call always follows the same one (in a
+    fixed order jaxnm's first call, always after Mitsuba's gradient, read 4.8-6.8 ms for
+    the 4k sphere at 512^2 where the same frame of a moved mesh, after jaxnm's own calls,
+    read 4.2-5.2)."""
     first, times = {}, {k: [] for k in calls}
     for k, fn in calls.items():
         t = time.perf_counter()
         fn()
         first[k] = time.perf_counter() - t
+    order = list(calls)
+    rng = np.random.default_rng(seed)
     for _ in range(-(-repeats // block)):
-        for k, fn in calls.items():
+        for k in rng.permutation(order):
+            fn = calls[k]
             fn()
             for _ in range(block):
                 t = time.perf_counter()
