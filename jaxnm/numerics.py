@@ -203,14 +203,12 @@ def _nonzero_by_words(mask: Array, size: int, fill_value: int) -> Array:
     s = jnp.arange(size, dtype=jnp.int32)
     w = busy[jnp.clip(cumsum(marks) - 1, 0, n_words - 1)]
     word, j = words[w], s - starts[w]  # the j-th set bit of `word` (0-based)
-    # which byte: the set bits below each byte, from the word's own table row
-    below = jax.lax.population_count(word & jnp.uint32(0xFF)).astype(jnp.int32)
-    below2 = below + jax.lax.population_count((word >> 8) & jnp.uint32(0xFF)).astype(jnp.int32)
-    below3 = below2 + jax.lax.population_count((word >> 16) & jnp.uint32(0xFF)).astype(
-        jnp.int32)
-    byte = (j >= below).astype(jnp.int32) + (j >= below2) + (j >= below3)
-    skipped = jnp.where(byte == 0, 0, jnp.where(byte == 1, below, jnp.where(byte == 2, below2,
-                                                                         below3)))
+    # which byte: the first whose end has more than j set bits below it
+    below = [jax.lax.population_count(word & jnp.uint32((1 << (8 * k)) - 1)).astype(jnp.int32)
+             for k in (1, 2, 3)]
+    byte = sum((j >= b).astype(jnp.int32) for b in below)
+    skipped = jax.lax.population_count(
+        word & ((jnp.uint32(1) << (8 * byte).astype(jnp.uint32)) - 1)).astype(jnp.int32)
     value = ((word >> (8 * byte).astype(jnp.uint32)) & jnp.uint32(0xFF)).astype(jnp.int32)
     bit = 8 * byte + jnp.asarray(_NTH_BIT)[value * 8 + (j - skipped)]
     return jnp.where(s < total, w * 32 + bit, fill_value)
