@@ -35,10 +35,11 @@ sign: coverage is watertight (no cracks, no double coverage) in float32.
 pixel tiles; a *slot* is one (triangle, tile) pair, for every tile a triangle's
 clipped screen bounding box touches. Slots are processed ``slots`` at a time
 (a fixed buffer); the number of rounds adapts at run time, so nothing is ever
-dropped, and memory stays bounded. The depth and triangle buffers are stored
-tile by tile, so each slot's depth test is a scatter of one whole tile: a
-scatter-min of depth, then of the lowest triangle index among the pixels that
-reached it (``GL_LESS`` with draw order = index order).
+dropped, and memory stays bounded. The depth buffer is stored tile by tile, so
+each slot's depth test is a scatter of one whole tile: a scatter-min of 64-bit
+keys, the depth's bits above the triangle index, which keeps the nearest
+fragment and on equal depth the lowest index (``GL_LESS`` with draw order =
+index order) in one order-independent scatter.
 """
 
 from __future__ import annotations
@@ -540,35 +541,83 @@ def _fragment_source(tri, tri_depth, setup, *, width, height, block, slots):
 _STATIC = ("width", "height", "cull_back", "block", "slots", "subpixel_bits")
 
 
-def _depth_test(tri, tri_depth, setup, zbuf, ids, *, width, height, block, slots):
-    """Depth-test triangles into the tiled buffers ``zbuf``/``ids`` (tiles, block, block)."""
+def _depth_test(tri, tri_depth, setup, buf, *, width, height, block, slots):
+    """Depth-test triangles into the tiled buffer ``buf`` (tiles, block, block): uint64 keys
+    (`_depth_keys`) where the depth is at most 32 bits wide, else a pair (depth, triangle)."""
     fragments, total = _fragment_source(tri, tri_depth, setup, width=width, height=height,
                                         block=block, slots=slots)
+    keyed = not isinstance(buf, tuple)
+    x64 = bool(jax.config.jax_enable_x64)  # the caller's
 
     def round_(carry):
-        # One round of slots, depth-tested straight into the running buffers (nearer wins;
-        # on equal depth the lower triangle index, as GL_LESS in draw order). Each slot
+        # One round of slots, depth-tested straight into the running buffer. Each slot
         # updates one whole tile, so XLA's scatters loop over slots, not pixels, and a
         # round's work does not grow with the image.
-        q, zbuf, ids = carry
-        tile, depth, t = fragments(q * slots)
-        before = zbuf[tile]
-        zbuf = zbuf.at[tile].min(depth, mode="drop")
-        after = zbuf[tile]
-        # where this round brought a pixel nearer, the earlier winner is gone. A max, not a
-        # set: every scatter here combines by min or max, which XLA knows to be independent
-        # of the order of repeated tiles, so deterministic GPU ops leave them alone (a set
-        # with repeated indices it would serialise)
-        ids = ids.at[tile].max(jnp.where(after < before, _NO_TRIANGLE, _ANY_TRIANGLE),
-                               mode="drop")
-        win = (depth == after) & (depth < jnp.inf)
-        ids = ids.at[tile].min(jnp.where(win, t[:, None, None], _NO_TRIANGLE),
-                               mode="drop")
-        return q + 1, zbuf, ids
+        q, buf = carry
+        with jax.enable_x64(x64):  # the slots' own arithmetic as everywhere else
+            tile, depth, t = fragments(q * slots)
+        if keyed:
+            return q + 1, buf.at[tile].min(_depth_keys(depth, t), mode="drop")
+        return q + 1, _depth_test_pair(buf, tile, depth, t)
 
-    _, zbuf, ids = jax.lax.while_loop(lambda c: c[0] * slots < total, round_,
-                                      (jnp.int32(0), zbuf, ids))
+    # the keys are 64-bit integers, whatever the caller's jax_enable_x64
+    with jax.enable_x64(keyed or x64):
+        return jax.lax.while_loop(lambda c: c[0] * slots < total, round_,
+                                  (jnp.int32(0), buf))[1]
+
+
+def _depth_keys(depth: Array, t: Array) -> Array:
+    """uint64 keys whose order is the depth test's, ``GL_LESS`` in draw order: the nearer
+    fragment first, on equal depth the lower triangle index. The depth's bits (a float of
+    at most 32 bits, in [0, 1] or ``inf``; its sign bit cleared so that -0 is +0) are the
+    high word, and read as an unsigned integer they order as the depths do; the index
+    (>= 0) is the low word. A background pixel is `_EMPTY_KEY` (inf, no triangle). One
+    scatter-min of these keys does what a min of depths, then a min of indices among the
+    nearest would (two scatters and two gathers per round): it is order-independent, and
+    on GPUs a single 64-bit atomic min. Call under ``jax.enable_x64(True)``."""
+    bits = jax.lax.bitcast_convert_type(depth.astype(jnp.float32), jnp.uint32)
+    high = (bits & np.uint32(0x7FFFFFFF)).astype(jnp.uint64) << np.uint64(32)
+    key = high | t.astype(jnp.uint32).astype(jnp.uint64)[:, None, None]
+    return jnp.where(depth < jnp.inf, key, _EMPTY_KEY)
+
+
+#: An empty pixel's key (`_depth_keys`): depth ``inf``, triangle `_NO_TRIANGLE`.
+_EMPTY_KEY = np.uint64((0x7F800000 << 32) | _NO_TRIANGLE)
+
+
+def _depth_test_pair(bufs, tile, depth, t):
+    """One round of the depth test into separate depth and triangle buffers (depths wider
+    than 32 bits): nearer wins; on equal depth the lower triangle index."""
+    zbuf, ids = bufs
+    before = zbuf[tile]
+    zbuf = zbuf.at[tile].min(depth, mode="drop")
+    after = zbuf[tile]
+    # where this round brought a pixel nearer, the earlier winner is gone. A max, not a
+    # set: every scatter here combines by min or max, which XLA knows to be independent
+    # of the order of repeated tiles, so deterministic GPU ops leave them alone (a set
+    # with repeated indices it would serialise)
+    ids = ids.at[tile].max(jnp.where(after < before, _NO_TRIANGLE, _ANY_TRIANGLE),
+                           mode="drop")
+    win = (depth == after) & (depth < jnp.inf)
+    ids = ids.at[tile].min(jnp.where(win, t[:, None, None], _NO_TRIANGLE), mode="drop")
     return zbuf, ids
+
+
+def _empty_depth_buffer(tiles: int, block: int, dtype) -> Array | tuple[Array, Array]:
+    """The depth test's buffer before any triangle (`_depth_test`)."""
+    if jnp.dtype(dtype).itemsize <= 4:
+        with jax.enable_x64(True):
+            return jnp.full((tiles, block, block), _EMPTY_KEY, jnp.uint64)
+    return (jnp.full((tiles, block, block), jnp.inf, dtype),
+            jnp.full((tiles, block, block), _NO_TRIANGLE, jnp.int32))
+
+
+def _winners(buf) -> Array:
+    """Each pixel's triangle index in the depth test's buffer (`_NO_TRIANGLE`: none)."""
+    if isinstance(buf, tuple):
+        return buf[1]
+    with jax.enable_x64(True):
+        return (buf & np.uint64(0xFFFFFFFF)).astype(jnp.uint32).astype(jnp.int32)
 
 
 def _tiles_to_image(tiles: Array, width: int, height: int) -> Array:
@@ -615,13 +664,19 @@ def _each_pass(fn, setup, carry, *, tiles: int, pass_slots: int):
         return fn(setup, carry)
     passes, n_passes = _slot_passes(nbx * nby, pass_slots)
 
+    x64 = bool(jax.config.jax_enable_x64)  # the caller's
+
     def one_pass(c):
         p, carry = c
         mine = passes == p
-        return p + 1, fn((sigma, tx0, ty0, jnp.where(mine, nbx, 0), jnp.where(mine, nby, 0)),
-                         carry)
+        with jax.enable_x64(x64):
+            return p + 1, fn((sigma, tx0, ty0, jnp.where(mine, nbx, 0),
+                              jnp.where(mine, nby, 0)), carry)
 
-    return jax.lax.while_loop(lambda c: c[0] < n_passes, one_pass, (jnp.int32(0), carry))[1]
+    # (a carry of 64-bit depth keys stays 64-bit whatever the caller's jax_enable_x64)
+    with jax.enable_x64(x64 or any(x.dtype == np.uint64 for x in jax.tree.leaves(carry))):
+        return jax.lax.while_loop(lambda c: c[0] < n_passes, one_pass,
+                                  (jnp.int32(0), carry))[1]
 
 
 @functools.partial(jax.jit, static_argnames=_STATIC + ("pass_slots",))
@@ -632,13 +687,10 @@ def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     setup = _triangle_setup(tri.components(), width, height, block, cull_back)
-    _, ids = _each_pass(
-        lambda st, bufs: _depth_test(tri, tri_depth, st, *bufs, **kw), setup,
-        (jnp.full((tiles, block, block), jnp.inf, clip.dtype),
-         jnp.full((tiles, block, block), _NO_TRIANGLE, jnp.int32)),
-        tiles=tiles, pass_slots=pass_slots)
-
-    ids = _tiles_to_image(ids, width, height)
+    buf = _each_pass(lambda st, buf: _depth_test(tri, tri_depth, st, buf, **kw), setup,
+                     _empty_depth_buffer(tiles, block, clip.dtype), tiles=tiles,
+                     pass_slots=pass_slots)
+    ids = _tiles_to_image(_winners(buf), width, height)
     tid = jnp.where(ids != _NO_TRIANGLE, ids, -1)
     # facing from the coverage (snapped) orientation, as the rasterizer saw the triangle
     depth, front = _depth_and_facing(tri_depth, setup[0], tid,

@@ -1,5 +1,6 @@
 """Visibility against an independent float64 reference, watertightness, clipping, bad input."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -196,6 +197,68 @@ def test_depth_test_nearest_wins_and_ties_go_to_lower_index():
     faces = np.arange(9).reshape(3, 3)
     tid = np.asarray(jaxnm.rasterize(clip, faces, width=16, height=16).triangle_id)
     assert set(np.unique(tid)) == {-1, 1}
+
+
+def test_depth_keys_order_fragments_as_the_depth_test():
+    """One scatter-min of 64-bit keys (32-bit depths) and the pair of depth and triangle
+    buffers (wider depths) both keep, per pixel, the nearest fragment and on equal depth the
+    lowest triangle index (-0 equal to +0); checked against a plain loop."""
+    from jaxnm import raster
+
+    rng = np.random.default_rng(0)
+    tiles, block, slots = 6, 2, 300
+    values = np.array([0.0, -0.0, 0.25, 0.5, 1.0, np.inf], np.float32)
+    depth = values[rng.integers(0, len(values), (slots, block, block))]
+    t = rng.integers(0, 40, slots).astype(np.int32)
+    tile = rng.integers(0, tiles, slots).astype(np.int32)
+    want = np.full((tiles, block, block), raster._NO_TRIANGLE, np.int64)
+    near = np.full((tiles, block, block), np.inf, np.float32)
+    for s in range(slots):
+        for dy in range(block):
+            for dx in range(block):
+                d, w = depth[s, dy, dx], want[tile[s], dy, dx]
+                if d < np.inf and (d < near[tile[s], dy, dx] or (d == near[tile[s], dy, dx]
+                                                                  and t[s] < w)):
+                    near[tile[s], dy, dx], want[tile[s], dy, dx] = d, t[s]
+    assert (want != raster._NO_TRIANGLE).mean() > 0.5
+    keyed = raster._empty_depth_buffer(tiles, block, jnp.float32)
+    with jax.enable_x64(True):
+        keyed = keyed.at[tile].min(raster._depth_keys(jnp.asarray(depth), jnp.asarray(t)))
+    assert np.array_equal(np.asarray(raster._winners(keyed)), want)
+    with jax.enable_x64(True):
+        pair = raster._empty_depth_buffer(tiles, block, jnp.float64)
+        assert isinstance(pair, tuple)
+        for half in (slice(0, slots // 2), slice(slots // 2, slots)):  # two rounds
+            pair = raster._depth_test_pair(pair, jnp.asarray(tile[half]),
+                                           jnp.asarray(depth[half], jnp.float64),
+                                           jnp.asarray(t[half]))
+        assert np.array_equal(np.asarray(raster._winners(pair)), want)
+
+
+@pytest.mark.parametrize("x64", [False, True])
+def test_float64_clip_and_64_bit_callers_rasterize_alike(x64):
+    """With ``jax_enable_x64`` on, float32 input takes the keyed depth test and float64 input
+    the pair of buffers; both agree with the float64 reference away from edges."""
+    pos, faces = random_soup(4)
+    clip = clip_of(pos, perspective_mvp((0.3, 0.4, 2.5))).astype(np.float32)
+    ref = rasterize_ref(clip.astype(np.float64), faces, 40, 40, subpixel_bits=8)
+    amb = _ambiguous(ref)
+    with jax.enable_x64(x64):
+        dtype = jnp.float64 if x64 else jnp.float32
+        tid = np.asarray(jaxnm.rasterize(jnp.asarray(clip, dtype), faces, width=40,
+                                         height=40).triangle_id)
+        tid32 = np.asarray(jaxnm.rasterize(jnp.asarray(clip), faces, width=40,
+                                           height=40).triangle_id)
+        # and in many passes (the frames of over 2**30 slots)
+        from jaxnm import raster
+
+        kw = dict(width=40, height=40, cull_back=False, block=4, slots=64, subpixel_bits=8)
+        for c, want in ((jnp.asarray(clip, dtype), tid), (jnp.asarray(clip), tid32)):
+            passes = raster._rasterize(c, jnp.asarray(faces, jnp.int32), pass_slots=32, **kw)
+            assert np.array_equal(np.asarray(passes[0]), want)
+    assert (tid >= 0).mean() > 0.2
+    assert np.array_equal(tid[~amb], ref["triangle_id"][~amb])
+    assert np.array_equal(tid32[~amb], ref["triangle_id"][~amb])
 
 
 def test_many_rounds_and_passes_give_the_same_image():
