@@ -453,8 +453,10 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
         return _render(*args, opts=opts)
     # packed when the covered pixels fit, else every pixel (the ids are reused either way)
     return jax.lax.cond(count <= slots,
-                        lambda a, t, c: _render(*a, t, c, opts=opts, capacity=slots),
-                        lambda a, t, c: _render(*a, t, c, opts=opts, capacity=pixels),
+                        lambda a, t, c: _render(*a, t, c, opts=opts, capacity=slots,
+                                                host_count=False),
+                        lambda a, t, c: _render(*a, t, c, opts=opts, capacity=pixels,
+                                                host_count=False),
                         args, tid, clip)
 
 
@@ -604,8 +606,10 @@ def _visible(mesh: Mesh, camera: Camera, shift=None, *, width: int, height: int,
 #: covered pixels (4k sphere at 512^2, 39k covered pixels in 2^16 slots: per-pixel
 #: program 3.7 -> 2.7 ms; elsewhere the same within noise); traced, 2^16, because each
 #: chunk's backward pass adds up the whole map's gradient (20k torus at 1024^2,
-#: forward+backward: 71 ms in chunks of 2^16, 81 ms in 2^14). Other backends (a GPU wants
-#: all the slots at once): no chunks.
+#: forward+backward: 71 ms in chunks of 2^16, 81 ms in 2^14). A packed program whose count
+#: is traced (``pack=True`` in the caller's jit, most often a gradient step) takes at most
+#: four chunks between the two sizes (1024^2 forward+backward 0.92-0.96x). Other backends
+#: (a GPU wants all the slots at once): no chunks.
 PIXEL_CHUNK = {"cpu": (1 << 14, 1 << 16)}
 
 
@@ -650,10 +654,11 @@ def _over_chunks(fn, frags: Fragments, chunk: int):
     return jax.tree_util.tree_map(lambda y: y.reshape((k * size,) + y.shape[2:])[:n], out)
 
 
-@functools.partial(jax.jit, static_argnames=("opts", "capacity"))
+@functools.partial(jax.jit, static_argnames=("opts", "capacity", "host_count"))
 def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, origin,
             shift=None, triangle_id: Array | None = None, clip: Array | None = None, *,
-            opts: RenderOptions, capacity: int | None = None) -> dict[str, Array]:
+            opts: RenderOptions, capacity: int | None = None,
+            host_count: bool = True) -> dict[str, Array]:
     """`render` as one XLA program (one compilation per scene shape, options and capacity);
     the scene is camera-relative (`_camera_relative`; the mesh still to be moved by
     ``shift``), ``origin`` the camera's world position. With ``capacity``, the per-pixel
@@ -667,7 +672,13 @@ def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, or
     mesh = _shifted(mesh, shift)
     height, width = opts.height, opts.width
     counted = capacity is not None
-    chunk = PIXEL_CHUNK.get(jax.default_backend(), (None, None))[0 if counted else 1]
+    small, large = PIXEL_CHUNK.get(jax.default_backend(), (None, None))
+    chunk = small if counted else large
+    if counted and not host_count and chunk is not None:
+        # a count traced in the caller's jit, most often a gradient's: the fewer chunks the
+        # less the backward pass adds up whole-map gradients (a cond then skips the empty
+        # ones), the more slots a partly covered chunk wastes: at most four chunks
+        chunk = min(max(small, -(-capacity // 4)), large)
     if capacity is None and (opts.derivatives == "gbuffer" or chunk is None):
         frags = _visibility(mesh, camera, opts)
         packed, index = frags, None

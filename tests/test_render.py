@@ -412,14 +412,16 @@ def test_packed_pixels_render_what_the_whole_image_renders(frame, derivatives, p
 @pytest.fixture
 def small_pixel_chunks(monkeypatch):
     """``run(chunk, fn)``: ``fn()`` with `render`'s per-pixel chunks set to ``chunk`` slots
-    on the CPU (None: no chunks, and the image as it is where the count is unknown), its
-    programs compiled afresh; the cache is cleared again afterwards."""
+    on the CPU (a pair: the counted and the traced sizes; None: no chunks, and the image as
+    it is where the count is unknown), its programs compiled afresh; the cache is cleared
+    again afterwards."""
     import importlib
 
     R = importlib.import_module("jaxnm.render")
 
     def run(chunk, fn):
-        monkeypatch.setattr(R, "PIXEL_CHUNK", {} if chunk is None else {"cpu": (chunk, chunk)})
+        sizes = chunk if isinstance(chunk, tuple) else (chunk, chunk)
+        monkeypatch.setattr(R, "PIXEL_CHUNK", {} if chunk is None else {"cpu": sizes})
         R._render.clear_cache()
         return fn()
 
@@ -456,6 +458,16 @@ def test_chunked_pixels_give_the_image_layouts_gradient(small_pixel_chunks):
         np.testing.assert_allclose(g_map, ref[1][0], rtol=1e-4,
                                    atol=1e-5 * float(jnp.abs(ref[1][0]).max()))
         np.testing.assert_allclose(g_albedo, ref[1][1], rtol=1e-4)
+    # pack=True under the caller's jit (the count traced): at most four chunks, here of
+    # image / 16 slots, between the two sizes
+    value, (g_map, g_albedo) = small_pixel_chunks(
+        (64, 4096), lambda: jax.jit(jax.value_and_grad(loss, argnums=(0, 1)),
+                                    static_argnums=2)(*args, True))
+    np.testing.assert_allclose(value, ref[0], rtol=1e-5)
+    np.testing.assert_allclose(g_map, ref[1][0], rtol=1e-4,
+                               atol=1e-5 * float(jnp.abs(ref[1][0]).max()))
+    np.testing.assert_allclose(g_albedo, ref[1][1], rtol=1e-4)
+
 
 def test_compact_and_expand_round_trip():
     """`compact` packs the covered pixels with their window positions, depth and facing (as
