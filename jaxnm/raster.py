@@ -54,8 +54,8 @@ from jax import Array
 
 from .numerics import cumsum, dot, flat_nonzero, materialize, roll_last
 
-__all__ = ["Fragments", "rasterize", "window_homogeneous", "pixel_centers", "compact",
-           "expand", "TIE_RULE"]
+__all__ = ["Fragments", "rasterize", "triangle_ids", "window_homogeneous", "pixel_centers",
+           "compact", "expand", "TIE_RULE"]
 
 #: A pixel centre exactly on an edge belongs to the triangle whose inward edge
 #: normal ``n`` (window coordinates, y up) has ``n.x > 0``, or ``n.x == 0`` and
@@ -144,7 +144,8 @@ class Fragments:
 
 
 def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
-            subpixel_bits: int | None = SUBPIXEL_BITS) -> tuple[Fragments, Array]:
+            subpixel_bits: int | None = SUBPIXEL_BITS,
+            orientation: Array | None = None) -> tuple[Fragments, Array]:
     """The covered pixels of a whole image, packed into ``capacity`` slots as `Fragments`.
 
     Every per-pixel stage evaluates a pixel from its own triangle and its window position
@@ -157,6 +158,8 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
     - `clip`, `faces`, `subpixel_bits`: as given to `rasterize`.
     - `capacity`: slots; covered pixels beyond it are dropped: take at least the number
       of covered pixels. Unused slots are background (triangle -1, depth 1).
+    - `orientation`: each triangle's orientation sign (F,) as `triangle_ids` gives it, if
+      known; else the facing is computed from each fragment's corners again.
 
     **Returns:** the packed `Fragments` (per-pixel fields of shape (capacity,); depth and
     facing as `rasterize` computes them) and the (capacity,) flat image index of each
@@ -178,7 +181,9 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
                                      subpixel_bits=subpixel_bits)
     covered = tid >= 0
     t = jnp.maximum(tid, 0)
-    if capacity < faces.shape[0]:
+    if orientation is not None:  # (200k triangles at 512^2: 0.9 ms of gathers and snapping)
+        sigma = orientation[t]
+    elif capacity < faces.shape[0]:
         # the facing from the fragment's own (snapped) corners: no pass over the mesh
         corners = tri[t]  # (capacity, 3, 4)
         sigma = jnp.sign(_orientation([[corners[:, k, c] for c in range(4)]
@@ -682,6 +687,20 @@ def _each_pass(fn, setup, carry, *, tiles: int, pass_slots: int):
 @functools.partial(jax.jit, static_argnames=_STATIC + ("pass_slots",))
 def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits,
                pass_slots=PASS_SLOTS):
+    tid, sigma, tri_depth = _visible_triangles(
+        clip, faces, width=width, height=height, cull_back=cull_back, block=block,
+        slots=slots, subpixel_bits=subpixel_bits, pass_slots=pass_slots)
+    # facing from the coverage (snapped) orientation, as the rasterizer saw the triangle
+    depth, front = _depth_and_facing(tri_depth, sigma, tid,
+                                     *pixel_centers(height, width, tri_depth.dtype))
+    return tid, depth, front
+
+
+def _visible_triangles(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits,
+                       pass_slots=PASS_SLOTS):
+    """Each pixel's triangle (H, W) (-1: background), each triangle's orientation sign
+    (F,) in the window (the snapped corners' ``sign(det M)``: +1 counter-clockwise, i.e.
+    front-facing) and the unsnapped corners (`_Corners`)."""
     kw = dict(width=width, height=height, block=block, slots=slots)
     tiles = (-(-width // block)) * (-(-height // block))
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
@@ -691,11 +710,22 @@ def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_
                      _empty_depth_buffer(tiles, block, clip.dtype), tiles=tiles,
                      pass_slots=pass_slots)
     ids = _tiles_to_image(_winners(buf), width, height)
-    tid = jnp.where(ids != _NO_TRIANGLE, ids, -1)
-    # facing from the coverage (snapped) orientation, as the rasterizer saw the triangle
-    depth, front = _depth_and_facing(tri_depth, setup[0], tid,
-                                     *pixel_centers(height, width, tri_depth.dtype))
-    return tid, depth, front
+    return jnp.where(ids != _NO_TRIANGLE, ids, -1), setup[0], tri_depth
+
+
+def triangle_ids(clip: Array, faces: Array, *, width: int, height: int,
+                 cull_back: bool = False, subpixel_bits: int | None = SUBPIXEL_BITS,
+                 block: int = 4, slots: int | None = None) -> tuple[Array, Array]:
+    """`rasterize`'s triangle ids alone, (H, W) int32 (-1: background), and each triangle's
+    orientation in the window (F,) (+1: counter-clockwise, front-facing; -1: clockwise; 0:
+    degenerate), which `compact` takes instead of computing the facing of every packed
+    pixel again. Same arguments as `rasterize`; traceable (no eager checks of values)."""
+    clip, faces, kw = _prepare_args(clip, faces, width, height, cull_back, subpixel_bits, block,
+                                    slots)
+    if faces.shape[0] == 0:
+        return jnp.full((height, width), -1, jnp.int32), jnp.zeros((0,), clip.dtype)
+    tid, sigma, _ = _visible_triangles(clip, faces, **kw)
+    return tid, sigma
 
 
 def _depth_and_facing(tri_depth: _Corners, sigma: Array, tid: Array, x: Array, y: Array):

@@ -41,7 +41,7 @@ from .interpolate import (
     triangle_corners,
 )
 from .numerics import materialize, safe_normalize
-from .raster import Fragments, compact, expand, rasterize
+from .raster import Fragments, compact, expand, rasterize, triangle_ids
 from .scene import Scene, validate_scene
 from .shading import Lights, Material, check_shading_model, shade
 from .textures import NormalMapOptions
@@ -214,27 +214,30 @@ def covered_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *,
         raise ValueError("covered_gbuffer: 'gbuffer' derivatives need the whole image's "
                          "G-buffer (build_gbuffer)")
     check_mesh(mesh, opts)
-    tid, count, clip = _visible(mesh, camera, _NO_SHIFT, width=opts.width,
-                                height=opts.height, cull_back=opts.cull_back)
+    tid, count, clip, orientation = _visible(mesh, camera, _NO_SHIFT, width=opts.width,
+                                             height=opts.height, cull_back=opts.cull_back)
     count = int(count)
-    gb, index = _covered(mesh, camera, albedo, tid, clip, opts=opts,
+    gb, index = _covered(mesh, camera, albedo, tid, clip, orientation, opts=opts,
                          capacity=_capacity(count, opts.width * opts.height))
     return gb, index, count
 
 
 @functools.partial(jax.jit, static_argnames=("opts", "capacity"))
-def _covered(mesh: Mesh, camera: Camera, albedo, triangle_id, clip, *, opts, capacity):
-    packed, index = _compact(mesh, camera, triangle_id, capacity, clip)
+def _covered(mesh: Mesh, camera: Camera, albedo, triangle_id, clip, orientation, *, opts,
+             capacity):
+    packed, index = _compact(mesh, camera, triangle_id, capacity, clip, orientation)
     return gbuffer_from_fragments(mesh, camera, albedo, packed, opts=opts), index
 
 
 def _compact(mesh: Mesh, camera: Camera, triangle_id: Array, capacity: int,
-             clip: Array | None = None):
+             clip: Array | None = None, orientation: Array | None = None):
     """`jaxnm.raster.compact` of ``mesh`` seen by ``camera``: (packed fragments, index);
-    ``clip``: the mesh's clip-space vertices where the caller has them (`_visible`)."""
+    ``clip``, ``orientation``: the mesh's clip-space vertices and its triangles'
+    orientations where the caller has them (`_visible`)."""
     if clip is None:
         clip = to_clip(mesh.positions, camera)
-    return compact(triangle_id, clip, mesh.faces.astype(jnp.int32), capacity)
+    return compact(triangle_id, clip, mesh.faces.astype(jnp.int32), capacity,
+                   orientation=orientation)
 
 
 def _visibility(mesh: Mesh, camera: Camera, opts: RenderOptions):
@@ -445,19 +448,20 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     if (pack is False or opts.derivatives == "gbuffer"
             or (slots is None and not _concrete(scene.mesh, scene.camera))):
         return _render(*args, opts=opts)
-    tid, count, clip = _visible(scene.mesh, scene.camera, shift, width=opts.width,
-                                height=opts.height, cull_back=opts.cull_back)
+    tid, count, clip, orientation = _visible(scene.mesh, scene.camera, shift, width=opts.width,
+                                             height=opts.height, cull_back=opts.cull_back)
     if not isinstance(count, jax.core.Tracer):
-        return _render(*args, tid, clip, opts=opts, capacity=_capacity(int(count), pixels))
+        return _render(*args, tid, clip, orientation, opts=opts,
+                       capacity=_capacity(int(count), pixels))
     if slots is None:  # the count is traced (the caller's jit): the whole image
         return _render(*args, opts=opts)
     # packed when the covered pixels fit, else every pixel (the ids are reused either way)
     return jax.lax.cond(count <= slots,
-                        lambda a, t, c: _render(*a, t, c, opts=opts, capacity=slots,
-                                                host_count=False),
-                        lambda a, t, c: _render(*a, t, c, opts=opts, capacity=pixels,
-                                                host_count=False),
-                        args, tid, clip)
+                        lambda a, t, c, o: _render(*a, t, c, o, opts=opts, capacity=slots,
+                                                   host_count=False),
+                        lambda a, t, c, o: _render(*a, t, c, o, opts=opts, capacity=pixels,
+                                                   host_count=False),
+                        args, tid, clip, orientation)
 
 
 def _traced_capacity(pack, pixels: int, source: str) -> int | None:
@@ -584,16 +588,17 @@ def _capacity(count: int, pixels: int) -> int:
 @functools.partial(jax.jit, static_argnames=("width", "height", "cull_back"))
 def _visible(mesh: Mesh, camera: Camera, shift=None, *, width: int, height: int,
              cull_back: bool):
-    """Each pixel's triangle (-1: background), how many pixels are covered, and the
-    (shifted) mesh's clip-space vertices, which the per-pixel program then need not
-    compute again; the depth and facing are left to the packed pixels (`compact`). Only
+    """Each pixel's triangle (-1: background), how many pixels are covered, the (shifted)
+    mesh's clip-space vertices and its triangles' orientations, which the per-pixel
+    program then need not compute again; the depth is left to the packed pixels
+    (`compact`). Only
     the options visibility depends on are static: one compilation serves every output,
     frame and map. ``shift``: see `_camera_relative`."""
     mesh = _shifted(mesh, shift)
     clip = to_clip(mesh.positions, camera)
-    tid = rasterize(clip, mesh.faces, width=width, height=height,
-                    cull_back=cull_back).triangle_id
-    return tid, jnp.count_nonzero(tid >= 0), clip
+    tid, orientation = triangle_ids(clip, mesh.faces, width=width, height=height,
+                                    cull_back=cull_back)
+    return tid, jnp.count_nonzero(tid >= 0), clip, orientation
 
 
 #: The per-pixel stages run over packed pixels in chunks of at most this many slots on
@@ -656,8 +661,9 @@ def _over_chunks(fn, frags: Fragments, chunk: int):
 
 @functools.partial(jax.jit, static_argnames=("opts", "capacity", "host_count"))
 def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, origin,
-            shift=None, triangle_id: Array | None = None, clip: Array | None = None, *,
-            opts: RenderOptions, capacity: int | None = None,
+            shift=None, triangle_id: Array | None = None, clip: Array | None = None,
+            orientation: Array | None = None, *, opts: RenderOptions,
+            capacity: int | None = None,
             host_count: bool = True) -> dict[str, Array]:
     """`render` as one XLA program (one compilation per scene shape, options and capacity);
     the scene is camera-relative (`_camera_relative`; the mesh still to be moved by
@@ -691,7 +697,7 @@ def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, or
             frags = _visibility(mesh, camera, opts)
             triangle_id, clip = frags.triangle_id, frags.clip
             capacity = height * width
-        packed, index = _compact(mesh, camera, triangle_id, capacity, clip)
+        packed, index = _compact(mesh, camera, triangle_id, capacity, clip, orientation)
         image = {"mask": lambda: triangle_id >= 0, "triangle_id": lambda: triangle_id,
                  "depth": lambda: expand(packed.depth, index, height, width, 1.0),
                  "front_facing": lambda: expand(packed.front_facing, index, height, width)}

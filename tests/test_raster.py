@@ -261,6 +261,32 @@ def test_float64_clip_and_64_bit_callers_rasterize_alike(x64):
     assert np.array_equal(tid32[~amb], ref["triangle_id"][~amb])
 
 
+def test_triangle_ids_and_orientation_give_rasterize_and_compact():
+    """`triangle_ids` is `rasterize`'s ids, its orientations give `rasterize`'s facing, and
+    `compact` given them packs the same fragments as without (which computes the facing
+    from each fragment's corners)."""
+    from jaxnm.raster import compact, triangle_ids
+
+    pos, faces = random_soup(5)
+    clip = clip_of(pos, perspective_mvp((0.3, 0.4, 2.5))).astype(np.float32)
+    fr = jaxnm.rasterize(clip, faces, width=40, height=32)
+    tid, orientation = triangle_ids(clip, faces, width=40, height=32)
+    assert np.array_equal(np.asarray(tid), np.asarray(fr.triangle_id))
+    covered = np.asarray(fr.mask)
+    front = np.asarray(orientation)[np.maximum(np.asarray(tid), 0)] > 0
+    assert covered.mean() > 0.2 and 0 < front[covered].mean() < 1  # both facings seen
+    assert np.array_equal(front & covered, np.asarray(fr.front_facing))
+    n = int(covered.sum())
+    # fewer slots than triangles (the facing from each fragment's corners: some covered
+    # pixels dropped, the same in both), and more (from each triangle's)
+    for capacity in (len(faces) - 1, n + 3, 40 * 32):
+        a, ia = compact(fr.triangle_id, fr.clip, fr.faces, capacity)
+        b, ib = compact(fr.triangle_id, fr.clip, fr.faces, capacity, orientation=orientation)
+        assert np.array_equal(np.asarray(ia), np.asarray(ib))
+        for field in ("triangle_id", "front_facing", "depth", "pixels"):
+            assert np.array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)))
+
+
 def test_many_rounds_and_passes_give_the_same_image():
     """A tiny slot budget forces many rounds, a tiny pass size many passes (the int32
     overflow path of frames with over 2**30 slots): the result must not change."""

@@ -535,7 +535,7 @@ def test_packing_is_the_default_only_for_large_images_on_the_cpu(monkeypatch, ba
     calls = []
     monkeypatch.setattr(jax, "default_backend", lambda: backend)
     monkeypatch.setattr(R, "_visible", lambda *a, **k: calls.append("visible")
-                        or (jnp.zeros((size, size), jnp.int32), 10, None))
+                        or (jnp.zeros((size, size), jnp.int32), 10, None, None))
     monkeypatch.setattr(R, "_render", lambda *a, **k: calls.append(k.get("capacity")) or {})
     render(default_scene(width=size, height=size))
     assert calls == (["visible", R._capacity(10, size * size)] if packs else [None])
@@ -648,8 +648,8 @@ def test_render_and_a_fits_prepare_share_one_visibility_program():
     assert float(jnp.max(img)) > 0
     counting[0] = True
     try:
-        tid, count, _ = R._visible(scene.mesh, scene.camera, R._NO_SHIFT, width=40, height=24,
-                                   cull_back=False)
+        tid, count, _, _ = R._visible(scene.mesh, scene.camera, R._NO_SHIFT, width=40, height=24,
+                                      cull_back=False)
         assert compiles == []
         R._visible(scene.mesh, scene.camera, None, width=40, height=24, cull_back=False)
         assert len(compiles) > 0  # the check can fail: a None is another program
