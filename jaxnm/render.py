@@ -458,9 +458,9 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     # packed when the covered pixels fit, else every pixel (the ids are reused either way)
     return jax.lax.cond(count <= slots,
                         lambda a, t, c, o: _render(*a, t, c, o, opts=opts, capacity=slots,
-                                                   host_count=False),
+                                                   traced_slots=slots),
                         lambda a, t, c, o: _render(*a, t, c, o, opts=opts, capacity=pixels,
-                                                   host_count=False),
+                                                   traced_slots=slots),
                         args, tid, clip, orientation)
 
 
@@ -613,7 +613,8 @@ def _visible(mesh: Mesh, camera: Camera, shift=None, *, width: int, height: int,
 #: chunk's backward pass adds up the whole map's gradient (20k torus at 1024^2,
 #: forward+backward: 71 ms in chunks of 2^16, 81 ms in 2^14). A packed program whose count
 #: is traced (``pack=True`` in the caller's jit, most often a gradient step) takes at most
-#: four chunks between the two sizes (1024^2 forward+backward 0.92-0.96x). Other backends
+#: four chunks between the two sizes, the all-pixel one in the same chunks (1024^2
+#: forward+backward 0.91-0.95x, no more compilation). Other backends
 #: (a GPU wants all the slots at once): no chunks.
 PIXEL_CHUNK = {"cpu": (1 << 14, 1 << 16)}
 
@@ -659,12 +660,12 @@ def _over_chunks(fn, frags: Fragments, chunk: int):
     return jax.tree_util.tree_map(lambda y: y.reshape((k * size,) + y.shape[2:])[:n], out)
 
 
-@functools.partial(jax.jit, static_argnames=("opts", "capacity", "host_count"))
+@functools.partial(jax.jit, static_argnames=("opts", "capacity", "traced_slots"))
 def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, origin,
             shift=None, triangle_id: Array | None = None, clip: Array | None = None,
             orientation: Array | None = None, *, opts: RenderOptions,
             capacity: int | None = None,
-            host_count: bool = True) -> dict[str, Array]:
+            traced_slots: int | None = None) -> dict[str, Array]:
     """`render` as one XLA program (one compilation per scene shape, options and capacity);
     the scene is camera-relative (`_camera_relative`; the mesh still to be moved by
     ``shift``), ``origin`` the camera's world position. With ``capacity``, the per-pixel
@@ -680,11 +681,14 @@ def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, or
     counted = capacity is not None
     small, large = PIXEL_CHUNK.get(jax.default_backend(), (None, None))
     chunk = small if counted else large
-    if counted and not host_count and chunk is not None:
-        # a count traced in the caller's jit, most often a gradient's: the fewer chunks the
-        # less the backward pass adds up whole-map gradients (a cond then skips the empty
-        # ones), the more slots a partly covered chunk wastes: at most four chunks
-        chunk = min(max(small, -(-capacity // 4)), large)
+    if counted and traced_slots is not None and chunk is not None:
+        # a count traced in the caller's jit (``pack=True``: a cond between a program of
+        # ``traced_slots`` slots and an all-pixel one), most often a gradient's: the fewer
+        # chunks the less the backward pass adds up whole-map gradients (the empty ones
+        # skipped), the more slots a partly covered chunk wastes: the packed program in at
+        # most four chunks, the all-pixel one in chunks of the same size (one chunk program
+        # to compile for both: 1 s less than two)
+        chunk = min(max(small, -(-traced_slots // 4)), large)
     if capacity is None and (opts.derivatives == "gbuffer" or chunk is None):
         frags = _visibility(mesh, camera, opts)
         packed, index = frags, None

@@ -458,8 +458,8 @@ def test_chunked_pixels_give_the_image_layouts_gradient(small_pixel_chunks):
         np.testing.assert_allclose(g_map, ref[1][0], rtol=1e-4,
                                    atol=1e-5 * float(jnp.abs(ref[1][0]).max()))
         np.testing.assert_allclose(g_albedo, ref[1][1], rtol=1e-4)
-    # pack=True under the caller's jit (the count traced): at most four chunks, here of
-    # image / 16 slots, between the two sizes
+    # pack=True under the caller's jit (the count traced): the packed program in at most
+    # four chunks, here of image / 16 slots, between the two sizes (the all-pixel one too)
     value, (g_map, g_albedo) = small_pixel_chunks(
         (64, 4096), lambda: jax.jit(jax.value_and_grad(loss, argnums=(0, 1)),
                                     static_argnums=2)(*args, True))
