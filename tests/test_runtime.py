@@ -54,3 +54,40 @@ def test_keep_freed_memory_rejects_what_glibc_would_not_take():
         keep_freed_memory(mmap_threshold_mb=64)
     with pytest.raises(ValueError, match="non-negative int"):
         keep_freed_memory(top_pad_mb=-1)
+
+
+_ONCE_PROBE = """
+import sys
+import jaxnm
+from jaxnm import runtime
+from jaxnm.procedural import default_scene
+
+calls = []
+keep = runtime.keep_freed_memory
+runtime.keep_freed_memory = lambda **k: calls.append(k) or keep(**k)
+sc = default_scene(width=16, height=12)
+jaxnm.render(sc)
+jaxnm.render(sc)
+print("CALLS", len(calls), runtime.keep_freed_memory_once())
+"""
+
+
+@pytest.mark.parametrize("env,calls", [(None, 1), ("off", 0), ("0", 0)])
+def test_render_keeps_freed_memory_once_unless_turned_off(env, calls):
+    """`render` asks glibc to keep freed memory once per process on the CPU (a frame's
+    buffers otherwise may be mapped afresh, and page-faulted, on every call), unless
+    ``JAXNM_KEEP_FREED_MEMORY`` turns it off."""
+    import os
+
+    from jaxnm.runtime import KEEP_ENV, _libc_function
+
+    if _libc_function("mallopt") is None:
+        pytest.skip("the C library is not glibc")
+    environ = {k: v for k, v in os.environ.items() if k != KEEP_ENV}
+    if env is not None:
+        environ[KEEP_ENV] = env
+    environ.update(JAX_PLATFORMS="cpu", JAXNM_COMPILATION_CACHE="off")
+    out = subprocess.run([sys.executable, "-c", _ONCE_PROBE], capture_output=True, text=True,
+                         timeout=300, env=environ)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.split("CALLS")[1].split() == [str(calls), str(bool(calls))]
