@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
 import sys
 import time
 from pathlib import Path
@@ -153,12 +152,8 @@ def _fit(args) -> int:
     from .fit import fit_normal_map, fit_outputs, prepare, prepare_held_out
     from .procedural import default_fit_job
     from .render import release_frame_programs
-    from .runtime import KEEP_ENV, release_memory
+    from .runtime import release_memory
 
-    # A fit hands its phases' memory back (`release_memory`) and renders few frames: glibc
-    # keeping freed memory for reuse (`render`'s default) only raised its peak (cold cache:
-    # 876 -> 967 MB, the time the same), so unless the user says otherwise it does not here.
-    os.environ.setdefault(KEEP_ENV, "off")
     say = (lambda msg: None) if args.no_progress else (  # noqa: E731
         lambda msg: print(msg, file=sys.stderr, flush=True))
     overrides = {k: getattr(args, k) for k in ("solver", "max_steps", "smoothness", "seed",
