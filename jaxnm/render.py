@@ -42,7 +42,6 @@ from .interpolate import (
 )
 from .numerics import materialize, safe_normalize
 from .raster import Fragments, compact, expand, rasterize, triangle_ids
-from .runtime import keep_freed_memory_once
 from .scene import Scene, validate_scene
 from .shading import Lights, Material, check_shading_model, shade
 from .textures import NormalMapOptions
@@ -215,7 +214,6 @@ def covered_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *,
         raise ValueError("covered_gbuffer: 'gbuffer' derivatives need the whole image's "
                          "G-buffer (build_gbuffer)")
     check_mesh(mesh, opts)
-    keep_freed_memory_once()
     tid, count, clip, orientation = _visible(mesh, camera, _NO_SHIFT, width=opts.width,
                                              height=opts.height, cull_back=opts.cull_back)
     count = int(count)
@@ -428,7 +426,6 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     contribute no gradient). The scene is validated first (`validate_scene`).
     """
     scene = validate_scene(scene)
-    keep_freed_memory_once()  # (once per process, on the CPU: see jaxnm.runtime)
     opts = RenderOptions.of(scene, outputs=outputs, derivatives=derivatives, frame=frame,
                             precision=precision)
     if opts.precision == "float64":

@@ -2,17 +2,13 @@
 GPU arithmetic, and handing freed memory back to the system between phases.
 
 These change process-wide state (JAX's configuration, ``XLA_FLAGS``, the C allocator), so
-the command line and the scripts call them; a library user opts in, except for one:
+the command line and the scripts call them; a library user opts in. Nothing here changes
+a result.
 
 XLA's CPU programs allocate their buffers afresh on every call; where glibc hands them back
 to the system in between, every call pays the page faults of touching them again.
 `keep_freed_memory` tells glibc (at run time, ``mallopt``) to keep them: what does it is
 the heap's top padding, with the thresholds above which it would map or trim memory.
-`jaxnm.render` (and the fit's G-buffers) call it once on the CPU (`keep_freed_memory_once`)
-unless ``JAXNM_KEEP_FREED_MEMORY=off``: without it whether a frame's buffers are mapped
-afresh each call depends on the process's allocation history, and a 4k-triangle frame at
-1024^2 took 14.9 or 22 ms from one process to the next (800 or 6000-7000 page faults a
-frame); with it, 14.4-15.0 ms and none. Nothing here changes a result.
 """
 
 from __future__ import annotations
@@ -21,16 +17,11 @@ import functools
 import os
 from pathlib import Path
 
-__all__ = ["CACHE_ENV", "KEEP_ENV", "DETERMINISTIC_FLAG", "compilation_cache_dir",
-           "use_compilation_cache", "use_deterministic_ops", "release_memory",
-           "keep_freed_memory", "keep_freed_memory_once"]
+__all__ = ["CACHE_ENV", "DETERMINISTIC_FLAG", "compilation_cache_dir", "use_compilation_cache",
+           "use_deterministic_ops", "release_memory", "keep_freed_memory"]
 
 #: Environment variable naming the cache folder; ``off`` (or empty) turns the cache off.
 CACHE_ENV = "JAXNM_COMPILATION_CACHE"
-
-#: Environment variable: ``off`` (or ``0``, ``false``, ``no``) keeps `keep_freed_memory_once`
-#: from changing the C allocator's settings.
-KEEP_ENV = "JAXNM_KEEP_FREED_MEMORY"
 
 
 def compilation_cache_dir() -> Path | None:
@@ -124,10 +115,9 @@ def keep_freed_memory(*, top_pad_mb: int = 64, trim_threshold_mb: int = 256,
 
     Measured on the 2-core VM (2026-11-26, fresh processes): forward+backward of the 200k
     torus at 512x512 under the caller's `jax.jit` 36.7 -> 25.7 ms, its forward 28 -> 17 ms
-    (as fast as `render` outside a jit), for 20-120 MB more peak memory; `render` of the
-    4k sphere at 1024^2 14.9 or 22 ms (depending on the process) -> 14.4-15.0 ms. The page
-    faults are the cost it removes: every call touches its fresh buffers again (see the
-    README's speed notes). `render` calls it (`keep_freed_memory_once`).
+    (as fast as `render` outside a jit), for 20-120 MB more peak memory; the 4k and 20k
+    meshes and `render` itself the same. The page faults are the cost it removes: every
+    call touches its fresh buffers again (see the README's speed notes).
     """
     sizes = dict(top_pad_mb=top_pad_mb, trim_threshold_mb=trim_threshold_mb,
                  mmap_threshold_mb=mmap_threshold_mb)
@@ -146,23 +136,6 @@ def keep_freed_memory(*, top_pad_mb: int = 64, trim_threshold_mb: int = 256,
         (m_mmap_threshold, mmap_threshold_mb), (m_trim_threshold, trim_threshold_mb),
         (m_top_pad, top_pad_mb))]
     return all(done)
-
-
-_kept = []  # whether keep_freed_memory_once has run: [result] once it has
-
-
-def keep_freed_memory_once() -> bool:
-    """`keep_freed_memory` with its defaults, the first time it is called in the process
-    and only on the CPU backend, unless ``$JAXNM_KEEP_FREED_MEMORY`` is ``off`` (or ``0``,
-    ``false``, ``no``). `jaxnm.render` calls it. Returns whether glibc keeps freed memory
-    because of it (False where the variable turns it off, on other backends and where
-    glibc is not the allocator)."""
-    if not _kept:
-        import jax
-
-        off = os.environ.get(KEEP_ENV, "").strip().lower() in ("off", "0", "false", "no")
-        _kept.append(not off and jax.default_backend() == "cpu" and keep_freed_memory())
-    return _kept[0]
 
 
 @functools.cache
