@@ -591,9 +591,8 @@ def _visible(mesh: Mesh, camera: Camera, shift=None, *, width: int, height: int,
     """Each pixel's triangle (-1: background), how many pixels are covered, the (shifted)
     mesh's clip-space vertices and its triangles' orientations, which the per-pixel
     program then need not compute again; the depth is left to the packed pixels
-    (`compact`). Only
-    the options visibility depends on are static: one compilation serves every output,
-    frame and map. ``shift``: see `_camera_relative`."""
+    (`compact`). Only the options visibility depends on are static: one compilation serves
+    every output, frame and map. ``shift``: see `_camera_relative`."""
     mesh = _shifted(mesh, shift)
     clip = to_clip(mesh.positions, camera)
     tid, orientation = triangle_ids(clip, mesh.faces, width=width, height=height,
