@@ -220,8 +220,13 @@ def main(argv=None) -> int:
                        help="allow run-to-run differences on a GPU (faster scatter-adds); "
                        "by default results are reproducible on every backend")
     args = parser.parse_args(argv)
-    from .runtime import use_compilation_cache, use_deterministic_ops
+    from .runtime import (
+        keep_freed_memory_unless_disabled,
+        use_compilation_cache,
+        use_deterministic_ops,
+    )
 
+    keep_freed_memory_unless_disabled()  # before JAX initialises a backend
     if not args.nondeterministic:
         use_deterministic_ops()  # before JAX initialises a backend
     if not args.no_compile_cache:

@@ -7,8 +7,8 @@ a result.
 
 XLA's CPU programs allocate their buffers afresh on every call; where glibc hands them back
 to the system in between, every call pays the page faults of touching them again.
-`keep_freed_memory` tells glibc (at run time, ``mallopt``) to keep them: what does it is
-the heap's top padding, with the thresholds above which it would map or trim memory.
+`keep_freed_memory` tells glibc (at run time, ``mallopt``) to keep them in its heap, and
+JAX to run CPU programs in the calling thread, whose heap can hold the largest of them.
 """
 
 from __future__ import annotations
@@ -18,7 +18,8 @@ import os
 from pathlib import Path
 
 __all__ = ["CACHE_ENV", "DETERMINISTIC_FLAG", "compilation_cache_dir", "use_compilation_cache",
-           "use_deterministic_ops", "release_memory", "keep_freed_memory"]
+           "use_deterministic_ops", "release_memory", "keep_freed_memory", "MEMORY_ENV",
+           "keep_freed_memory_unless_disabled"]
 
 #: Environment variable naming the cache folder; ``off`` (or empty) turns the cache off.
 CACHE_ENV = "JAXNM_COMPILATION_CACHE"
@@ -105,37 +106,76 @@ def release_memory(*, drop_compiled: bool = False, collect: bool = True) -> None
         trim(0)
 
 
-def keep_freed_memory(*, top_pad_mb: int = 64, trim_threshold_mb: int = 256,
-                      mmap_threshold_mb: int = 32) -> bool:
-    """Tell glibc's allocator to keep freed memory for reuse instead of handing it back to
-    the system: buffers up to ``mmap_threshold_mb`` come from the heap, the heap grows by
-    ``top_pad_mb`` more than asked, and is trimmed only past ``trim_threshold_mb`` free at
-    its top (`release_memory` still trims it). Process-wide and permanent; returns False
-    (and changes nothing) where glibc is not the allocator.
+#: Environment variable: ``off`` leaves the C allocator and JAX's dispatch as they are in the
+#: command line and the scripts (see `keep_freed_memory`).
+MEMORY_ENV = "JAXNM_KEEP_FREED_MEMORY"
 
-    Measured on the 2-core VM (2026-11-26, fresh processes): forward+backward of the 200k
-    torus at 512x512 under the caller's `jax.jit` 36.7 -> 25.7 ms, its forward 28 -> 17 ms
-    (as fast as `render` outside a jit), for 20-120 MB more peak memory; the 4k and 20k
-    meshes and `render` itself the same. The page faults are the cost it removes: every
-    call touches its fresh buffers again (see the README's speed notes).
+def keep_freed_memory(*, trim_threshold_mb: int = 256) -> bool:
+    """Keep the memory that XLA's CPU programs free for their next call, instead of handing
+    it back to the system and page-faulting it in again on every call.
+
+    Two settings, process-wide and permanent:
+
+    - glibc's allocator maps no buffer on its own (``mallopt(M_MMAP_MAX, 0)``): every buffer
+      comes from a heap, and freed memory stays there for reuse; the main heap is trimmed
+      only past ``trim_threshold_mb`` free at its top (`release_memory` still trims it).
+    - JAX runs CPU programs in the thread that calls them
+      (``jax_cpu_enable_async_dispatch=False``): XLA allocates a program's temporaries in
+      one block in the thread that runs it, and glibc's per-thread heaps cannot hold a
+      block over 64 MB (a 1024x1024 gradient's is ~70 MB), which it then maps afresh on
+      each call; the calling (main) thread's heap can.
+
+    The second setting only takes effect before JAX initialises its CPU backend (the first
+    computation): call this first thing. Called later, buffers up to 64 MB are kept and a
+    `RuntimeWarning` says so. Compilation is not slowed (a single heap shared by all
+    threads, ``M_ARENA_MAX=1``, would also keep the block but made compiling 30 % slower).
+
+    Measured on the 2-core VM (2026-11-26, fresh processes, JAX 0.10.2): forward+backward
+    w.r.t. the map of a 1024x1024 frame 43-58 -> 31-35 ms (4k sphere), 50-55 -> 37-41 ms
+    (20k torus), 63-65 -> 48-51 ms (200k torus), each call's ~14,500 page faults gone;
+    `render` of the 200k torus at 512x512 20-27 -> 14-15 ms (6,000 faults a frame gone);
+    the other frames the same. Peak memory was lower, not higher.
+
+    **Returns:** True where both settings took effect; False where glibc is not the C
+    allocator (nothing changed) or JAX's backend was already initialised.
     """
-    sizes = dict(top_pad_mb=top_pad_mb, trim_threshold_mb=trim_threshold_mb,
-                 mmap_threshold_mb=mmap_threshold_mb)
-    for name, mb in sizes.items():
-        if not isinstance(mb, int) or mb < 0:
-            raise ValueError(f"keep_freed_memory: {name} must be a non-negative int, got {mb!r}")
-    if mmap_threshold_mb > 32:
-        raise ValueError("keep_freed_memory: glibc caps the mmap threshold at 32 MiB at run "
-                         f"time, got {mmap_threshold_mb}")
+    if not isinstance(trim_threshold_mb, int) or trim_threshold_mb < 0:
+        raise ValueError("keep_freed_memory: trim_threshold_mb must be a non-negative int, "
+                         f"got {trim_threshold_mb!r}")
     mallopt = _libc_function("mallopt")
     if mallopt is None:
         return False
-    m_trim_threshold, m_top_pad, m_mmap_threshold = -1, -2, -3  # glibc's <malloc.h>
-    mib = 1 << 20
-    done = [bool(mallopt(option, mb * mib)) for option, mb in (  # each set, whatever fails
-        (m_mmap_threshold, mmap_threshold_mb), (m_trim_threshold, trim_threshold_mb),
-        (m_top_pad, top_pad_mb))]
+    m_trim_threshold, m_mmap_max = -1, -4  # glibc's <malloc.h>
+    done = [bool(mallopt(m_mmap_max, 0)),
+            bool(mallopt(m_trim_threshold, trim_threshold_mb << 20))]
+    import jax
+
+    if _backends_initialised():
+        import warnings
+
+        warnings.warn("keep_freed_memory: JAX's backend is already initialised, so its CPU "
+                      "programs keep running in worker threads, whose heaps cannot keep "
+                      "buffers over 64 MB: call keep_freed_memory() before the first JAX "
+                      "computation", RuntimeWarning, stacklevel=2)
+        return False
+    jax.config.update("jax_cpu_enable_async_dispatch", False)
     return all(done)
+
+
+def keep_freed_memory_unless_disabled() -> bool:
+    """`keep_freed_memory` unless ``$JAXNM_KEEP_FREED_MEMORY`` is ``off`` (the command line
+    and the scripts call this first thing)."""
+    if os.environ.get(MEMORY_ENV, "").strip().lower() in ("off", "0", "false", "no"):
+        return False
+    return keep_freed_memory()
+
+
+def _backends_initialised() -> bool:
+    """Whether JAX has initialised its backends (False where this JAX cannot say)."""
+    from jax._src import xla_bridge
+
+    probe = getattr(xla_bridge, "backends_are_initialized", None)
+    return bool(probe()) if probe is not None else bool(getattr(xla_bridge, "_backends", {}))
 
 
 @functools.cache

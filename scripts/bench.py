@@ -59,6 +59,7 @@ import numpy as np  # noqa: E402
 import jaxnm  # noqa: E402
 from jaxnm import fit as F  # noqa: E402
 from jaxnm import procedural  # noqa: E402
+from jaxnm.runtime import keep_freed_memory_unless_disabled  # noqa: E402
 from jaxnm.textures import encode_normal_map  # noqa: E402
 
 GOALS = {
@@ -608,6 +609,9 @@ def main(argv=None) -> None:
                     help="the fit benchmark's solver (default: FitOptions', "
                          f"{F.FitOptions().solver}; --parts views runs lm and lm-texel)")
     args = ap.parse_args(argv)
+    # as the command line does, before any JAX computation (`JAXNM_KEEP_FREED_MEMORY=off`
+    # to measure without): XLA's freed buffers kept for the next call, not faulted in again
+    keep_freed_memory_unless_disabled()
     if args.fit_worker:
         return fit_worker(args)
     if args.views_worker:

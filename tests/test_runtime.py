@@ -19,38 +19,98 @@ def resident():
     with open("/proc/self/statm") as f:
         return int(f.read().split()[1]) * 4096
 
-n = 16 << 20
-p = libc.malloc(n)
-ctypes.memset(p, 1, n)  # touched: resident
-before = resident()
-libc.free(p)
-print("RELEASED", before - resident())
+for mb in (16, 100):
+    n = mb << 20
+    p = libc.malloc(n)
+    ctypes.memset(p, 1, n)  # touched: resident
+    before = resident()
+    libc.free(p)
+    print("RELEASED", mb, before - resident())
+"""
+
+# A jitted program whose temporaries (~80 MB: several 10M-float intermediates) are more than
+# a worker thread's heap can hold; prints the minor page faults of its third call.
+_FAULT_PROBE = """
+import resource, sys
+from jaxnm import runtime
+if sys.argv[1] == "keep":
+    assert runtime.keep_freed_memory() is True
+import jax, jax.numpy as jnp
+f = jax.jit(lambda x: jnp.cumsum(jnp.sin(x)) * jnp.cumsum(jnp.cos(x))[::-1])
+x = jnp.linspace(0.0, 1.0, 10_000_000)
+for _ in range(2):
+    f(x).block_until_ready()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+f(x).block_until_ready()
+print("FAULTS", resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
 """
 
 
-def _released(mode: str) -> int:
-    out = subprocess.run([sys.executable, "-c", _ALLOC_PROBE, mode], capture_output=True,
-                         text=True, timeout=120, check=True).stdout
-    return int(out.split("RELEASED")[1])
+def _run(probe: str, mode: str) -> str:
+    return subprocess.run([sys.executable, "-c", probe, mode], capture_output=True,
+                          text=True, timeout=120, check=True).stdout
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
-def test_keep_freed_memory_keeps_a_freed_buffer_resident():
-    """By default glibc maps a 16 MiB buffer on its own and unmaps it when freed (the next
-    buffer of that size is page-faulted in again); after `keep_freed_memory` it comes from
-    the heap and stays resident for reuse."""
+def _glibc_only():
     from jaxnm.runtime import _libc_function
 
-    if _libc_function("mallopt") is None:
-        pytest.skip("the C library is not glibc")
-    assert _released("default") >= 15 << 20
-    assert _released("keep") < 1 << 20
+    if not sys.platform.startswith("linux") or _libc_function("mallopt") is None:
+        pytest.skip("glibc's allocator")
 
 
-def test_keep_freed_memory_rejects_what_glibc_would_not_take():
+def test_keep_freed_memory_keeps_freed_buffers_resident():
+    """By default glibc maps a 16 or 100 MiB buffer on its own and unmaps it when freed (the
+    next buffer of that size is page-faulted in again); after `keep_freed_memory` it comes
+    from the heap and stays resident for reuse."""
+    _glibc_only()
+
+    def released(mode):
+        lines = [ln.split() for ln in _run(_ALLOC_PROBE, mode).splitlines()
+                 if ln.startswith("RELEASED")]
+        return {int(mb): int(n) for _, mb, n in lines}
+
+    default, keep = released("default"), released("keep")
+    assert default[16] >= 15 << 20 and default[100] >= 99 << 20
+    assert keep[16] < 1 << 20 and keep[100] < 1 << 20
+
+
+def test_keep_freed_memory_spares_a_programs_page_faults():
+    """A jitted program's ~80 MB of temporaries: page-faulted in on every call by default
+    (XLA allocates them in a worker thread, whose heap cannot hold them), not after
+    `keep_freed_memory` (the program runs in the calling thread, from the main heap)."""
+    _glibc_only()
+
+    def faults(mode):
+        return int(_run(_FAULT_PROBE, mode).split("FAULTS")[1])
+
+    default, keep = faults("default"), faults("keep")
+    assert default > 10_000  # ~80 MB of 4 KiB pages
+    assert keep < default / 20
+
+
+def test_keep_freed_memory_after_the_backend_warns_and_the_env_turns_it_off():
+    probe = """
+import os, sys, warnings
+import jax, jax.numpy as jnp
+from jaxnm import runtime
+if sys.argv[1] == "env-off":
+    os.environ[runtime.MEMORY_ENV] = "off"
+    assert runtime.keep_freed_memory_unless_disabled() is False
+else:
+    jnp.ones(3).block_until_ready()  # the backend is up: too late for the dispatch
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        assert runtime.keep_freed_memory() is False
+    assert any("before the first JAX computation" in str(x.message) for x in w), w
+print("ASYNC", jax.config.values["jax_cpu_enable_async_dispatch"])
+"""
+    assert "ASYNC True" in _run(probe, "env-off")
+    assert "ASYNC True" in _run(probe, "late")
+
+
+def test_keep_freed_memory_rejects_a_bad_threshold():
     from jaxnm.runtime import keep_freed_memory
 
-    with pytest.raises(ValueError, match="32 MiB"):
-        keep_freed_memory(mmap_threshold_mb=64)
-    with pytest.raises(ValueError, match="non-negative int"):
-        keep_freed_memory(top_pad_mb=-1)
+    for bad in (-1, 1.5, "256"):
+        with pytest.raises(ValueError, match="non-negative int"):
+            keep_freed_memory(trim_threshold_mb=bad)
