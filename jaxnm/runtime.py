@@ -110,7 +110,7 @@ def release_memory(*, drop_compiled: bool = False, collect: bool = True) -> None
 #: command line and the scripts (see `keep_freed_memory`).
 MEMORY_ENV = "JAXNM_KEEP_FREED_MEMORY"
 
-def keep_freed_memory(*, trim_threshold_mb: int = 256) -> bool:
+def keep_freed_memory(*, trim_threshold_mb: int = 256, run_in_caller: bool = True) -> bool:
     """Keep the memory that XLA's CPU programs free for their next call, instead of handing
     it back to the system and page-faulting it in again on every call.
 
@@ -119,25 +119,28 @@ def keep_freed_memory(*, trim_threshold_mb: int = 256) -> bool:
     - glibc's allocator maps no buffer on its own (``mallopt(M_MMAP_MAX, 0)``): every buffer
       comes from a heap, and freed memory stays there for reuse; the main heap is trimmed
       only past ``trim_threshold_mb`` free at its top (`release_memory` still trims it).
-    - JAX runs CPU programs in the thread that calls them
+    - With ``run_in_caller``, JAX runs CPU programs in the thread that calls them
       (``jax_cpu_enable_async_dispatch=False``): XLA allocates a program's temporaries in
       one block in the thread that runs it, and glibc's per-thread heaps cannot hold a
       block over 64 MB (a 1024x1024 gradient's is ~70 MB), which it then maps afresh on
-      each call; the calling (main) thread's heap can.
+      each call; the calling (main) thread's heap can. The price: Python no longer
+      traces and compiles the next program while the last one runs (a cold fit of the
+      benchmark problem compiles ~0.25 s longer), and small frames take ~0.2 ms more.
 
-    The second setting only takes effect before JAX initialises its CPU backend (the first
+    ``run_in_caller`` only takes effect before JAX initialises its CPU backend (the first
     computation): call this first thing. Called later, buffers up to 64 MB are kept and a
-    `RuntimeWarning` says so. Compilation is not slowed (a single heap shared by all
-    threads, ``M_ARENA_MAX=1``, would also keep the block but made compiling 30 % slower).
+    `RuntimeWarning` says so. (A single heap shared by all threads, ``M_ARENA_MAX=1``,
+    would also keep the block, but made compiling 30 % slower.)
 
     Measured on the 2-core VM (2026-11-26, fresh processes, JAX 0.10.2): forward+backward
     w.r.t. the map of a 1024x1024 frame 43-58 -> 31-35 ms (4k sphere), 50-55 -> 37-41 ms
     (20k torus), 63-65 -> 48-51 ms (200k torus), each call's ~14,500 page faults gone;
-    `render` of the 200k torus at 512x512 20-27 -> 14-15 ms (6,000 faults a frame gone);
-    the other frames the same. Peak memory was lower, not higher.
+    `render` of the 200k torus at 512x512 20-27 -> 14-15 ms (6,000 faults a frame gone,
+    by the first setting alone); small frames the same or ~0.2 ms slower; `jaxnm fit`'s
+    peak 872-881 MB against 830-866 MB.
 
-    **Returns:** True where both settings took effect; False where glibc is not the C
-    allocator (nothing changed) or JAX's backend was already initialised.
+    **Returns:** True where the settings asked for took effect; False where glibc is not
+    the C allocator (nothing changed) or JAX's backend was already initialised.
     """
     if not isinstance(trim_threshold_mb, int) or trim_threshold_mb < 0:
         raise ValueError("keep_freed_memory: trim_threshold_mb must be a non-negative int, "
@@ -148,6 +151,8 @@ def keep_freed_memory(*, trim_threshold_mb: int = 256) -> bool:
     m_trim_threshold, m_mmap_max = -1, -4  # glibc's <malloc.h>
     done = [bool(mallopt(m_mmap_max, 0)),
             bool(mallopt(m_trim_threshold, trim_threshold_mb << 20))]
+    if not run_in_caller:
+        return all(done)
     import jax
 
     if _backends_initialised():

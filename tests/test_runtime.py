@@ -88,7 +88,9 @@ def test_keep_freed_memory_spares_a_programs_page_faults():
     assert keep < default / 20
 
 
-def test_keep_freed_memory_after_the_backend_warns_and_the_env_turns_it_off():
+def test_keep_freed_memory_leaves_the_dispatch_unless_asked_in_time():
+    """JAX's CPU dispatch stays asynchronous with the env switch off, with
+    ``run_in_caller=False``, and when called after the backend is up (with a warning)."""
     probe = """
 import os, sys, warnings
 import jax, jax.numpy as jnp
@@ -96,6 +98,8 @@ from jaxnm import runtime
 if sys.argv[1] == "env-off":
     os.environ[runtime.MEMORY_ENV] = "off"
     assert runtime.keep_freed_memory_unless_disabled() is False
+elif sys.argv[1] == "heap-only":
+    assert runtime.keep_freed_memory(run_in_caller=False) is True
 else:
     jnp.ones(3).block_until_ready()  # the backend is up: too late for the dispatch
     with warnings.catch_warnings(record=True) as w:
@@ -104,8 +108,8 @@ else:
     assert any("before the first JAX computation" in str(x.message) for x in w), w
 print("ASYNC", jax.config.values["jax_cpu_enable_async_dispatch"])
 """
-    assert "ASYNC True" in _run(probe, "env-off")
-    assert "ASYNC True" in _run(probe, "late")
+    for mode in ("env-off", "heap-only", "late"):
+        assert "ASYNC True" in _run(probe, mode), mode
 
 
 def test_keep_freed_memory_rejects_a_bad_threshold():
