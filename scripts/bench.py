@@ -41,6 +41,7 @@ import functools
 import json
 import os
 import platform
+import resource
 import statistics
 import subprocess
 import sys
@@ -134,8 +135,10 @@ def jaxnm_calls(p: B.BenchProblem) -> dict:
 
 
 def _interleaved_ms(calls: dict, repeats: int, block: int = 5,
-                    seed: int = 0) -> tuple[dict, dict]:
-    """(first call s, median ms of the next ``repeats``) of each call. The calls take turns
+                    seed: int = 0) -> tuple[dict, dict, dict]:
+    """(first call s, median ms of the next ``repeats``, the process's minor page faults per
+    timed call: a call that faults in its buffers afresh each time shows here) of each
+    call. The calls take turns
     in blocks of ``block`` timed runs, each block after one untimed run: a slow phase of the
     machine falls on all of them alike, and each is timed in its own steady state (run right
     after another renderer, a call pays for its caches and for the other's worker threads
@@ -144,7 +147,7 @@ def _interleaved_ms(calls: dict, repeats: int, block: int = 5,
     fixed order jaxnm's first call, always after Mitsuba's gradient, read 4.8-6.8 ms for
     the 4k sphere at 512^2 where the same frame of a moved mesh, after jaxnm's own calls,
     read 4.2-5.2)."""
-    first, times = {}, {k: [] for k in calls}
+    first, times, faults = {}, {k: [] for k in calls}, {k: 0 for k in calls}
     for k, fn in calls.items():
         t = time.perf_counter()
         fn()
@@ -156,10 +159,13 @@ def _interleaved_ms(calls: dict, repeats: int, block: int = 5,
             fn = calls[k]
             fn()
             for _ in range(block):
+                f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
                 t = time.perf_counter()
                 fn()
                 times[k].append(time.perf_counter() - t)
-    return first, {k: 1e3 * statistics.median(v) for k, v in times.items()}
+                faults[k] += resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0
+    return (first, {k: 1e3 * statistics.median(v) for k, v in times.items()},
+            {k: round(n / len(times[k])) for k, n in faults.items()})
 
 
 #: The timed calls of `bench_forward`: jaxnm's (`jaxnm_calls`) and Mitsuba's
@@ -182,8 +188,9 @@ def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool) 
             if mitsuba is not None:
                 mi = mitsuba.forward_calls(q)
                 calls.update({f"mitsuba {k}": mi[k] for k in MITSUBA_CALLS})
-            first, ms = _interleaved_ms(calls, repeats)
+            first, ms, faults = _interleaved_ms(calls, repeats)
             j = {f"{k}_ms": round(ms[f"jaxnm {k}"], 2) for k in JAXNM_CALLS}
+            j["page_faults_per_call"] = {k: faults[f"jaxnm {k}"] for k in JAXNM_CALLS}
             j.update({"first_forward_s": round(jc["first_forward_s"], 2),
                       "first_backward_s": round(first["jaxnm forward_backward"], 2),
                       "first_backward_packed_s": round(first["jaxnm forward_backward_packed"], 2),
@@ -196,7 +203,8 @@ def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool) 
                     "forward_backward_ms": ms["mitsuba forward_backward"],
                     "first_forward_s": mi["first_s"]["forward"],
                     "first_backward_s": mi["first_s"]["forward_backward"],
-                    "kernel_cache_files_at_start": mi["kernel_cache_files_at_start"]}
+                    "kernel_cache_files_at_start": mi["kernel_cache_files_at_start"],
+                    "page_faults_per_call": {k: faults[f"mitsuba {k}"] for k in MITSUBA_CALLS}}
                 row["forward_ratio"] = round(j["forward_ms"] / ms["mitsuba forward"], 2)
                 row["forward_moved_ratio"] = round(
                     j["forward_moved_ms"] / ms["mitsuba forward_moved"], 2)
@@ -523,7 +531,10 @@ def _r(x, nd: int = 2):
 
 
 def markdown(res: dict) -> str:
-    lines = [f"Machine: {res['machine']}; JAX {res['jax']}; {res['mitsuba']}; {res['date']}.", ""]
+    kept = ("jaxnm.runtime.keep_freed_memory() on" if res.get("keep_freed_memory")
+            else "keep_freed_memory off")
+    lines = [f"Machine: {res['machine']}; JAX {res['jax']}; {res['mitsuba']}; {res['date']}; "
+             f"{kept}.", ""]
     lines += ["| frame | size | jaxnm forward ms | Mitsuba forward ms | ratio | jaxnm fwd+bwd ms "
               "(pack=True) | Mitsuba fwd+bwd ms | ratio (pack=True) | jaxnm first call s "
               "(compile): forward, fwd+bwd (pack=True) | mesh moved: jaxnm / Mitsuba forward "
@@ -611,7 +622,7 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     # as the command line does, before any JAX computation (`JAXNM_KEEP_FREED_MEMORY=off`
     # to measure without): XLA's freed buffers kept for the next call, not faulted in again
-    keep_freed_memory_unless_disabled()
+    kept = keep_freed_memory_unless_disabled()
     if args.fit_worker:
         return fit_worker(args)
     if args.views_worker:
@@ -628,7 +639,7 @@ def main(argv=None) -> None:
             print(f"Mitsuba 3 unavailable, its columns are empty: {why}", file=sys.stderr)
     res = {"machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.system()}",
            "jax": jax.__version__, "jaxnm": jaxnm.__version__, "mitsuba": why,
-           "date": time.strftime("%Y-%m-%d")}
+           "date": time.strftime("%Y-%m-%d"), "keep_freed_memory": kept}
     parts = set(args.parts.split(","))
     p = _problem(args.quick)
     sizes = (256,) if args.quick else (512, 1024)
