@@ -168,9 +168,13 @@ def keep_freed_memory(*, trim_threshold_mb: int = 256, run_in_caller: bool = Tru
 
 
 def keep_freed_memory_unless_disabled() -> bool:
-    """`keep_freed_memory` unless ``$JAXNM_KEEP_FREED_MEMORY`` is ``off`` (the command line
-    and the scripts call this first thing)."""
+    """`keep_freed_memory` unless ``$JAXNM_KEEP_FREED_MEMORY`` is ``off``, or JAX has already
+    started (the command line and the scripts call this first thing; run in a process that
+    has computed before, such as ``jaxnm.cli.main`` from a notebook, it leaves the
+    process's allocator as it is). Returns whether it was applied."""
     if os.environ.get(MEMORY_ENV, "").strip().lower() in ("off", "0", "false", "no"):
+        return False
+    if _backends_initialised():
         return False
     return keep_freed_memory()
 

@@ -102,6 +102,7 @@ elif sys.argv[1] == "heap-only":
     assert runtime.keep_freed_memory(run_in_caller=False) is True
 else:
     jnp.ones(3).block_until_ready()  # the backend is up: too late for the dispatch
+    assert runtime.keep_freed_memory_unless_disabled() is False  # quietly left alone
     with warnings.catch_warnings(record=True) as w:
         warnings.simplefilter("always")
         assert runtime.keep_freed_memory() is False
