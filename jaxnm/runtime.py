@@ -110,6 +110,7 @@ def release_memory(*, drop_compiled: bool = False, collect: bool = True) -> None
 #: command line and the scripts (see `keep_freed_memory`).
 MEMORY_ENV = "JAXNM_KEEP_FREED_MEMORY"
 
+
 def keep_freed_memory(*, trim_threshold_mb: int = 256, run_in_caller: bool = True) -> bool:
     """Keep the memory that XLA's CPU programs free for their next call, instead of handing
     it back to the system and page-faulting it in again on every call.
