@@ -24,6 +24,9 @@ __all__ = ["CACHE_ENV", "DETERMINISTIC_FLAG", "compilation_cache_dir", "use_comp
 #: Environment variable naming the cache folder; ``off`` (or empty) turns the cache off.
 CACHE_ENV = "JAXNM_COMPILATION_CACHE"
 
+#: The values of jaxnm's environment switches that mean "off".
+_OFF = ("off", "0", "false", "no")
+
 
 def compilation_cache_dir() -> Path | None:
     """Where `use_compilation_cache` keeps compiled programs: ``$JAXNM_COMPILATION_CACHE``
@@ -31,7 +34,7 @@ def compilation_cache_dir() -> Path | None:
     ``~/.cache/jaxnm/xla``)."""
     env = os.environ.get(CACHE_ENV)
     if env is not None:
-        return None if env.strip().lower() in ("", "off", "0", "false", "no") else Path(env)
+        return None if env.strip().lower() in ("", *_OFF) else Path(env)
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "jaxnm" / "xla"
 
@@ -173,7 +176,7 @@ def keep_freed_memory_unless_disabled() -> bool:
     started (the command line and the scripts call this first thing; run in a process that
     has computed before, such as ``jaxnm.cli.main`` from a notebook, it leaves the
     process's allocator as it is). Returns whether it was applied."""
-    if os.environ.get(MEMORY_ENV, "").strip().lower() in ("off", "0", "false", "no"):
+    if os.environ.get(MEMORY_ENV, "").strip().lower() in _OFF:
         return False
     if _backends_initialised():
         return False
