@@ -521,11 +521,11 @@ def _window_corners(clip, faces, *, width, height, subpixel_bits):
     return _Corners(materialize(h), faces), _Corners(h_unsnapped, faces)
 
 
-def _fragment_source(tri, tri_depth, setup, *, width, height, block, slots):
+def _fragment_source(tri, tri_depth, setup, counts, *, width, height, block, slots):
     """Returns ``(fragments(slot0), total_slots)`` for triangles with corners ``tri``
-    (coverage), ``tri_depth`` (depth) and `_triangle_setup` result ``setup``."""
+    (coverage), ``tri_depth`` (depth) and `_triangle_setup` result ``setup``, taking
+    ``counts`` (F,) slots of each (its box's tiles, or none: `_each_pass`)."""
     sigma, tx0, ty0, nbx, nby = setup
-    counts = nbx * nby
     n = counts.shape[0]
     # the triangles that have slots, in order (then padding: no slots)
     order = flat_nonzero(counts > 0, n, 0)
@@ -546,11 +546,12 @@ def _fragment_source(tri, tri_depth, setup, *, width, height, block, slots):
 _STATIC = ("width", "height", "cull_back", "block", "slots", "subpixel_bits")
 
 
-def _depth_test(tri, tri_depth, setup, buf, *, width, height, block, slots):
+def _depth_test(tri, tri_depth, setup, counts, buf, *, width, height, block, slots):
     """Depth-test triangles into the tiled buffer ``buf`` (tiles, block, block): uint64 keys
-    (`_depth_keys`) where the depth is at most 32 bits wide, else a pair (depth, triangle)."""
-    fragments, total = _fragment_source(tri, tri_depth, setup, width=width, height=height,
-                                        block=block, slots=slots)
+    (`_depth_keys`) where the depth is at most 32 bits wide, else a pair (depth, triangle).
+    ``counts``: see `_fragment_source`."""
+    fragments, total = _fragment_source(tri, tri_depth, setup, counts, width=width,
+                                        height=height, block=block, slots=slots)
     keyed = not isinstance(buf, tuple)
     x64 = bool(jax.config.jax_enable_x64)  # the caller's
 
@@ -658,25 +659,32 @@ def _slot_passes(counts: Array, pass_slots: int) -> tuple[Array, Array]:
 
 
 def _each_pass(fn, setup, carry, *, tiles: int, pass_slots: int):
-    """``carry = fn(setup_p, carry)`` for the triangles of each pass in turn (`_slot_passes`),
-    ``setup_p`` being `_triangle_setup`'s ``setup`` with the other passes' triangles given
-    no tiles; a single call with ``setup`` itself where the frame cannot have more than
-    ``pass_slots`` slots (faces x tiles; static). A while loop, not a ``lax.cond`` on the
-    rare overflow: XLA's CPU conditional made the whole frame ~9 ms slower at 200k
-    triangles."""
-    sigma, tx0, ty0, nbx, nby = setup
+    """``carry = fn(counts_p, carry)`` for the triangles of each pass in turn
+    (`_slot_passes`), ``counts_p`` (F,) being each triangle's slots (its box's tiles,
+    from `_triangle_setup`'s ``setup``) in that pass, none in the others; a single call
+    with every triangle's where the frame cannot have more than ``pass_slots`` slots
+    (faces x tiles; static). A while loop, not a ``lax.cond`` between it and one pass: XLA's
+    CPU conditional around the depth test made the whole frame ~9 ms slower at 200k
+    triangles (the ``lax.cond`` below only chooses how the passes are counted)."""
+    _, _, _, nbx, nby = setup
+    counts = nbx * nby
     if nbx.shape[0] * tiles <= pass_slots:
-        return fn(setup, carry)
-    passes, n_passes = _slot_passes(nbx * nby, pass_slots)
+        return fn(counts, carry)
+    # Most frames fit in one pass, and a float32 sum of the counts (each < 2**28) says so
+    # for far less than `_slot_passes`' exact running sums (200k triangles: 0.1 vs 0.9 ms):
+    # its rounding error is below F * 2**-24 of the sum
+    n = counts.shape[0]
+    fits = jnp.sum(counts.astype(jnp.float32)) * (1.0 + n * 2.0**-24) < pass_slots
+    passes, n_passes = jax.lax.cond(
+        fits, lambda c: (jnp.zeros_like(c), jnp.int32(1)),
+        lambda c: _slot_passes(c, pass_slots), counts)
 
     x64 = bool(jax.config.jax_enable_x64)  # the caller's
 
     def one_pass(c):
         p, carry = c
-        mine = passes == p
         with jax.enable_x64(x64):
-            return p + 1, fn((sigma, tx0, ty0, jnp.where(mine, nbx, 0),
-                              jnp.where(mine, nby, 0)), carry)
+            return p + 1, fn(jnp.where(passes == p, counts, 0), carry)
 
     # (a carry of 64-bit depth keys stays 64-bit whatever the caller's jax_enable_x64)
     with jax.enable_x64(x64 or any(x.dtype == np.uint64 for x in jax.tree.leaves(carry))):
@@ -706,7 +714,7 @@ def _visible_triangles(clip, faces, *, width, height, cull_back, block, slots, s
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     setup = _triangle_setup(tri.components(), width, height, block, cull_back)
-    buf = _each_pass(lambda st, buf: _depth_test(tri, tri_depth, st, buf, **kw), setup,
+    buf = _each_pass(lambda n, buf: _depth_test(tri, tri_depth, setup, n, buf, **kw), setup,
                      _empty_depth_buffer(tiles, block, clip.dtype), tiles=tiles,
                      pass_slots=pass_slots)
     ids = _tiles_to_image(_winners(buf), width, height)
@@ -760,9 +768,10 @@ def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_b
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     tiles = (-(-width // block)) * (-(-height // block))
+    setup = _triangle_setup(tri.components(), width, height, block, cull_back)
 
-    def one_pass(setup, count):
-        fragments, total = _fragment_source(tri, tri_depth, setup, width=width,
+    def one_pass(counts, count):
+        fragments, total = _fragment_source(tri, tri_depth, setup, counts, width=width,
                                             height=height, block=block, slots=slots)
 
         def round_(c):
@@ -773,9 +782,7 @@ def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_b
         return jax.lax.while_loop(lambda c: c[0] * slots < total, round_,
                                   (jnp.int32(0), count))[1]
 
-    count = _each_pass(one_pass, _triangle_setup(tri.components(), width, height, block,
-                                                 cull_back),
-                       jnp.zeros((tiles, block, block), jnp.int32), tiles=tiles,
+    count = _each_pass(one_pass, setup, jnp.zeros((tiles, block, block), jnp.int32), tiles=tiles,
                        pass_slots=pass_slots)
     return _tiles_to_image(count, width, height)
 

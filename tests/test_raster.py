@@ -311,6 +311,14 @@ def test_many_rounds_and_passes_give_the_same_image():
                                     height=40, subpixel_bits=8)
     _, _, _, nbx, nby = raster._triangle_setup(tri.components(), 40, 40, 4, False)
     assert int(raster._slot_passes(nbx * nby, 32)[1]) > 5
+    # a pass size the faces x tiles bound exceeds but the frame's slots fit: one pass,
+    # found by the float32 sum (not the exact running sums), the same image again
+    total = int(jnp.sum(nbx * nby))
+    one = 1 << total.bit_length()
+    assert len(faces) * 100 > one > total
+    d_tid, _, _ = raster._rasterize(jnp.asarray(clip), jnp.asarray(faces, jnp.int32),
+                                    pass_slots=one, **kw)
+    assert np.array_equal(np.asarray(a.triangle_id), np.asarray(d_tid))
 
 
 def test_round_size_by_backend_does_not_change_the_image():
