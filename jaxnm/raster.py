@@ -658,22 +658,20 @@ def _slot_passes(counts: Array, pass_slots: int) -> tuple[Array, Array]:
     return passes, passes[-1] + 1
 
 
-def _each_pass(fn, setup, carry, *, tiles: int, pass_slots: int):
+def _each_pass(fn, counts, carry, *, tiles: int, pass_slots: int):
     """``carry = fn(counts_p, carry)`` for the triangles of each pass in turn
-    (`_slot_passes`), ``counts_p`` (F,) being each triangle's slots (its box's tiles,
-    from `_triangle_setup`'s ``setup``) in that pass, none in the others; a single call
-    with every triangle's where the frame cannot have more than ``pass_slots`` slots
-    (faces x tiles; static). A while loop, not a ``lax.cond`` between it and one pass: XLA's
-    CPU conditional around the depth test made the whole frame ~9 ms slower at 200k
-    triangles (the ``lax.cond`` below only chooses how the passes are counted)."""
-    _, _, _, nbx, nby = setup
-    counts = nbx * nby
-    if nbx.shape[0] * tiles <= pass_slots:
+    (`_slot_passes`), ``counts_p`` (F,) being ``counts`` (each triangle's slots: its box's
+    tiles) for that pass's triangles and 0 for the others; a single call with ``counts``
+    itself where the frame cannot have more than ``pass_slots`` slots (faces x tiles;
+    static). A while loop, not a ``lax.cond`` between it and one pass: XLA's CPU
+    conditional around the depth test made the whole frame ~9 ms slower at 200k triangles
+    (the ``lax.cond`` below only chooses how the passes are counted)."""
+    n = counts.shape[0]
+    if n * tiles <= pass_slots:
         return fn(counts, carry)
     # Most frames fit in one pass, and a float32 sum of the counts (each < 2**28) says so
     # for far less than `_slot_passes`' exact running sums (200k triangles: 0.1 vs 0.9 ms):
     # its rounding error is below F * 2**-24 of the sum
-    n = counts.shape[0]
     fits = jnp.sum(counts.astype(jnp.float32)) * (1.0 + n * 2.0**-24) < pass_slots
     passes, n_passes = jax.lax.cond(
         fits, lambda c: (jnp.zeros_like(c), jnp.int32(1)),
@@ -714,8 +712,9 @@ def _visible_triangles(clip, faces, *, width, height, cull_back, block, slots, s
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     setup = _triangle_setup(tri.components(), width, height, block, cull_back)
-    buf = _each_pass(lambda n, buf: _depth_test(tri, tri_depth, setup, n, buf, **kw), setup,
-                     _empty_depth_buffer(tiles, block, clip.dtype), tiles=tiles,
+    _, _, _, nbx, nby = setup
+    buf = _each_pass(lambda n, buf: _depth_test(tri, tri_depth, setup, n, buf, **kw),
+                     nbx * nby, _empty_depth_buffer(tiles, block, clip.dtype), tiles=tiles,
                      pass_slots=pass_slots)
     ids = _tiles_to_image(_winners(buf), width, height)
     return jnp.where(ids != _NO_TRIANGLE, ids, -1), setup[0], tri_depth
@@ -769,6 +768,7 @@ def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_b
                                      subpixel_bits=subpixel_bits)
     tiles = (-(-width // block)) * (-(-height // block))
     setup = _triangle_setup(tri.components(), width, height, block, cull_back)
+    _, _, _, nbx, nby = setup
 
     def one_pass(counts, count):
         fragments, total = _fragment_source(tri, tri_depth, setup, counts, width=width,
@@ -782,8 +782,8 @@ def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_b
         return jax.lax.while_loop(lambda c: c[0] * slots < total, round_,
                                   (jnp.int32(0), count))[1]
 
-    count = _each_pass(one_pass, setup, jnp.zeros((tiles, block, block), jnp.int32), tiles=tiles,
-                       pass_slots=pass_slots)
+    count = _each_pass(one_pass, nbx * nby, jnp.zeros((tiles, block, block), jnp.int32),
+                       tiles=tiles, pass_slots=pass_slots)
     return _tiles_to_image(count, width, height)
 
 
