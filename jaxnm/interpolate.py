@@ -60,7 +60,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from .numerics import materialize, roll_last, safe_div, sum_last, xyw
+from .numerics import materialize, safe_div, xyw
 from .raster import Fragments, window_homogeneous
 
 __all__ = [
@@ -215,30 +215,42 @@ def at_precision(attr: Attribute, precision: str, mask: Array, *,
 
 
 def _pixel_setup(frags: Fragments):
-    """Per pixel: edge functions E (..., 3) at the centre, their gradients a, b, and the mask."""
+    """Per pixel: the edge functions E_i at the centre and their gradients a_i, b_i (each
+    a tuple of three arrays of the fragments' shape), and the mask.
+
+    Written component by component, each an array of the fragments' shape, and stacked
+    only at the end (`barycentrics`): on XLA's CPU every slice of a short last axis and
+    every concatenation back into one cuts the per-pixel arithmetic into separate loops
+    (the 4k sphere's barycentrics and their fine derivatives over 16384 packed pixels:
+    368 -> 253 us)."""
     height, width = frags.image_shape
     mask = frags.mask
     tri = jnp.maximum(frags.triangle_id, 0)
     h = xyw(window_homogeneous(frags.clip, width, height))  # (V, 3): x, y, w
-    hv = h[frags.faces[tri]]  # (..., 3 vertices, 3)
+    corner = frags.faces[tri]
+    hv = [h[corner[..., v]] for v in range(3)]  # each vertex's (..., 3)
     x, y = frags.window_centers(h.dtype)
     # translate so the pixel centre is the origin, and normalise the scale: b = E / sum(E)
     # is invariant to both, and the smaller numbers keep E well conditioned
-    hx = hv[..., 0] - x[..., None] * hv[..., 2]
-    hy = hv[..., 1] - y[..., None] * hv[..., 2]
-    hw = hv[..., 2]
-    m3 = jnp.maximum(jnp.maximum(jnp.abs(hx), jnp.abs(hy)), jnp.abs(hw))
-    scale = jnp.maximum(jnp.maximum(m3[..., 0], m3[..., 1]), m3[..., 2])
-    scale = jnp.where(mask & (scale > 0), scale, 1.0)[..., None]
-    scale = jax.lax.stop_gradient(scale)
-    hx, hy, hw = hx / scale, hy / scale, hw / scale
-    # edge i joins vertices j = i + 1 and k = i + 2
-    hxj, hyj, hwj = roll_last(hx, 1), roll_last(hy, 1), roll_last(hw, 1)
-    hxk, hyk, hwk = roll_last(hx, 2), roll_last(hy, 2), roll_last(hw, 2)
-    e = hxj * hyk - hyj * hxk
-    a = hyj * hwk - hwj * hyk
-    b = hwj * hxk - hxj * hwk
-    return e, a, b, mask
+    hx = [q[..., 0] - x * q[..., 2] for q in hv]
+    hy = [q[..., 1] - y * q[..., 2] for q in hv]
+    hw = [q[..., 2] for q in hv]
+    m3 = [jnp.maximum(jnp.maximum(jnp.abs(p), jnp.abs(q)), jnp.abs(r))
+          for p, q, r in zip(hx, hy, hw)]
+    scale = jnp.maximum(jnp.maximum(m3[0], m3[1]), m3[2])
+    scale = jax.lax.stop_gradient(jnp.where(mask & (scale > 0), scale, 1.0))
+    hx, hy, hw = ([q / scale for q in c] for c in (hx, hy, hw))
+    e, a, b = [], [], []
+    for i in range(3):  # edge i joins vertices j = i + 1 and k = i + 2
+        j, k = (i + 1) % 3, (i + 2) % 3
+        e.append(hx[j] * hy[k] - hy[j] * hx[k])
+        a.append(hy[j] * hw[k] - hw[j] * hy[k])
+        b.append(hw[j] * hx[k] - hx[j] * hw[k])
+    return tuple(e), tuple(a), tuple(b), mask
+
+
+def _sum3(c):
+    return (c[0] + c[1]) + c[2]
 
 
 @functools.partial(jax.jit, static_argnames=("derivatives",))
@@ -255,45 +267,41 @@ def barycentrics(frags: Fragments, *, derivatives: str | None = "fine") -> Baryc
     """
     check_derivatives(derivatives)
     e, a, b, mask = _pixel_setup(frags)
-    m = mask[..., None]
-    s = sum_last(e, keepdims=True)
-    s = jnp.where(m, s, 1.0)  # covered pixels have S != 0 (all E_i share its sign)
-    value = jnp.where(m, e / s, 0.0)
+    s = jnp.where(mask, _sum3(e), 1.0)  # covered pixels have S != 0 (all E_i share its sign)
+
+    def stack(parts):  # the three barycentrics' (...) arrays as one (..., 3), 0 on background
+        return jnp.stack([jnp.where(mask, q, 0.0) for q in parts], -1)
+
+    value = stack([q / s for q in e])
     if derivatives in ("gbuffer", None):
         return Barycentrics(value, None, None, derivatives)
 
-    a_s = sum_last(a, keepdims=True)
-    b_s = sum_last(b, keepdims=True)
+    a_s, b_s = _sum3(a), _sum3(b)
     if derivatives == "analytic":
-        ddx = (a * s - e * a_s) / (s * s)
-        ddy = (b * s - e * b_s) / (s * s)
-    else:
-        xi, yi = (q[..., None] for q in frags.window_pixels())
-        if derivatives == "fine":
-            # G at the pixel itself; partner at x ^ 1 (same row) and y ^ 1 (same column)
-            ex, sx = e, s
-            ey, sy = e, s
-            dxp = jnp.where(xi % 2 == 0, 1.0, -1.0)
-            dyp = jnp.where(yi % 2 == 0, 1.0, -1.0)
-        else:  # coarse: reference pixel = the quad's lower-left (x even, y even)
-            ox = -(xi % 2).astype(e.dtype)
-            oy = -(yi % 2).astype(e.dtype)
-            ex = ey = e + a * ox + b * oy  # E at the reference pixel
-            sx = sy = sum_last(ex, keepdims=True)
-            dxp = dyp = jnp.ones_like(ox)
-        gx = a * sx - ex * a_s
-        gy = b * sy - ey * b_s
-        # S at the quad partner; where it has the other sign (or vanishes) the partner's
-        # centre sees the triangle's plane behind the camera (beyond its horizon): there a
-        # GPU's difference is meaningless (the interpolant wraps through infinity), so the
-        # analytic derivative at the reference is used instead
-        px, py = sx + dxp * a_s, sy + dyp * b_s
-        px = jnp.where(px * sx > 0, px, sx)
-        py = jnp.where(py * sy > 0, py, sy)
-        ddx = safe_div(gx, sx * px)
-        ddy = safe_div(gy, sy * py)
-    ddx = jnp.where(m, ddx, 0.0)
-    ddy = jnp.where(m, ddy, 0.0)
+        ddx = stack([(p * s - q * a_s) / (s * s) for p, q in zip(a, e)])
+        ddy = stack([(p * s - q * b_s) / (s * s) for p, q in zip(b, e)])
+        return Barycentrics(value, ddx, ddy, derivatives)
+    xi, yi = frags.window_pixels()
+    if derivatives == "fine":
+        # G at the pixel itself; partner at x ^ 1 (same row) and y ^ 1 (same column)
+        ex, sx = e, s
+        dxp = jnp.where(xi % 2 == 0, 1.0, -1.0)
+        dyp = jnp.where(yi % 2 == 0, 1.0, -1.0)
+    else:  # coarse: reference pixel = the quad's lower-left (x even, y even)
+        ox = -(xi % 2).astype(s.dtype)
+        oy = -(yi % 2).astype(s.dtype)
+        ex = tuple(p + q * ox + r * oy for p, q, r in zip(e, a, b))  # E at the reference pixel
+        sx = _sum3(ex)
+        dxp = dyp = jnp.ones_like(ox)
+    # S at the quad partner; where it has the other sign (or vanishes) the partner's
+    # centre sees the triangle's plane behind the camera (beyond its horizon): there a
+    # GPU's difference is meaningless (the interpolant wraps through infinity), so the
+    # analytic derivative at the reference is used instead
+    px, py = sx + dxp * a_s, sx + dyp * b_s
+    px = jnp.where(px * sx > 0, px, sx)
+    py = jnp.where(py * sx > 0, py, sx)
+    ddx = stack([safe_div(p * sx - q * a_s, sx * px) for p, q in zip(a, ex)])
+    ddy = stack([safe_div(p * sx - q * b_s, sx * py) for p, q in zip(b, ex)])
     return Barycentrics(value, ddx, ddy, derivatives)
 
 
