@@ -525,7 +525,7 @@ def _fragment_source(tri, tri_depth, setup, counts, *, width, height, block, slo
     """Returns ``(fragments(slot0), total_slots)`` for triangles with corners ``tri``
     (coverage), ``tri_depth`` (depth) and `_triangle_setup` result ``setup``, taking
     ``counts`` (F,) slots of each (its box's tiles, or none: `_each_pass`)."""
-    sigma, tx0, ty0, nbx, nby = setup
+    sigma, tx0, ty0, nbx, _ = setup  # (the slot counts come as `counts`)
     n = counts.shape[0]
     # the triangles that have slots, in order (then padding: no slots)
     order = flat_nonzero(counts > 0, n, 0)
