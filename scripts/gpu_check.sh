@@ -9,10 +9,10 @@
 # is a summary. Steps ("timing"): the device; `bench.py` forward frames and the fit
 # benchmark (cold, warm, steady; deterministic GPU ops, as the CLI runs);
 # `profile_render.py`: render's parts and the fit's steps with deterministic ops (traced:
-# the kernels that take the device's time), then the same with loops and conditionals in
-# CUDA graphs (XLA's command buffers), and the fit's steps with lm-texel's conjugate
-# gradients at a fixed trip count, with and without deterministic ops; ("tests") the test
-# suite (pytest-xdist, processes sharing the card). "all" runs both, timing first.
+# the kernels that take the device's time), the same with loops and conditionals in CUDA
+# graphs (`jaxnm.runtime.use_gpu_graphs`), and the fit's steps without deterministic ops;
+# ("tests") the test suite (pytest-xdist, processes sharing the card). "all" runs both,
+# timing first.
 set -u
 out=${1:?usage: scripts/gpu_check.sh OUTDIR [SECONDS] [all|timing|tests]}
 total=${2:-560}
@@ -22,9 +22,8 @@ cd "$(dirname "$0")/.."
 export PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
 py=$(command -v python3 || command -v python)
 det="--xla_gpu_deterministic_ops=true"
-# XLA's default command-buffer kinds plus while loops and conditionals (CUDA graphs with
-# conditional nodes: the loop's condition is read on the device, not the host)
-cb="--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL"
+# jaxnm.runtime.GRAPHS_FLAG: loops and conditionals in CUDA graphs
+cb=$("$py" -c "from jaxnm.runtime import GRAPHS_FLAG; print(GRAPHS_FLAG)")
 left() { echo $(( total - SECONDS - ${1:-0} )); }
 step() {  # step NAME LIMIT CMD...: run CMD with a time limit, log to OUTDIR/NAME.log
   local name=$1 limit=$2; shift 2
@@ -46,15 +45,11 @@ if [[ $part != tests ]]; then
     --repeats 20 --out "$out/profile"
   step profile_graphs 70 env XLA_FLAGS="$det $cb" "$py" scripts/profile_render.py --fit \
     --repeats 20 --out "$out/profile"
-  step fit_fixed 35 env XLA_FLAGS="$det" "$py" scripts/profile_render.py --scenes "" \
-    --fit --cg fixed --out "$out/profile"
-  step fit_fixed_graphs 40 env XLA_FLAGS="$det $cb" "$py" scripts/profile_render.py \
-    --scenes "" --fit --cg fixed --trace --out "$out/profile_graphs"
-  step fit_fixed_nondeterministic 30 "$py" scripts/profile_render.py --scenes "" --fit \
-    --cg fixed --out "$out/profile"
+  step fit_nondeterministic 30 "$py" scripts/profile_render.py --scenes "" --fit \
+    --out "$out/profile"
   echo "=== summary (timing)"
   tail -n 30 "$out/bench.log"
-  for f in profile profile_graphs fit_fixed fit_fixed_graphs fit_fixed_nondeterministic; do
+  for f in profile profile_graphs fit_nondeterministic; do
     echo "-- $f"; grep -h '^{' "$out/$f.log" | cut -c1-1500
   done
 fi

@@ -16,9 +16,8 @@ camera) it times, medians of ``--repeats`` runs, each forced to completion:
 the CPU), with each variant's compile time. ``--host`` breaks `render`'s host part
 (before its program is dispatched) into its steps.
 
-``--fit`` also times steps of the fit benchmark (``--solver``, default lm-texel);
-``--cg fixed`` runs lm-texel's conjugate gradients for all their trips (a loop of known
-trip count: `jaxnm.fit.texel_lm.conjugate_gradient`'s ``early_exit=False``).
+``--fit`` also times steps of the fit benchmark (``--solver``, default lm-texel), with
+the first run's time (compilation included).
 ``--trace`` also records a profiler trace of the whole-frame program (and, with ``--fit``,
 of the fit's steps) and prints the kernels that take the most device time per frame (per
 step): on a GPU, its kernels and copies; on the CPU, XLA's thunks, which nest (an
@@ -30,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import functools
 import gzip
 import importlib
 import json
@@ -230,7 +228,7 @@ def profile_fit(args) -> dict:
     res = run()
     row = {"fit": f"benchmark {args.solver}", "backend": jax.default_backend(),
            "first_run_s": round(first, 2),
-           "xla_flags": os.environ.get("XLA_FLAGS", ""), "cg": args.cg,
+           "xla_flags": os.environ.get("XLA_FLAGS", ""),
            "s_per_step": round((time.perf_counter() - t) / steps, 4),
            "history_steps": len(res.history) - 1}
     if args.trace:
@@ -249,17 +247,10 @@ def main(argv=None) -> None:
     ap.add_argument("--fit", action="store_true", help="also the fit benchmark's LM steps")
     ap.add_argument("--solver", choices=F.SOLVERS, default=F.FitOptions().solver,
                     help="the solver --fit times (default: FitOptions')")
-    ap.add_argument("--cg", choices=("early", "fixed"), default="early",
-                    help="lm-texel's conjugate-gradient loop: early exit, or a fixed count")
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--slots", default="", help="e.g. 15,17,19: rounds of 2^k slots")
     ap.add_argument("--host", action="store_true", help="render's host steps, one by one")
     args = ap.parse_args(argv)
-    if args.cg == "fixed":
-        from jaxnm.fit import texel_lm
-
-        texel_lm.conjugate_gradient = functools.partial(texel_lm.conjugate_gradient,
-                                                        early_exit=False)
     Path(args.out).mkdir(parents=True, exist_ok=True)
     for name in args.scenes.split(","):
         if name:

@@ -1,5 +1,6 @@
 """jaxnm.runtime: process-wide settings (each checked in a fresh process)."""
 
+import os
 import subprocess
 import sys
 
@@ -46,9 +47,10 @@ print("FAULTS", resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
 """
 
 
-def _run(probe: str, mode: str) -> str:
+def _run(probe: str, mode: str, **env: str) -> str:
     return subprocess.run([sys.executable, "-c", probe, mode], capture_output=True,
-                          text=True, timeout=120, check=True).stdout
+                          text=True, timeout=120, check=True,
+                          env={**os.environ, **env}).stdout
 
 
 def _glibc_only():
@@ -77,11 +79,13 @@ def test_keep_freed_memory_keeps_freed_buffers_resident():
 def test_keep_freed_memory_spares_a_programs_page_faults():
     """A jitted program's ~80 MB of temporaries: page-faulted in on every call by default
     (XLA allocates them in a worker thread, whose heap cannot hold them), not after
-    `keep_freed_memory` (the program runs in the calling thread, from the main heap)."""
+    `keep_freed_memory` (the program runs in the calling thread, from the main heap).
+    On the CPU backend, whatever JAX would pick (a GPU holds its temporaries on the card:
+    no host page faults either way)."""
     _glibc_only()
 
     def faults(mode):
-        return int(_run(_FAULT_PROBE, mode).split("FAULTS")[1])
+        return int(_run(_FAULT_PROBE, mode, JAX_PLATFORMS="cpu").split("FAULTS")[1])
 
     default, keep = faults("default"), faults("keep")
     assert default > 10_000  # ~80 MB of 4 KiB pages
@@ -119,3 +123,22 @@ def test_keep_freed_memory_rejects_a_bad_threshold():
     for bad in (-1, 1.5, "256"):
         with pytest.raises(ValueError, match="non-negative int"):
             keep_freed_memory(trim_threshold_mb=bad)
+
+
+def test_gpu_flags_are_added_once_and_accepted_by_xla():
+    """`use_gpu_graphs` and `use_deterministic_ops` each add their flag once, keep the
+    flags already set, and XLA accepts them (it aborts on an unknown command-buffer kind)."""
+    probe = """
+import os
+from jaxnm import runtime
+runtime.use_gpu_graphs(); runtime.use_gpu_graphs(); runtime.use_deterministic_ops()
+import jax, jax.numpy as jnp
+print("SUM", float(jax.jit(lambda x: jnp.sin(x).sum())(jnp.ones(4))))
+print("FLAGS", os.environ["XLA_FLAGS"])
+"""
+    out = _run(probe, "", XLA_FLAGS="--xla_gpu_deterministic_ops=true")
+    flags = out.split("FLAGS")[1].split()
+    assert sorted(flags) == sorted(["--xla_gpu_deterministic_ops=true",
+                                    "--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,"
+                                    "CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL"])
+    assert abs(float(out.split("SUM")[1].split()[0]) - 4 * 0.8414709848) < 1e-5

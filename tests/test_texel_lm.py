@@ -129,12 +129,6 @@ def test_conjugate_gradient_solves_at_any_scale(scale):
     x = conjugate_gradient(op, jnp.asarray(b, jnp.float32), max_steps=n, rtol=1e-5)
     want = np.linalg.solve(a, b)
     np.testing.assert_allclose(np.asarray(x), want, rtol=0, atol=1e-3 * np.abs(want).max())
-    # all trips run (a loop of known trip count), the ones after convergence change
-    # nothing: the same iterate, here where the tolerance is met well before 5n steps
-    fixed = conjugate_gradient(op, jnp.asarray(b, jnp.float32), max_steps=5 * n, rtol=1e-5,
-                               early_exit=False)
-    np.testing.assert_array_equal(np.asarray(fixed), np.asarray(
-        conjugate_gradient(op, jnp.asarray(b, jnp.float32), max_steps=5 * n, rtol=1e-5)))
     # a few steps only: the iterate is not the solution yet, but it lowers the quadratic
     x3 = np.asarray(conjugate_gradient(op, jnp.asarray(b, jnp.float32), max_steps=3),
                     np.float64)

@@ -203,14 +203,9 @@ def gauss_newton_product(z: Array, args: ModelArgs, factors):
     return product
 
 
-def conjugate_gradient(operator, b: Array, max_steps: int, rtol: float = 1e-4, *,
-                       early_exit: bool = True) -> Array:
+def conjugate_gradient(operator, b: Array, max_steps: int, rtol: float = 1e-4) -> Array:
     """Conjugate gradients for ``operator(x) = b`` (symmetric positive definite), from
     ``x = 0``, for at most ``max_steps`` products or until ``|r| <= rtol |b|``.
-
-    ``early_exit=False`` runs all ``max_steps`` trips, the steps after convergence
-    leaving the iterate unchanged (the same result): a loop whose trip count the compiler
-    knows, so that a GPU need not read the loop's condition back on the host every trip.
 
     Written out rather than lineax's ``CG``: that one spends a product on the residual of
     its zero start and another every ten steps to re-stabilise it, and it reports a
@@ -236,14 +231,7 @@ def conjugate_gradient(operator, b: Array, max_steps: int, rtol: float = 1e-4, *
         return x, r, p, jnp.where(pap > 0, gamma_new, 0), k + 1
 
     state = (jnp.zeros_like(b), b, b, gamma0, jnp.zeros((), jnp.int32))
-    if early_exit:
-        return jax.lax.while_loop(more, body, state)[0]
-
-    def masked(_, state):
-        new = body(state)
-        return jax.tree_util.tree_map(lambda n, o: jnp.where(more(state), n, o), new, state)
-
-    return jax.lax.fori_loop(0, max_steps, masked, state)[0]
+    return jax.lax.while_loop(more, body, state)[0]
 
 
 def _damping(lam, ratio, accepted):
