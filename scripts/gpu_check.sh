@@ -8,11 +8,11 @@
 # failed step does not stop the next. Logs and JSON go to OUTDIR; the end of the output
 # is a summary. Steps ("timing"): the device; `bench.py` forward frames and the fit
 # benchmark (cold, warm, steady; deterministic GPU ops, as the CLI runs);
-# `profile_render.py`: render's parts and the fit's steps with deterministic ops (traced:
-# the kernels that take the device's time), the same with loops and conditionals in CUDA
-# graphs (`jaxnm.runtime.use_gpu_graphs`), and the fit's steps without deterministic ops;
-# ("tests") the test suite (pytest-xdist, processes sharing the card). "all" runs both,
-# timing first.
+# `profile_render.py`: render's parts, its host steps and the fit's steps with
+# deterministic ops (traced: the kernels that take the device's time), the same with
+# loops and conditionals in CUDA graphs (`jaxnm.runtime.use_gpu_graphs`), and the fit's
+# steps without deterministic ops; ("tests") the test suite (pytest-xdist, processes
+# sharing the card). "all" runs both, timing first.
 set -u
 out=${1:?usage: scripts/gpu_check.sh OUTDIR [SECONDS] [all|timing|tests]}
 total=${2:-560}
@@ -41,7 +41,7 @@ jax.devices())"; } 2>&1 | tee "$out/device.log"
 if [[ $part != tests ]]; then
   step bench 150 env XLA_FLAGS="$det" "$py" scripts/bench.py --no-mitsuba --no-cli \
     --parts forward,fit --budget 6 --repeats 10 --out "$out/bench"
-  step profile 80 env XLA_FLAGS="$det" "$py" scripts/profile_render.py --fit --trace \
+  step profile 80 env XLA_FLAGS="$det" "$py" scripts/profile_render.py --host --fit --trace \
     --repeats 20 --out "$out/profile"
   step profile_graphs 70 env XLA_FLAGS="$det $cb" "$py" scripts/profile_render.py --fit \
     --repeats 20 --out "$out/profile"
