@@ -21,7 +21,7 @@ from .camera import HIGHEST
 from .numerics import angle_between, safe_normalize
 from .numerics import cross as _cross
 
-__all__ = ["Mesh", "face_normals", "vertex_normals", "validate_arrays"]
+__all__ = ["Mesh", "face_normals", "vertex_normals", "validate_arrays", "closed_shape"]
 
 
 @jax.tree_util.register_dataclass
@@ -224,3 +224,60 @@ def _remember_checked(arrays) -> None:
 
 def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
+
+
+# `closed_shape` per mesh, keyed by the arrays' identities like `_CHECKED` (JAX arrays only:
+# immutable), so a mesh rendered frame after frame is examined once.
+_SHAPES: dict[tuple[int, ...], tuple] = {}
+
+
+def closed_shape(positions, faces) -> np.ndarray | None:
+    """The bounding box (2, 3) float64 (min, max) of a mesh that encloses a volume with its
+    counter-clockwise (front) faces outside, else None: such a mesh, seen from outside,
+    shows only front faces (`jaxnm.render` then skips the back faces' rasterization).
+
+    Enclosing: after welding vertices at equal positions (to 1e-6 of the mesh's extent: a uv
+    seam's copies), every edge
+    is used by exactly two faces, once in each direction (closed, manifold, consistently
+    oriented; faces with two welded corners equal are dropped); outside: the enclosed
+    volume (the sum of the faces' signed tetrahedra) is positive. On the host, in
+    float64/int64; remembered for JAX arrays (about 0.1 s for 200k triangles, once). None
+    for traced arrays."""
+    arrays = (positions, faces)
+    if any(isinstance(x, jax.core.Tracer) for x in arrays):
+        return None
+    key = _key(arrays)
+    hit = None if key is None else _SHAPES.get(key)
+    if hit is not None and all(r() is x for r, x in zip(hit[0], arrays)):
+        return hit[1]
+    box = _closed_shape(np.asarray(positions, np.float64), np.asarray(faces, np.int64))
+    if key is not None:
+        if len(_SHAPES) >= _CHECKED_MAX:
+            _SHAPES.pop(next(iter(_SHAPES)))
+        _SHAPES[key] = (tuple(weakref.ref(x) for x in arrays), box)
+    return box
+
+
+def _closed_shape(p: np.ndarray, f: np.ndarray) -> np.ndarray | None:
+    if p.shape[0] == 0 or f.shape[0] == 0 or not np.all(np.isfinite(p)):
+        return None
+    # positions equal up to rounding (a seam's copies: cos 2pi vs cos 0) weld together
+    step = 1e-6 * max(float(np.max(np.abs(p))), np.finfo(np.float64).tiny)
+    _, weld = np.unique(np.round(p / step).astype(np.int64), axis=0, return_inverse=True)
+    t = weld.reshape(-1)[f]
+    t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])]
+    if t.shape[0] == 0:
+        return None
+    n = int(t.max()) + 1
+    a = t.reshape(-1)
+    b = np.roll(t, -1, axis=1).reshape(-1)
+    edges = np.sort(a * n + b)
+    if np.any(edges[1:] == edges[:-1]):  # an edge twice in one direction
+        return None
+    if not np.array_equal(edges, np.sort(b * n + a)):  # an edge without its reverse
+        return None
+    q = p[f]
+    volume = np.sum(q[:, 0] * np.cross(q[:, 1], q[:, 2]))
+    if not volume > 0:
+        return None
+    return np.stack([p.min(axis=0), p.max(axis=0)])

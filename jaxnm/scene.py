@@ -67,7 +67,8 @@ class Scene:
     - `precision`: the fragment shader's arithmetic, one of `jaxnm.interpolate.PRECISIONS`
       (``"float16"`` models GLSL ``mediump``: the frame and the perturbation are computed
       in it from rounded inputs; see `jaxnm.interpolate.at_precision`).
-    - `double_sided`: flip N, T and B on back faces; `cull_back`: skip back faces.
+    - `double_sided`: flip N, T and B on back faces; `cull_back`: skip back faces (`render`
+      also skips them by itself where none can be seen: `jaxnm.render.back_faces_hidden`).
     - `ddy`: ``"up"`` (GLSL ``dFdy``) or ``"down"`` (emulate HLSL's ``ddy``).
     - `source`: where the scene came from (named in error messages).
     """

@@ -648,14 +648,68 @@ def test_render_and_a_fits_prepare_share_one_visibility_program():
     assert float(jnp.max(img)) > 0
     counting[0] = True
     try:
+        cull = R.back_faces_hidden(scene.mesh, scene.camera)  # as render and prepare decide
         tid, count, _, _ = R._visible(scene.mesh, scene.camera, R._NO_SHIFT, width=40, height=24,
-                                      cull_back=False)
+                                      cull_back=cull)
         assert compiles == []
-        R._visible(scene.mesh, scene.camera, None, width=40, height=24, cull_back=False)
+        R._visible(scene.mesh, scene.camera, None, width=40, height=24, cull_back=cull)
         assert len(compiles) > 0  # the check can fail: a None is another program
     finally:
         counting[0] = False
     assert int(count) > 0
+
+
+def test_closed_shape_knows_a_closed_outward_mesh():
+    """`jaxnm.geometry.closed_shape`: the tori and the uv sphere (seams and poles welded) are
+    closed with their front faces outside, and their boxes are the positions' bounds; a
+    plane, a torus with a face removed, one with its faces turned inside out and one with a
+    single face flipped are not."""
+    from jaxnm.geometry import closed_shape
+
+    for mesh in (procedural.default_torus(), procedural.torus(1.0, 0.4, 16, 8),
+                 procedural.uv_sphere(1.0, 16, 8)):
+        box = closed_shape(mesh.positions, mesh.faces)
+        pos = np.asarray(mesh.positions, np.float64)
+        np.testing.assert_array_equal(box, np.stack([pos.min(0), pos.max(0)]))
+    torus = procedural.torus(1.0, 0.4, 16, 8)
+    faces = np.asarray(torus.faces)
+    flipped_one = faces.copy()
+    flipped_one[5] = flipped_one[5, ::-1]
+    for f in (faces[1:], faces[:, ::-1], flipped_one):
+        assert closed_shape(torus.positions, jnp.asarray(f)) is None
+    plane = procedural.plane()
+    assert closed_shape(plane.positions, plane.faces) is None
+
+
+def test_back_faces_are_culled_only_where_none_can_be_seen(monkeypatch):
+    """`render` skips the back faces of a closed mesh wholly in front of the camera
+    (`back_faces_hidden`) and renders what it renders without culling: every output equal.
+    Not where the camera is inside the mesh's box, where the near plane cuts the mesh, where
+    the model mirrors it, or for an open mesh."""
+    import importlib
+
+    R = importlib.import_module("jaxnm.render")
+    scene = default_scene(width=64, height=48)
+    assert R.back_faces_hidden(scene.mesh, scene.camera, scene.model)
+    outputs = ("color", "triangle_id", "front_facing", "perturbed_normal", "depth")
+    culled = render(scene, outputs=outputs)
+    monkeypatch.setattr(R, "back_faces_hidden", lambda *a, **k: False)
+    plain = render(scene, outputs=outputs)
+    monkeypatch.undo()
+    for name in outputs:
+        np.testing.assert_array_equal(np.asarray(culled[name]), np.asarray(plain[name]), name)
+    hidden = R.back_faces_hidden
+    inside = jaxnm.Camera.look_at((0.0, 0.0, 0.2), (1.0, 0.0, 0.0), up=(0, 0, 1))
+    assert not hidden(scene.mesh, inside)  # in the torus's hole: inside its box
+    eye = np.asarray(scene.camera.eye, np.float64)
+    d = float(np.linalg.norm(eye))
+    cut = jaxnm.Camera.look_at(eye, (0.0, 0.0, 0.0), up=(0, 0, 1), near=d - 0.5, far=d + 5)
+    assert not hidden(scene.mesh, cut)  # the near plane cuts the torus open
+    mirror = np.diag([-1.0, 1.0, 1.0, 1.0])
+    assert not hidden(scene.mesh, scene.camera, mirror)
+    assert hidden(scene.mesh, scene.camera, np.diag([2.0, 2.0, 2.0, 1.0]))
+    plane = procedural.plane()
+    assert not hidden(plane, scene.camera)
 
 
 @pytest.mark.parametrize("offset", [0.0, 1e4])
