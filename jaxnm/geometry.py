@@ -241,20 +241,20 @@ def closed_shape(positions, faces) -> np.ndarray | None:
     is used by exactly two faces, once in each direction (closed, manifold, consistently
     oriented; faces with two welded corners equal are dropped); outside: the enclosed
     volume (the sum of the faces' signed tetrahedra) is positive. On the host, in
-    float64/int64; remembered for JAX arrays (about 0.1 s for 200k triangles, once). None
-    for traced arrays."""
+    float64/int64, once per mesh (about 0.1 s for 200k triangles): remembered by the
+    arrays' identities, so only for concrete JAX arrays; None for NumPy arrays (which can
+    change in place, and would be examined again every frame) and traced ones."""
     arrays = (positions, faces)
-    if any(isinstance(x, jax.core.Tracer) for x in arrays):
-        return None
     key = _key(arrays)
-    hit = None if key is None else _SHAPES.get(key)
+    if key is None or any(x is None for x in arrays):
+        return None
+    hit = _SHAPES.get(key)
     if hit is not None and all(r() is x for r, x in zip(hit[0], arrays)):
         return hit[1]
     box = _closed_shape(np.asarray(positions, np.float64), np.asarray(faces, np.int64))
-    if key is not None:
-        if len(_SHAPES) >= _CHECKED_MAX:
-            _SHAPES.pop(next(iter(_SHAPES)))
-        _SHAPES[key] = (tuple(weakref.ref(x) for x in arrays), box)
+    if len(_SHAPES) >= _CHECKED_MAX:
+        _SHAPES.pop(next(iter(_SHAPES)))
+    _SHAPES[key] = (tuple(weakref.ref(x) for x in arrays), box)
     return box
 
 

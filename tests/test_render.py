@@ -679,6 +679,8 @@ def test_closed_shape_knows_a_closed_outward_mesh():
         assert closed_shape(torus.positions, jnp.asarray(f)) is None
     plane = procedural.plane()
     assert closed_shape(plane.positions, plane.faces) is None
+    # NumPy arrays can change in place: not examined (every frame would pay for it)
+    assert closed_shape(np.asarray(torus.positions), faces) is None
 
 
 def test_back_faces_are_culled_only_where_none_can_be_seen(monkeypatch):
