@@ -19,7 +19,8 @@ from jax import Array
 #: Matrix products of geometry are computed in full float32 on every backend.
 HIGHEST = jax.lax.Precision.HIGHEST
 
-__all__ = ["Camera", "look_at", "perspective", "orthographic", "to_clip", "eye_to_world"]
+__all__ = ["Camera", "look_at", "perspective", "orthographic", "to_clip", "clip_float64",
+           "eye_to_world"]
 
 
 @jax.tree_util.register_dataclass
@@ -153,6 +154,20 @@ def to_clip(positions: Array, camera: Camera) -> Array:
     e = [d[0] * a[i, 0] + d[1] * a[i, 1] + d[2] * a[i, 2] for i in range(3)]
     return jnp.stack([e[0] * proj[i, 0] + e[1] * proj[i, 1] + e[2] * proj[i, 2] + proj[i, 3]
                       for i in range(4)], -1)
+
+
+def clip_float64(points, camera: Camera, model=None) -> np.ndarray:
+    """`to_clip` on the host in float64: clip-space coordinates (N, 4) of object-space
+    ``points`` (N, 3) moved by ``model`` (an affine 4x4 object-to-world matrix, or None)
+    and seen by a concrete ``camera``. For decisions made before a frame's programs run
+    (the near-plane check, back-face culling)."""
+    p = np.asarray(points, np.float64)
+    if model is not None:
+        m = np.asarray(model, np.float64)
+        p = p @ m[:3, :3].T + m[:3, 3]
+    rot = np.asarray(camera.view, np.float64)[:3, :3]
+    proj = np.asarray(camera.projection, np.float64)
+    return ((p - np.asarray(camera.eye, np.float64)) @ rot.T) @ proj[:, :3].T + proj[:, 3]
 
 
 def eye_to_world(camera: Camera, direction) -> np.ndarray:

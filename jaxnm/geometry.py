@@ -167,9 +167,9 @@ def validate_arrays(positions, faces, uv=None, normals=None, *, source: str = "m
             raise ValueError(f"{source}: {name} must have shape ({shape[0]}, {c}), "
                              f"got {jnp.shape(arr)}")
     arrays = (positions, faces, uv, normals)
-    if not _checked_before(arrays):
+    if _recall(_CHECKED, arrays) is _MISS:
         _check_values(*arrays, shape[0], source)
-        _remember_checked(arrays)
+        _remember(_CHECKED, arrays, True)
 
 
 def _check_values(positions, faces, uv, normals, num_vertices: int, source: str) -> None:
@@ -190,11 +190,13 @@ def _check_values(positions, faces, uv, normals, num_vertices: int, source: str)
             raise ValueError(f"{source}: {name} contain NaN or infinite values")
 
 
-# Value checks passed by immutable JAX arrays, keyed by the arrays' identities (weakly held:
-# an entry dies with its arrays). Rendering the same mesh again skips the host-side scans
-# (12 ms a frame for 200k triangles). NumPy arrays can change in place: never remembered.
-_CHECKED: dict[tuple[int, ...], tuple] = {}
-_CHECKED_MAX = 256
+# Results about immutable JAX arrays, keyed by the arrays' identities (weakly held: an entry
+# dies with its arrays): rendering the same mesh again skips the host-side work (the value
+# checks: 12 ms a frame for 200k triangles). NumPy arrays can change in place: never kept.
+_CHECKED: dict[tuple[int, ...], tuple] = {}  # `validate_arrays`: passed (True)
+_SHAPES: dict[tuple[int, ...], tuple] = {}  # `closed_shape`: its answer
+_MEMO_MAX = 256
+_MISS = object()
 
 
 def _key(arrays) -> tuple[int, ...] | None:
@@ -204,31 +206,28 @@ def _key(arrays) -> tuple[int, ...] | None:
     return tuple(id(x) for x in arrays)
 
 
-def _checked_before(arrays) -> bool:
-    """Whether these exact (immutable JAX) arrays passed a value check before."""
+def _recall(memo: dict, arrays):
+    """What `_remember` kept in ``memo`` for these exact arrays, or `_MISS`."""
     key = _key(arrays)
-    refs = None if key is None else _CHECKED.get(key)
-    return refs is not None and all(
-        (r is None and x is None) or (r is not None and r() is x) for r, x in zip(refs, arrays))
+    hit = None if key is None else memo.get(key)
+    if hit is None or not all((r is None and x is None) or (r is not None and r() is x)
+                              for r, x in zip(hit[0], arrays)):
+        return _MISS
+    return hit[1]
 
 
-def _remember_checked(arrays) -> None:
-    """Record that these arrays passed a value check (no-op unless `_key` has them)."""
+def _remember(memo: dict, arrays, value) -> None:
+    """Keep ``value`` in ``memo`` for these arrays (no-op unless `_key` has them)."""
     key = _key(arrays)
     if key is None:
         return
-    if len(_CHECKED) >= _CHECKED_MAX:
-        _CHECKED.pop(next(iter(_CHECKED)))
-    _CHECKED[key] = tuple(None if x is None else weakref.ref(x) for x in arrays)
+    if len(memo) >= _MEMO_MAX:
+        memo.pop(next(iter(memo)))
+    memo[key] = (tuple(None if x is None else weakref.ref(x) for x in arrays), value)
 
 
 def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
-
-
-# `closed_shape` per mesh, keyed by the arrays' identities like `_CHECKED` (JAX arrays only:
-# immutable), so a mesh rendered frame after frame is examined once.
-_SHAPES: dict[tuple[int, ...], tuple] = {}
 
 
 def closed_shape(positions, faces) -> np.ndarray | None:
@@ -245,16 +244,12 @@ def closed_shape(positions, faces) -> np.ndarray | None:
     arrays' identities, so only for concrete JAX arrays; None for NumPy arrays (which can
     change in place, and would be examined again every frame) and traced ones."""
     arrays = (positions, faces)
-    key = _key(arrays)
-    if key is None or any(x is None for x in arrays):
+    if _key(arrays) is None or positions is None or faces is None:
         return None
-    hit = _SHAPES.get(key)
-    if hit is not None and all(r() is x for r, x in zip(hit[0], arrays)):
-        return hit[1]
-    box = _closed_shape(np.asarray(positions, np.float64), np.asarray(faces, np.int64))
-    if len(_SHAPES) >= _CHECKED_MAX:
-        _SHAPES.pop(next(iter(_SHAPES)))
-    _SHAPES[key] = (tuple(weakref.ref(x) for x in arrays), box)
+    box = _recall(_SHAPES, arrays)
+    if box is _MISS:
+        box = _closed_shape(np.asarray(positions, np.float64), np.asarray(faces, np.int64))
+        _remember(_SHAPES, arrays, box)
     return box
 
 

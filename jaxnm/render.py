@@ -28,7 +28,7 @@ from jax import Array
 from . import frames as _frames
 from . import maps as _maps
 from . import textures as _tex
-from .camera import Camera, to_clip
+from .camera import Camera, clip_float64, to_clip
 from .geometry import Mesh, closed_shape
 from .interpolate import (
     Attribute,
@@ -593,17 +593,10 @@ def back_faces_hidden(mesh: Mesh, camera: Camera, model=None) -> bool:
     box = closed_shape(mesh.positions, mesh.faces)
     if box is None:
         return False
-    corners = np.array([[box[i, 0], box[j, 1], box[k, 2]]
-                        for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-    if model is not None:
-        m = np.asarray(model, np.float64)
-        if not np.linalg.det(m[:3, :3]) > 0:
-            return False
-        corners = corners @ m[:3, :3].T + m[:3, 3]
-    eye = np.asarray(camera.eye, np.float64)
-    proj = np.asarray(camera.projection, np.float64)
-    clip = ((corners - eye) @ np.asarray(camera.view, np.float64)[:3, :3].T) @ proj[:, :3].T
-    clip = clip + proj[:, 3]
+    if model is not None and not np.linalg.det(np.asarray(model, np.float64)[:3, :3]) > 0:
+        return False
+    corners = [[box[i, 0], box[j, 1], box[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+    clip = clip_float64(corners, camera, model)
     w = clip[:, 3]
     return bool(np.all(w > 0) and np.all(clip[:, 2] + w > 1e-6 * w))
 

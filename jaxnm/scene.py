@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .camera import Camera
+from .camera import Camera, clip_float64
 from .frames import check_frame
 from .geometry import Mesh, validate_arrays
 from .interpolate import check_derivatives, check_precision
@@ -203,18 +203,10 @@ def _check_near_plane(scene: Scene) -> None:
         return
     if scene.model is not None and not _is_concrete(scene.model):
         return
-    cam = scene.camera  # float64 NumPy, as `jaxnm.camera.to_clip` (no traced op inside jit)
     positions = np.asarray(scene.mesh.positions)
-    m64 = None if scene.model is None else np.asarray(scene.model, np.float64)
-    eye = np.asarray(cam.eye, np.float64)
-    rot = np.asarray(cam.view, np.float64)[:3, :3]
-    proj = np.asarray(cam.projection, np.float64)
 
-    def any_in_front(p):
-        world = p.astype(np.float64)
-        if m64 is not None:
-            world = world @ m64[:3, :3].T + m64[:3, 3]
-        clip = ((world - eye) @ rot.T) @ proj[:, :3].T + proj[None, :, 3]
+    def any_in_front(p):  # float64 NumPy (no traced op inside jit)
+        clip = clip_float64(p, scene.camera, scene.model)
         return bool(np.any(clip[:, 2] >= -clip[:, 3]))
 
     # a few hundred vertices usually settle it; all of them only when none of those is seen
