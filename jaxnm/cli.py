@@ -121,7 +121,7 @@ def _render(args) -> int:
 
 
 def _add_fit(sub) -> None:
-    from .fit import SOLVERS
+    from .fit import SOLVERS, TEXEL_SUMS
 
     p = sub.add_parser("fit", help="fit a normal map to target shading",
                        description="Fit a tangent-space normal map to target images.")
@@ -139,6 +139,9 @@ def _add_fit(sub) -> None:
                    help="converged when the loss falls by less than this fraction over "
                    "--patience steps (default 1e-3; 0: run all --max-steps)")
     p.add_argument("--patience", type=int, help="steps the --ftol test spans (default 3)")
+    p.add_argument("--texel-sums", dest="texel_sums", choices=TEXEL_SUMS,
+                   help="lm-texel's sums into the texels: scatter-adds, or fixed-order tables "
+                   "(deterministic without sorting; default auto: tables on a GPU)")
     p.add_argument("--seed", type=int)
     p.add_argument("--time-limit", type=float, dest="time_limit", metavar="SECONDS")
     p.add_argument("--quick", action="store_true",
@@ -158,7 +161,7 @@ def _fit(args) -> int:
         lambda msg: print(msg, file=sys.stderr, flush=True))
     overrides = {k: getattr(args, k) for k in ("solver", "max_steps", "smoothness", "seed",
                                                 "lsmr_steps", "coarse_to_fine", "ftol",
-                                                "patience")
+                                                "patience", "texel_sums")
                  if getattr(args, k) is not None}
     if args.time_limit is not None and not args.time_limit > 0:
         raise ValueError(f"--time-limit must be a positive number of seconds, got "

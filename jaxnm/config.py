@@ -51,7 +51,8 @@ A **fit file**::
                     "lights": [...]}],          // optional: scored, never fitted
       "solver": {"method": "lm-texel", "max_steps": 30, "lsmr_steps": 10, "smoothness": 0,
                  "coarse_to_fine": 0, "seed": 0, "time_limit": null,
-                 "ftol": 0.001, "patience": 3}   // converged: < 0.1 % loss drop in 3 steps
+                 "ftol": 0.001, "patience": 3,   // converged: < 0.1 % loss drop in 3 steps
+                 "texel_sums": "auto"}           // or "scatter", "tables" (FitOptions)
     }
 
 Target images: PNG (8 or 16 bit), EXR, or ``.npy``/``.npz`` float arrays;
@@ -92,7 +93,7 @@ FIT_KEYS = ("scene", "views", "targets", "map", "ground_truth", "held_out", "sol
 _SOLVER_KEYS = {"method": "solver", "max_steps": "max_steps", "lsmr_steps": "lsmr_steps",
                 "smoothness": "smoothness", "coarse_to_fine": "coarse_to_fine", "seed": "seed",
                 "rtol": "rtol", "atol": "atol", "init_noise": "init_noise", "ftol": "ftol",
-                "patience": "patience"}
+                "patience": "patience", "texel_sums": "texel_sums"}
 _KINDS = {
     int: "an integer",
     float: "a number",
@@ -419,7 +420,7 @@ def _solver_options(spec: Any, where: str) -> tuple[FitOptions, float | None]:
         raise ValueError(f"{where}'solver' must be an object")
     _keys(spec, list(_SOLVER_KEYS) + ["time_limit"], w)
     kinds = {"method": str, "max_steps": int, "lsmr_steps": int, "coarse_to_fine": int,
-             "seed": int, "patience": int}
+             "seed": int, "patience": int, "texel_sums": str}
     values = {_SOLVER_KEYS[k]: _field(spec, k, kinds.get(k, float), None, w)
               for k in spec if k in _SOLVER_KEYS}
     time_limit = _field(spec, "time_limit", float, None, w)

@@ -44,7 +44,7 @@ from jax.custom_derivatives import SymbolicZero
 from jax.typing import ArrayLike
 
 from .interpolate import Attribute
-from .numerics import safe_normalize, safe_sqrt, tiny
+from .numerics import SumTables, safe_normalize, safe_sqrt, sum_by_tables, sum_tables, tiny
 
 __all__ = [
     "NormalMapOptions",
@@ -60,6 +60,8 @@ __all__ = [
     "lod",
     "plan_sample",
     "apply_plan",
+    "plan_sum_tables",
+    "transpose_plan",
     "sample",
     "decode_normal_map",
     "encode_normal_map",
@@ -486,6 +488,39 @@ def _apply_plan(plan: SamplePlan, used: tuple[Array, ...]) -> Array:
     dtype = jnp.result_type(*used)
     flat = jnp.concatenate([m.reshape(-1, channels).astype(dtype) for m in used], 0)
     return _gather_weighted(flat, plan.index, plan.weight.astype(dtype))
+
+
+def plan_sum_tables(plan: SamplePlan, indices: Sequence[ArrayLike] | None = None) -> SumTables:
+    """The fixed-order texel sums (`jaxnm.numerics.sum_tables`) of ``plan``'s gather: what
+    `transpose_plan` needs. Built on the host from the plan's concrete indices, or from
+    ``indices`` (a list of index arrays of plans with ``plan``'s levels, e.g. the chunks of
+    one: the tables are then stacked, one per array)."""
+    size = sum(h * w for h, w in plan.level_shapes)
+    if indices is None:
+        return sum_tables(np.asarray(plan.index), size)
+    return sum_tables([np.asarray(i) for i in indices], size)
+
+
+def transpose_plan(plan: SamplePlan, tables: SumTables, cotangent: ArrayLike,
+                   mips: Sequence[ArrayLike]) -> tuple[Array, ...]:
+    """The cotangent of `apply_plan` ``(plan, mips)`` w.r.t. ``mips`` for the output
+    cotangent ``cotangent`` (..., C): what ``jax.vjp`` gives (a scatter-add of the weighted
+    cotangent into the texels), summed instead through ``tables`` (`plan_sum_tables` of
+    this plan) in a fixed order: the same on every run, on every device, with no sort. One
+    array per level of ``mips`` (zeros for the levels the plan does not read)."""
+    cot = jnp.asarray(cotangent)
+    channels = cot.shape[-1]
+    parts = (plan.weight.astype(cot.dtype)[..., None] * cot[..., None, :]).reshape(-1, channels)
+    flat = sum_by_tables(parts, tables)
+    out, offset = [], 0
+    for k, m in enumerate(mips):
+        if k < len(plan.level_shapes):
+            h, w = plan.level_shapes[k]
+            out.append(flat[offset:offset + h * w].reshape(h, w, channels).astype(m.dtype))
+            offset += h * w
+        else:
+            out.append(jnp.zeros(jnp.shape(m), jnp.result_type(m)))
+    return tuple(out)
 
 
 def _gather(flat: Array, index: Array) -> Array:

@@ -11,7 +11,8 @@
 # `profile_render.py`: render's parts, its host steps and the fit's steps with
 # deterministic ops (traced: the kernels that take the device's time), the same with
 # loops and conditionals in CUDA graphs (`jaxnm.runtime.use_gpu_graphs`), and the fit's
-# steps without deterministic ops; ("tests") the test suite (pytest-xdist, processes
+# steps without deterministic ops; the fit's steps each time with scatter-adds and with
+# fixed-order texel sums (`FitOptions.texel_sums`), and whether two runs agree bit for bit; ("tests") the test suite (pytest-xdist, processes
 # sharing the card). "all" runs both, timing first.
 set -u
 out=${1:?usage: scripts/gpu_check.sh OUTDIR [SECONDS] [all|timing|tests]}
@@ -41,12 +42,12 @@ jax.devices())"; } 2>&1 | tee "$out/device.log"
 if [[ $part != tests ]]; then
   step bench 150 env XLA_FLAGS="$det" "$py" scripts/bench.py --no-mitsuba --no-cli \
     --parts forward,fit --budget 6 --repeats 10 --out "$out/bench"
-  step profile 80 env XLA_FLAGS="$det" "$py" scripts/profile_render.py --host --fit --trace \
-    --repeats 20 --out "$out/profile"
-  step profile_graphs 70 env XLA_FLAGS="$det $cb" "$py" scripts/profile_render.py --fit \
-    --repeats 20 --out "$out/profile"
-  step fit_nondeterministic 30 "$py" scripts/profile_render.py --scenes "" --fit \
-    --out "$out/profile"
+  step profile 100 env XLA_FLAGS="$det" "$py" scripts/profile_render.py --host --fit --trace \
+    --texel-sums scatter,tables --repeats 20 --out "$out/profile"
+  step profile_graphs 80 env XLA_FLAGS="$det $cb" "$py" scripts/profile_render.py --fit \
+    --texel-sums scatter,tables --repeats 20 --out "$out/profile"
+  step fit_nondeterministic 45 "$py" scripts/profile_render.py --scenes "" --fit \
+    --texel-sums scatter,tables --out "$out/profile"
   echo "=== summary (timing)"
   tail -n 30 "$out/bench.log"
   for f in profile profile_graphs fit_nondeterministic; do

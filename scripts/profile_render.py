@@ -17,7 +17,9 @@ the CPU), with each variant's compile time. ``--host`` breaks `render`'s host pa
 (before its program is dispatched) into its steps.
 
 ``--fit`` also times steps of the fit benchmark (``--solver``, default lm-texel), with
-the first run's time (compilation included).
+the first run's time (compilation included), for each of ``--texel-sums`` (e.g.
+``scatter,tables``: how the step sums into the texels, `FitOptions.texel_sums`), and
+says whether two runs gave the same map bit for bit.
 ``--trace`` also records a profiler trace of the whole-frame program (and, with ``--fit``,
 of the fit's steps) and prints the kernels that take the most device time per frame (per
 step): on a GPU, its kernels and copies; on the CPU, XLA's thunks, which nest (an
@@ -205,7 +207,10 @@ def profile_host(name, grid, size, args) -> dict:
     return row
 
 
-def profile_fit(args) -> dict:
+def profile_fit(args) -> list[dict]:
+    """The fit benchmark's steps, for each of ``--texel-sums``: the first run (compilation
+    included), the time per step of the next, and whether two runs gave the same map bit
+    for bit (scatter-adds on a GPU need not, without deterministic ops)."""
     p = B.make_problem()
     targets = []
     for d in p.light_dirs:
@@ -216,27 +221,37 @@ def profile_fit(args) -> dict:
                                    p.gt_texels.shape[:2], source="<benchmark>")
     prep = F.prepare(problem)
     steps = 10
-    opts = F.FitOptions(solver=args.solver, max_steps=steps, lsmr_steps=10)
+    rows, first_map = [], None
+    for sums in args.texel_sums.split(","):
+        opts = F.FitOptions(solver=args.solver, max_steps=steps, lsmr_steps=10, ftol=0.0,
+                            texel_sums=sums)
 
-    def run():
-        return F.fit_normal_map(problem, opts, prepared=prep, progress=False)
+        def run(opts=opts):
+            return F.fit_normal_map(problem, opts, prepared=prep, progress=False)
 
-    t = time.perf_counter()
-    run()  # compiles
-    first = time.perf_counter() - t
-    t = time.perf_counter()
-    res = run()
-    row = {"fit": f"benchmark {args.solver}", "backend": jax.default_backend(),
-           "first_run_s": round(first, 2),
-           "xla_flags": os.environ.get("XLA_FLAGS", ""),
-           "s_per_step": round((time.perf_counter() - t) / steps, 4),
-           "history_steps": len(res.history) - 1}
-    if args.trace:
-        d = Path(args.out) / "trace_fit"
-        with jax.profiler.trace(str(d), create_perfetto_trace=True):
-            run()
-        row["kernels"] = kernel_table(d, steps)
-    return row
+        t = time.perf_counter()
+        res0 = run()  # compiles
+        first = time.perf_counter() - t
+        t = time.perf_counter()
+        res = run()
+        row = {"fit": f"benchmark {args.solver}", "backend": jax.default_backend(),
+               "texel_sums": F.texel_sums_for(prep, opts), "first_run_s": round(first, 2),
+               "xla_flags": os.environ.get("XLA_FLAGS", ""),
+               "s_per_step": round((time.perf_counter() - t) / steps, 4),
+               "history_steps": len(res.history) - 1,
+               "runs_identical": bool(np.array_equal(res0.slopes, res.slopes)),
+               "runs_max_diff": float(np.abs(res0.slopes - res.slopes).max())}
+        if first_map is None:
+            first_map = res.slopes
+        else:
+            row["max_diff_vs_first_mode"] = float(np.abs(res.slopes - first_map).max())
+        if args.trace:
+            d = Path(args.out) / f"trace_fit_{sums}"
+            with jax.profiler.trace(str(d), create_perfetto_trace=True):
+                run()
+            row["kernels"] = kernel_table(d, steps)
+        rows.append(row)
+    return rows
 
 
 def main(argv=None) -> None:
@@ -247,6 +262,8 @@ def main(argv=None) -> None:
     ap.add_argument("--fit", action="store_true", help="also the fit benchmark's LM steps")
     ap.add_argument("--solver", choices=F.SOLVERS, default=F.FitOptions().solver,
                     help="the solver --fit times (default: FitOptions')")
+    ap.add_argument("--texel-sums", dest="texel_sums", default="auto",
+                    help="--fit: FitOptions.texel_sums to time, e.g. scatter,tables")
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--slots", default="", help="e.g. 15,17,19: rounds of 2^k slots")
     ap.add_argument("--host", action="store_true", help="render's host steps, one by one")
@@ -261,7 +278,8 @@ def main(argv=None) -> None:
                 for row in profile_slots(name, *SCENES[name], args):
                     print(json.dumps(row), flush=True)
     if args.fit:
-        print(json.dumps(profile_fit(args)), flush=True)
+        for row in profile_fit(args):
+            print(json.dumps(row), flush=True)
 
 
 if __name__ == "__main__":

@@ -8,7 +8,16 @@ import numpy as np
 import pytest
 from helpers import jaxpr_equations
 
-from jaxnm.numerics import cumsum, flat_nonzero, materialize, safe_normalize, spread
+from jaxnm.numerics import (
+    SumTables,
+    cumsum,
+    flat_nonzero,
+    materialize,
+    safe_normalize,
+    spread,
+    sum_by_tables,
+    sum_tables,
+)
 
 
 def _while_carry_types(hlo: str) -> list[str]:
@@ -103,6 +112,65 @@ def test_cumsum_and_flat_nonzero_reject_what_they_do_not_handle():
         cumsum(jnp.ones((2, 3), jnp.int32))
     with pytest.raises(ValueError, match="1-D boolean"):
         flat_nonzero(jnp.ones((3,), jnp.int32), 3, 0)
+
+
+def _sums_in_float64(dest, values, size):
+    ref = np.zeros((size,) + values.shape[1:])
+    np.add.at(ref, dest, values.astype(np.float64))
+    return ref
+
+
+@pytest.mark.parametrize("width", [2, 8])
+def test_sum_tables_sum_each_destination_once_in_a_fixed_order(width):
+    """`sum_by_tables` equals the float64 sums per destination (within float32 rounding of
+    each term's partial sums), for destinations with no entries, one, a row's worth, and
+    700 (several levels); the same tables give the same bits every call; stacked tables
+    (common shapes, different depths) equal each array's own; the final scatter writes
+    distinct destinations, so XLA needs no sorting to make it deterministic."""
+    rng = np.random.default_rng(0)
+    size = 60
+    dest = np.r_[rng.integers(0, 40, 300), np.full(700, 7), [45] * width, [50]]
+    rng.shuffle(dest)
+    values = rng.normal(size=(dest.size, 3)).astype(np.float32)
+    tables = sum_tables(dest, size, width)
+    most, levels = np.bincount(dest).max(), 1  # dest 7's entries: ceil(log_width) levels
+    while width ** levels < most:
+        levels += 1
+    assert len(tables.tables) == levels
+    got = np.asarray(jax.jit(sum_by_tables)(values, tables))
+    ref = _sums_in_float64(dest, values, size)
+    bound = 8 * np.finfo(np.float32).eps * _sums_in_float64(dest, np.abs(values), size)
+    assert np.all(np.abs(got - ref) <= bound + 1e-30)
+    assert np.all(got[ref == 0] == 0) and not got[np.setdiff1d(np.arange(size), dest)].any()
+    np.testing.assert_array_equal(np.asarray(jax.jit(sum_by_tables)(values, tables)), got)
+    # a 1-D value array too; the transpose is gathers: d sum(c * out) / d values = c[dest]
+    c = rng.normal(size=size).astype(np.float32)
+    grad = jax.grad(lambda v: jnp.sum(jnp.asarray(c) * sum_by_tables(v, tables)))(
+        jnp.asarray(values[:, 0]))
+    np.testing.assert_array_equal(np.asarray(grad), c[dest])
+    hlo = jax.jit(sum_by_tables).lower(values, tables).as_text()
+    assert re.search(r"scatter.*unique_indices = true", hlo), "the final scatter is not unique"
+    # stacked: one short array (one level) and an empty one beside the deep one
+    parts = [dest, dest[:5], np.zeros(0, np.int64)]
+    stacked = sum_tables(parts, size, width)
+    assert stacked.tables[0].shape[0] == 3 and len(stacked.tables) == len(tables.tables)
+    for k, d in enumerate(parts):
+        one = jax.tree_util.tree_map(lambda x, k=k: x[k], stacked)
+        out = np.asarray(sum_by_tables(values[:d.size], one))
+        np.testing.assert_allclose(out, _sums_in_float64(d, values[:d.size], size),
+                                   rtol=1e-5, atol=1e-5)
+    assert SumTables.PAD > dest.size
+
+
+def test_sum_tables_refuse_what_they_cannot_sum():
+    with pytest.raises(ValueError, match="integers"):
+        sum_tables(np.zeros(3), 4)
+    with pytest.raises(ValueError, match=r"in \[0, 4\), found 4"):
+        sum_tables(np.array([0, 4]), 4)
+    with pytest.raises(ValueError, match="found -1"):
+        sum_tables([np.array([0]), np.array([-1])], 4)
+    with pytest.raises(ValueError, match="width"):
+        sum_tables(np.array([0, 1]), 4, width=1)
 
 
 def _minor_axis_sums(closed) -> list:

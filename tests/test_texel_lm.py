@@ -2,13 +2,20 @@
 loss, gradient and Gauss-Newton products against the residuals' own linearisation, its
 fits against the known map, and its memory against the views."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from jaxnm import fit as F
-from jaxnm.fit.texel_lm import TexelLM, gauss_newton_parts, gauss_newton_product
+from jaxnm.fit.texel_lm import (
+    TexelLM,
+    gauss_newton_parts,
+    gauss_newton_product,
+    texel_sum_tables,
+)
 from jaxnm.procedural import default_problem
 
 
@@ -50,6 +57,48 @@ def test_loss_gradient_and_products_are_the_residuals(small):
             # H is L L^T = B^T B + delta I per pixel (delta: 1e-6 of the trace)
             np.testing.assert_allclose(np.asarray(got), np.asarray(want),
                                        atol=1e-5 * float(jnp.max(jnp.abs(want))))
+
+
+def test_texel_sums_by_tables_equal_the_scatter_adds(small):
+    """With the fixed-order texel sums (`texel_sum_tables`, ``texel_sums="tables"``) a step's
+    loss, gradient and Gauss-Newton products equal the scatter-adds' to float32 rounding,
+    whole and in chunks (tables stacked per chunk; three levels deep here); a fit with them
+    takes the same steps, and two fits give the same map bit for bit."""
+    problem, gt, whole, cut = small
+    rng = np.random.default_rng(4)
+    z = jnp.asarray(rng.normal(0, 0.3, (32, 32, 2)), jnp.float32)
+    v = jnp.asarray(rng.normal(0, 1.0, (32, 32, 2)), jnp.float32)
+    for prep in (whole, cut):
+        sums = texel_sum_tables(prep)
+        counts = [n for _, _, n, _ in prep.batches[0].pixel_groups()]
+        assert [t.targets.shape[0] for t in sums[0]] == counts
+        scale = F.preconditioner(prep)
+        want = _parts(z, F.ModelArgs.create(prep, scale=scale, smoothness=0.01), v)
+        got = _parts(z, F.ModelArgs.create(prep, scale=scale, smoothness=0.01,
+                                           texel_sums=sums), v)
+        np.testing.assert_allclose(float(got[0]), float(want[0]), rtol=1e-6)
+        for g, w in zip(got[1:], want[1:]):
+            np.testing.assert_allclose(np.asarray(g), np.asarray(w),
+                                       atol=1e-5 * float(jnp.max(jnp.abs(w))))
+    opts = F.FitOptions(max_steps=6, ftol=0.0)
+    assert F.texel_sums_for(whole, opts) == "scatter"  # "auto" on the CPU
+    assert F.texel_sums_for(whole, opts, backend="gpu") == "tables"
+    tables = dataclasses.replace(opts, texel_sums="tables")
+    a = F.fit_normal_map(problem, opts, prepared=cut, progress=False)
+    b = F.fit_normal_map(problem, tables, prepared=cut, progress=False)
+    c = F.fit_normal_map(problem, tables, prepared=cut, progress=False)
+    np.testing.assert_array_equal(c.slopes, b.slopes)
+    np.testing.assert_allclose([h["loss"] for h in b.history],
+                               [h["loss"] for h in a.history], rtol=1e-3)
+    np.testing.assert_allclose(b.slopes, a.slopes, atol=0.01 * np.abs(a.slopes).max())
+
+
+def test_texel_sums_option_is_checked():
+    with pytest.raises(ValueError, match="unknown texel_sums 'atomic'"):
+        F.FitOptions(texel_sums="atomic")
+    with pytest.raises(ValueError, match="'lm-texel' solver, not 'lm'"):
+        F.FitOptions(solver="lm", texel_sums="tables")
+    assert F.TEXEL_SUMS == ("auto", "scatter", "tables")
 
 
 def test_fits_the_known_map_monotonically(small):

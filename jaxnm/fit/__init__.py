@@ -70,6 +70,7 @@ from .prepare import shard_views as shard_views
 from .prepare import view_key as view_key
 from .prepare import with_map_size as with_map_size
 from .problem import SOLVERS as SOLVERS
+from .problem import TEXEL_SUMS as TEXEL_SUMS
 from .problem import FitJob as FitJob
 from .problem import FitOptions as FitOptions
 from .problem import FitProblem as FitProblem
@@ -86,13 +87,15 @@ from .solve import fit_normal_map as fit_normal_map
 from .solve import level_sizes as level_sizes
 from .solve import make_solver as make_solver
 from .solve import preconditioner as preconditioner
+from .solve import texel_sums_for as texel_sums_for
 
 __all__ = [
-    "SOLVERS", "FitOptions", "FitProblem", "FitResult", "FitTarget", "FitWarning", "ModelArgs",
+    "SOLVERS", "TEXEL_SUMS", "FitOptions", "FitProblem", "FitResult", "FitTarget",
+    "FitWarning", "ModelArgs",
     "Prepared", "View", "ViewBatch", "angular_error", "check_identifiability", "error_report",
     "fit_normal_map", "level_sizes", "loss", "make_solver", "normals_to_slopes",
     "preconditioner", "prepare", "problem_from_scene", "psnr", "render_with_map", "residuals",
     "sample_split", "seen_texels", "slopes_to_normals", "texel_influence", "validate_problem",
     "view_key", "with_map_size", "shard_views", "FitJob", "FitOutputs", "fit_outputs",
-    "prepare_held_out", "score_held_out", "CHUNK",
+    "prepare_held_out", "score_held_out", "CHUNK", "texel_sums_for",
 ]

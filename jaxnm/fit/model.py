@@ -52,6 +52,9 @@ class ModelArgs:
     - `reduce` (static): return each pixel's residuals in the reduced form of
       `reduced_pixel_residuals` (4 numbers per pixel instead of 3 per target);
       the loss and the Gauss-Newton model are the same.
+    - `texel_sums`: the fixed-order texel sums of `jaxnm.fit.texel_lm.texel_sum_tables`
+      (per batch, per pixel group), or None: the ``"lm-texel"`` solver then sums into the
+      texels by scatter-adds (see `FitOptions.texel_sums`).
     """
 
     prepared: Prepared
@@ -59,10 +62,12 @@ class ModelArgs:
     strength: Array
     scale: Array
     reduce: bool = dataclasses.field(default=False, metadata=dict(static=True))
+    texel_sums: tuple | None = None
 
     @staticmethod
     def create(prepared: Prepared, *, smoothness: float = 0.0, strength: float = 1.0,
-               scale: Array | None = None, reduce: bool = False) -> ModelArgs:
+               scale: Array | None = None, reduce: bool = False,
+               texel_sums: tuple | None = None) -> ModelArgs:
         """Arguments for ``prepared`` (no preconditioning unless ``scale`` is given; see
         `residuals` for ``reduce``)."""
         h, w = prepared.options[0].normal_map_shape
@@ -70,7 +75,7 @@ class ModelArgs:
                          None if smoothness <= 0 else jnp.asarray(smoothness, jnp.float32),
                          jnp.asarray(strength, jnp.float32),
                          jnp.ones((h, w, 1), jnp.float32) if scale is None else scale,
-                         reduce=bool(reduce))
+                         reduce=bool(reduce), texel_sums=texel_sums)
 
 
 def slopes_to_normals(slopes: Array) -> Array:

@@ -23,6 +23,8 @@ __all__ = ["SOLVERS", "FitWarning", "FitTarget", "FitProblem", "FitOptions", "Fi
 #: space (`jaxnm.fit.texel_lm`: memory that does not grow with the views beyond their
 #: prepared pixels), ``"lbfgs"`` the first-order baseline.
 SOLVERS = ("lm", "gn", "lm-texel", "lbfgs")
+#: How ``"lm-texel"`` sums into the texels (`FitOptions.texel_sums`).
+TEXEL_SUMS = ("auto", "scatter", "tables")
 
 
 class FitWarning(UserWarning):
@@ -117,6 +119,14 @@ class FitOptions:
     - `ftol`, `patience`: stop as converged when the loss fell by less than ``ftol``
       (relative) over the last ``patience`` steps (0 disables the test). The
       solver's own test (``rtol``/``atol`` on the steps) applies too.
+    - `texel_sums`: how ``"lm-texel"`` sums the pixels' contributions into the texels,
+      one of `TEXEL_SUMS`: ``"scatter"`` (XLA's scatter-add: on a GPU its atomics add in
+      an order that varies from run to run, and with `jaxnm.runtime.use_deterministic_ops`
+      XLA sorts the indices on every call), ``"tables"`` (fixed-order sums through tables
+      built once at the start of the fit from the prepared taps,
+      `jaxnm.fit.texel_lm.texel_sum_tables`: the same result on every run, no sorting;
+      not where the views are spread over several devices), or ``"auto"`` (the default:
+      tables on a GPU or other accelerator, scatter-adds on the CPU).
     """
 
     solver: str = "lm-texel"
@@ -130,11 +140,18 @@ class FitOptions:
     init_noise: float = 0.0
     ftol: float = 1e-3
     patience: int = 3
+    texel_sums: str = "auto"
 
     def __post_init__(self):
         if self.solver not in SOLVERS:
             raise ValueError(f"FitOptions: unknown solver {self.solver!r}; expected one of "
                              f"{', '.join(SOLVERS)}")
+        if self.texel_sums not in TEXEL_SUMS:
+            raise ValueError(f"FitOptions: unknown texel_sums {self.texel_sums!r}; expected "
+                             f"one of {', '.join(TEXEL_SUMS)}")
+        if self.texel_sums == "tables" and self.solver != "lm-texel":
+            raise ValueError(f"FitOptions: texel_sums 'tables' is for the 'lm-texel' solver, "
+                             f"not {self.solver!r}")
         _check_int("max_steps", self.max_steps, 1)
         _check_int("lsmr_steps", self.lsmr_steps, 1)
         _check_int("coarse_to_fine", self.coarse_to_fine, 0)

@@ -39,9 +39,10 @@ from .diagnostics import angular_error, check_identifiability, seen_texels, texe
 from .model import ModelArgs, loss, residuals
 from .prepare import Prepared, prepare, shard_views, with_map_size
 from .problem import FitOptions, FitProblem, FitResult
-from .texel_lm import TexelLM
+from .texel_lm import TexelLM, texel_sum_tables
 
-__all__ = ["fit_normal_map", "make_solver", "preconditioner", "level_sizes", "start_slopes"]
+__all__ = ["fit_normal_map", "make_solver", "preconditioner", "level_sizes", "start_slopes",
+           "texel_sums_for"]
 
 
 def make_solver(options: FitOptions):
@@ -54,6 +55,23 @@ def make_solver(options: FitOptions):
     if options.solver == "gn":
         return optx.GaussNewton(rtol=options.rtol, atol=options.atol, linear_solver=lsmr)
     return optx.LBFGS(rtol=options.rtol, atol=options.atol)
+
+
+def texel_sums_for(prep: Prepared, options: FitOptions, backend: str | None = None) -> str:
+    """What ``options.texel_sums`` means for ``prep`` on ``backend`` (JAX's default if None):
+    ``"tables"`` or ``"scatter"``. ``"auto"`` is tables on an accelerator and scatter-adds
+    on the CPU; scatter-adds for solvers other than ``"lm-texel"`` and for views spread over
+    several devices (a chunk's tables index the pixels of all its views)."""
+    spread = len(prep.batches[0].pixels.sharding.device_set) > 1
+    if spread and options.texel_sums == "tables":
+        raise ValueError("FitOptions.texel_sums 'tables' needs the views on one device; these "
+                         "are spread over several (use 'auto' or 'scatter')")
+    if options.solver != "lm-texel" or spread:
+        return "scatter"
+    if options.texel_sums == "auto":
+        backend = jax.default_backend() if backend is None else backend
+        return "scatter" if backend == "cpu" else "tables"
+    return options.texel_sums
 
 
 def _residual_fn(z, args):
@@ -337,8 +355,11 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                 scale = preconditioner(lp)
                 # least squares on reduced residuals (same loss and Gauss-Newton steps,
                 # fewer numbers per pixel); L-BFGS only needs the loss and its gradient
+                sums = (texel_sum_tables(lp) if texel_sums_for(lp, options) == "tables"
+                        else None)
                 args = ModelArgs.create(lp, smoothness=options.smoothness, strength=strength,
-                                        scale=scale, reduce=options.solver != "lbfgs")
+                                        scale=scale, reduce=options.solver != "lbfgs",
+                                        texel_sums=sums)
                 z = slopes / scale
                 # our own copy: the initial state can hold library-wide constant arrays
                 # (optimistix's result codes), which donating it to `_step` would free
