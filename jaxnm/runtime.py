@@ -19,8 +19,8 @@ import os
 from pathlib import Path
 
 __all__ = ["CACHE_ENV", "DETERMINISTIC_FLAG", "compilation_cache_dir", "use_compilation_cache",
-           "use_deterministic_ops", "GRAPHS_FLAG", "use_gpu_graphs", "release_memory",
-           "keep_freed_memory", "MEMORY_ENV", "keep_freed_memory_unless_disabled"]
+           "use_deterministic_ops", "deterministic_ops", "GRAPHS_FLAG", "use_gpu_graphs",
+           "release_memory", "keep_freed_memory", "MEMORY_ENV", "keep_freed_memory_unless_disabled"]
 
 #: Environment variable naming the cache folder; ``off`` (or empty) turns the cache off.
 CACHE_ENV = "JAXNM_COMPILATION_CACHE"
@@ -91,6 +91,11 @@ def use_deterministic_ops() -> None:
     flag yourself). The cost on a GPU is slower scatter-adds, hence slower gradients.
     """
     _add_flag(DETERMINISTIC_FLAG)
+
+
+def deterministic_ops() -> bool:
+    """Whether `DETERMINISTIC_FLAG` is in ``XLA_FLAGS`` (`use_deterministic_ops`)."""
+    return DETERMINISTIC_FLAG in os.environ.get("XLA_FLAGS", "").split()
 
 
 #: The XLA flag that puts while loops and conditionals into CUDA graphs (XLA's command

@@ -232,7 +232,8 @@ def _error_summary(normals, p: B.BenchProblem, seen, well) -> dict:
             "well_p95_deg": round(float(np.percentile(err[well], 95)), 4)}
 
 
-def _jaxnm_fit_once(p: B.BenchProblem, targets, well, budget: float, solver: str) -> dict:
+def _jaxnm_fit_once(p: B.BenchProblem, targets, well, budget: float, solver: str,
+                    texel_sums: str = "auto") -> dict:
     """One LM fit; the clock includes `prepare` (the G-buffer) and every compilation."""
     compiles = []
 
@@ -247,7 +248,8 @@ def _jaxnm_fit_once(p: B.BenchProblem, targets, well, budget: float, solver: str
     t0 = time.perf_counter()
     prep = F.prepare(problem)
     t_prep = time.perf_counter() - t0
-    res = F.fit_normal_map(problem, F.FitOptions(solver=solver, max_steps=40, lsmr_steps=10),
+    opts = F.FitOptions(solver=solver, max_steps=40, lsmr_steps=10, texel_sums=texel_sums)
+    res = F.fit_normal_map(problem, opts,
                            ground_truth=p.gt_normals, prepared=prep, progress=False,
                            time_limit=budget, error_texels=well)
     below = [t_prep + h["seconds"] for h in res.history if h["mean_angular_error_deg"] < 1.0]
@@ -278,7 +280,7 @@ def fit_worker(args) -> None:
     jax.clear_caches()
     out = {}
     for run in ("first", "steady"):
-        r = _jaxnm_fit_once(p, targets, well, args.budget, args.solver)
+        r = _jaxnm_fit_once(p, targets, well, args.budget, args.solver, args.texel_sums)
         normals = r.pop("normals")
         r.update(_error_summary(normals, p, seen, well))
         held = B.jaxnm_scene(p, p.held_out_dir)
@@ -439,7 +441,8 @@ def bench_views(args) -> list[dict]:
 
 def _run_worker(cache: str | None, args) -> dict:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--fit-worker", "--budget",
-           str(args.budget), "--solver", args.solver] + (["--quick"] if args.quick else [])
+           str(args.budget), "--solver", args.solver, "--texel-sums", args.texel_sums] + (
+               ["--quick"] if args.quick else [])
     env = dict(os.environ, JAXNM_COMPILATION_CACHE=cache or "off")
     if cache:
         cmd += ["--cache", cache]
@@ -453,7 +456,7 @@ def bench_fit(args, mitsuba) -> dict:
         cold = _run_worker(cache, args)
         warm = _run_worker(cache, args)
     result["jaxnm"] = {"cold": cold["first"], "warm": warm["first"], "steady": warm["steady"],
-                       "solver": args.solver}
+                       "solver": args.solver, "texel_sums": args.texel_sums}
     if mitsuba is not None:
         p = _problem(args.quick)
         seen, well = B.texel_masks(p)
@@ -619,6 +622,8 @@ def main(argv=None) -> None:
     ap.add_argument("--solver", default=F.FitOptions().solver, choices=F.SOLVERS,
                     help="the fit benchmark's solver (default: FitOptions', "
                          f"{F.FitOptions().solver}; --parts views runs lm and lm-texel)")
+    ap.add_argument("--texel-sums", dest="texel_sums", default="auto", choices=F.TEXEL_SUMS,
+                    help="the fit benchmark's FitOptions.texel_sums (default auto)")
     args = ap.parse_args(argv)
     # as the command line does, before any JAX computation (`JAXNM_KEEP_FREED_MEMORY=off`
     # to measure without): XLA's freed buffers kept for the next call, not faulted in again

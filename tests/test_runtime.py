@@ -142,3 +142,14 @@ print("FLAGS", os.environ["XLA_FLAGS"])
                                     "--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,"
                                     "CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL"])
     assert abs(float(out.split("SUM")[1].split()[0]) - 4 * 0.8414709848) < 1e-5
+
+
+def test_deterministic_ops_reads_the_flag(monkeypatch):
+    from jaxnm import runtime
+
+    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_deterministic_ops=false")
+    assert not runtime.deterministic_ops()
+    monkeypatch.setenv("XLA_FLAGS", "--foo " + runtime.DETERMINISTIC_FLAG)
+    assert runtime.deterministic_ops()
+    monkeypatch.delenv("XLA_FLAGS")
+    assert not runtime.deterministic_ops()

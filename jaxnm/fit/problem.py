@@ -126,7 +126,9 @@ class FitOptions:
       built once at the start of the fit from the prepared taps,
       `jaxnm.fit.texel_lm.texel_sum_tables`: the same result on every run, no sorting;
       not where the views are spread over several devices), or ``"auto"`` (the default:
-      tables on a GPU or other accelerator, scatter-adds on the CPU).
+      tables on a GPU or other accelerator with deterministic ops, as the command line
+      runs, else scatter-adds: `jaxnm.fit.texel_sums_for` says which, and what each
+      measured).
     """
 
     solver: str = "lm-texel"

@@ -35,6 +35,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jax import Array
 
@@ -111,13 +112,15 @@ def texel_sum_tables(prepared: Prepared) -> tuple[tuple[SumTables, ...], ...]:
     texel sums (`jaxnm.textures.plan_sum_tables`) of every chunk's taps, stacked by chunk:
     what a step's texel-space sums use in place of scatter-adds (`FitOptions.texel_sums`).
     Built on the host, once per fit (the taps do not change between steps): ~0.06 s for
-    the benchmark's 51k pixels."""
+    the benchmark's 51k pixels. The indices are copied to the host whole and cut there
+    (cutting them on a GPU would compile a program per cut)."""
     out = []
     for batch in prepared.batches:
         plan = batch.gbuffer.plan
+        index = np.asarray(plan.index)
         groups = []
         for start, size, n, taps in batch.pixel_groups():
-            chunks = [plan.index[:, start + c * size:start + (c + 1) * size, :taps]
+            chunks = [index[:, start + c * size:start + (c + 1) * size, :taps]
                       for c in range(n)]
             groups.append(_tex.plan_sum_tables(plan, chunks))
         out.append(tuple(groups))
