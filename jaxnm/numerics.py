@@ -309,8 +309,9 @@ def sum_tables(dests, size: int, width: int = 8) -> SumTables:
     targets = np.concatenate(targets, 1)
     # the rows that complete nothing: distinct destinations past `size`, dropped
     targets = np.where(targets < 0, size + np.arange(targets.shape[1]), targets).astype(np.int32)
-    stacked = SumTables(tuple(jnp.asarray(t) for t in tables), jnp.asarray(targets), size)
-    return stacked if many else jax.tree_util.tree_map(lambda x: x[0], stacked)
+    if not many:  # (cut on the host: cutting device arrays compiles a program per cut)
+        tables, targets = [t[0] for t in tables], targets[0]
+    return SumTables(tuple(jnp.asarray(t) for t in tables), jnp.asarray(targets), size)
 
 
 def sum_by_tables(values: ArrayLike, tables: SumTables) -> Array:

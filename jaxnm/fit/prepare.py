@@ -167,7 +167,8 @@ def _stack_lights(lights: Sequence[Lights]) -> Lights:
     if len(structs) != 1 or len(shapes) != 1:
         raise ValueError("fit: all targets of one view must have lights of the same kinds and "
                          "counts (e.g. each one directional light), so they can be batched")
-    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *lights)
+    # on the host: `_host` takes them there anyway, and a jnp.stack compiles per shape
+    return jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v) for v in x]), *lights)
 
 
 def view_key(t: FitTarget) -> tuple:
@@ -208,7 +209,7 @@ def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
                                            if jnp.ndim(problem.albedo) == 3 else None),
                              outputs=("color",))
         check_mesh(problem.mesh, opts, problem.source)
-        albedo = jnp.asarray(problem.albedo)
+        albedo = jax.device_put(problem.albedo)  # (jnp.asarray of NumPy compiles per shape)
 
         def flat(x):  # an image-layout array's covered pixels
             return x.reshape((-1,) + x.shape[2:])[pix]

@@ -28,7 +28,6 @@ import time
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
@@ -210,7 +209,8 @@ def preconditioner(prep: Prepared) -> Array:
     c = np.asarray(texel_influence(prep))
     seen = c[c > 0]
     c_ref = float(np.median(seen)) if seen.size else 1.0
-    return jnp.asarray(np.sqrt(c_ref / (c + 0.01 * c_ref))[..., None], jnp.float32)
+    # (device_put: jnp.asarray of a NumPy array compiles a program per shape)
+    return jax.device_put(np.sqrt(c_ref / (c + 0.01 * c_ref))[..., None].astype(np.float32))
 
 
 def start_slopes(size: tuple[int, int], options: FitOptions) -> np.ndarray:
@@ -340,7 +340,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
         raise ValueError(f"{problem.source}: `prepared` was made for a "
                          f"{prep.options[0].normal_map_shape} map, not {(h, w)}")
     sizes = level_sizes((h, w), options.coarse_to_fine)
-    slopes = jnp.asarray(start_slopes(sizes[0], options))
+    slopes = start_slopes(sizes[0], options)  # (host; the device gets z below)
     seen = gt = None
     if ground_truth is not None:
         gt = np.asarray(ground_truth, np.float64)
@@ -369,7 +369,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                 args = ModelArgs.create(lp, smoothness=options.smoothness, strength=strength,
                                         scale=scale, reduce=options.solver != "lbfgs",
                                         texel_sums=sums)
-                z = slopes / scale
+                z = jax.device_put((np.asarray(slopes) / np.asarray(scale)).astype(np.float32))
                 # our own copy: the initial state can hold library-wide constant arrays
                 # (optimistix's result codes), which donating it to `_step` would free
                 state = jax.tree_util.tree_map(
