@@ -438,6 +438,8 @@ _TARGET = {"image": "t0.npy", "lights": [{"type": "directional", "direction": [0
     (dict(solver={"smoothness": -1}), r"solver: smoothness must be a finite number >= 0"),
     (dict(solver={"time_limit": "soon"}), r"solver: 'time_limit' must be a number"),
     (dict(solver={"lsmr": 3}), r"solver: unknown keys \['lsmr'\]"),
+    (dict(solver={"texel_sums": "atomic"}), r"solver: unknown texel_sums 'atomic'"),
+    (dict(solver={"method": "lm", "texel_sums": "tables"}), r"solver: texel_sums 'tables' is"),
     (dict(map={"size": 8, "encoding": "bogus"}), r"map: unknown encoding='bogus'"),
     (dict(map={"size": 8, "bits": 12}), r"map: 'bits' must be 8 or 16"),
     (dict(map={"size": [1, 8]}), r"map: 'size' must be"),
@@ -464,6 +466,24 @@ def test_fit_file_errors_are_one_line_naming_file_and_field(tmp_path, capsys, ch
     assert main(["fit", str(path), "-o", str(tmp_path / "out"), "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err and err.startswith("jaxnm fit")
+
+
+def test_fit_file_and_command_line_set_texel_sums(tmp_path, monkeypatch):
+    """``"texel_sums"`` in the fit file's solver, and ``--texel-sums`` over it."""
+    path = _fit_folder(tmp_path, solver={"method": "lm-texel", "texel_sums": "tables"})
+    assert load_fit(path).options.texel_sums == "tables"
+    seen = {}
+    import jaxnm.fit as jfit
+
+    def fake_fit(problem, options, **kw):
+        seen["texel_sums"] = options.texel_sums
+        raise KeyboardInterrupt  # stop here: only the options are checked
+
+    monkeypatch.setattr(jfit, "fit_normal_map", fake_fit)
+    with pytest.raises(KeyboardInterrupt):
+        main(["fit", str(path), "-o", str(tmp_path / "out"), "--no-progress",
+              "--texel-sums", "scatter"])
+    assert seen == {"texel_sums": "scatter"}
 
 
 def test_fit_file_fields_are_checked_before_any_file_is_read(tmp_path):
