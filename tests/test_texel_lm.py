@@ -80,7 +80,7 @@ def test_texel_sums_by_tables_equal_the_scatter_adds(small):
         for g, w in zip(got[1:], want[1:]):
             np.testing.assert_allclose(np.asarray(g), np.asarray(w),
                                        atol=1e-5 * float(jnp.max(jnp.abs(w))))
-    opts = F.FitOptions(max_steps=6, ftol=0.0)
+    opts = F.FitOptions(max_steps=4, ftol=0.0)
     # "auto": tables only on an accelerator with deterministic ops
     assert F.texel_sums_for(whole, opts, backend="cpu", deterministic=True) == "scatter"
     assert F.texel_sums_for(whole, opts, backend="gpu", deterministic=False) == "scatter"
