@@ -293,25 +293,23 @@ def sum_tables(dests, size: int, width: int = 8) -> SumTables:
         raise ValueError(f"sum_tables: width must be at least 2, got {width}")
     built = [_table_levels(d, width) for d in dests]
     depth = max(len(tables) for tables, _ in built)
+    empty = (np.zeros((0, width), np.int32), np.zeros(0, int))
     tables, targets = [], []
-    for k in range(depth):
-        rows = max(b[0][k].shape[0] if k < len(b[0]) else 0 for b in built)
-
-        def level(b, k=k, rows=rows):
-            t, g = (b[0][k], b[1][k]) if k < len(b[0]) else (np.zeros((0, width), np.int32),
-                                                              np.zeros(0, int))
-            return (np.pad(t, ((0, rows - t.shape[0]), (0, 0)), constant_values=SumTables.PAD),
-                    np.pad(g, (0, rows - g.size), constant_values=-1))
-
-        t, g = zip(*(level(b) for b in built))
-        tables.append(np.stack(t))
-        targets.append(np.stack(g))
+    for k in range(depth):  # each level padded to its largest row count
+        level = [(b[0][k], b[1][k]) if k < len(b[0]) else empty for b in built]
+        rows = max(t.shape[0] for t, _ in level)
+        tables.append(np.stack([np.pad(t, ((0, rows - t.shape[0]), (0, 0)),
+                                       constant_values=SumTables.PAD) for t, _ in level]))
+        targets.append(np.stack([np.pad(g, (0, rows - g.size), constant_values=-1)
+                                 for _, g in level]))
     targets = np.concatenate(targets, 1)
     # the rows that complete nothing: distinct destinations past `size`, dropped
     targets = np.where(targets < 0, size + np.arange(targets.shape[1]), targets).astype(np.int32)
-    if not many:  # (cut on the host: cutting device arrays compiles a program per cut)
+    if not many:
         tables, targets = [t[0] for t in tables], targets[0]
-    return SumTables(tuple(jnp.asarray(t) for t in tables), jnp.asarray(targets), size)
+    # cut and put on the device from the host: cutting device arrays, or `jnp.asarray` of
+    # NumPy arrays, compiles a small program per shape
+    return SumTables(tuple(jax.device_put(t) for t in tables), jax.device_put(targets), size)
 
 
 def sum_by_tables(values: ArrayLike, tables: SumTables) -> Array:

@@ -206,11 +206,16 @@ def preconditioner(prep: Prepared) -> Array:
     """(h, w, 1) Jacobi-like texel scales: the solver works on ``z = slopes / scale``, where
     ``scale = sqrt(c_ref / (c + 0.01 c_ref))`` evens out how strongly each texel is observed
     (``c`` its `texel_influence`, ``c_ref`` the median over observed texels)."""
+    # (device_put: jnp.asarray of a NumPy array compiles a program per shape)
+    return jax.device_put(_host_preconditioner(prep))
+
+
+def _host_preconditioner(prep: Prepared) -> np.ndarray:
+    """`preconditioner` as a NumPy array."""
     c = np.asarray(texel_influence(prep))
     seen = c[c > 0]
     c_ref = float(np.median(seen)) if seen.size else 1.0
-    # (device_put: jnp.asarray of a NumPy array compiles a program per shape)
-    return jax.device_put(np.sqrt(c_ref / (c + 0.01 * c_ref))[..., None].astype(np.float32))
+    return np.sqrt(c_ref / (c + 0.01 * c_ref))[..., None].astype(np.float32)
 
 
 def start_slopes(size: tuple[int, int], options: FitOptions) -> np.ndarray:
@@ -361,7 +366,8 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                     slopes = _upsample(best[1], size)
                     best = (math.inf, slopes)
                 lp = prep if size == (h, w) else _like(with_map_size(prep, size), prep)
-                scale = preconditioner(lp)
+                scale_host = _host_preconditioner(lp)
+                scale = jax.device_put(scale_host)
                 # least squares on reduced residuals (same loss and Gauss-Newton steps,
                 # fewer numbers per pixel); L-BFGS only needs the loss and its gradient
                 sums = (texel_sum_tables(lp) if texel_sums_for(lp, options) == "tables"
@@ -369,7 +375,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                 args = ModelArgs.create(lp, smoothness=options.smoothness, strength=strength,
                                         scale=scale, reduce=options.solver != "lbfgs",
                                         texel_sums=sums)
-                z = jax.device_put((np.asarray(slopes) / np.asarray(scale)).astype(np.float32))
+                z = jax.device_put((np.asarray(slopes) / scale_host).astype(np.float32))
                 # our own copy: the initial state can hold library-wide constant arrays
                 # (optimistix's result codes), which donating it to `_step` would free
                 state = jax.tree_util.tree_map(
