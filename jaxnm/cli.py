@@ -225,6 +225,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     from .runtime import (
         keep_freed_memory_unless_disabled,
+        pin_worker_threads,
         use_compilation_cache,
         use_deterministic_ops,
     )
@@ -234,6 +235,7 @@ def main(argv=None) -> int:
         use_deterministic_ops()  # before JAX initialises a backend
     if not args.no_compile_cache:
         use_compilation_cache()
+    pin_worker_threads()  # starts the backends: after the flags above
     try:
         return _render(args) if args.command == "render" else _fit(args)
     except (ValueError, FileNotFoundError, ImportError) as e:

@@ -1,6 +1,6 @@
 """The process around the computation: the persistent compilation cache, deterministic
-GPU arithmetic, CUDA graphs for a GPU's loops, and handing freed memory back to the system
-between phases.
+GPU arithmetic, CUDA graphs for a GPU's loops, handing freed memory back to the system
+between phases, and XLA's CPU worker threads each on a core of its own.
 
 These change process-wide state (JAX's configuration, ``XLA_FLAGS``, the C allocator), so
 the command line and the scripts call them; a library user opts in. Nothing here changes
@@ -20,7 +20,8 @@ from pathlib import Path
 
 __all__ = ["CACHE_ENV", "DETERMINISTIC_FLAG", "compilation_cache_dir", "use_compilation_cache",
            "use_deterministic_ops", "deterministic_ops", "GRAPHS_FLAG", "use_gpu_graphs",
-           "release_memory", "keep_freed_memory", "MEMORY_ENV", "keep_freed_memory_unless_disabled"]
+           "release_memory", "keep_freed_memory", "MEMORY_ENV", "keep_freed_memory_unless_disabled",
+           "PIN_ENV", "pin_worker_threads"]
 
 #: Environment variable naming the cache folder; ``off`` (or empty) turns the cache off.
 CACHE_ENV = "JAXNM_COMPILATION_CACHE"
@@ -209,6 +210,66 @@ def keep_freed_memory_unless_disabled() -> bool:
     if _backends_initialised():
         return False
     return keep_freed_memory()
+
+
+#: Environment variable: ``off`` leaves XLA's CPU worker threads free to move between cores
+#: in the command line and the scripts (see `pin_worker_threads`).
+PIN_ENV = "JAXNM_PIN_THREADS"
+
+#: The name (``/proc/self/task/*/comm``) of the threads of XLA's CPU intra-op pool.
+_WORKER_PREFIX = "tf_XLAEigen"
+
+
+def pin_worker_threads(prefix: str = _WORKER_PREFIX) -> int:
+    """Put each of XLA's CPU worker threads on a core of its own (Linux; thread affinity),
+    and leave them there.
+
+    A frame is a hundred-odd small XLA kernels, each split between the pool's threads (one
+    per core) and joined again. Where the system's scheduler lets two of those threads
+    share a core for a while, each join waits for the one that is not running. On the
+    2-core VM of the README's tables (a Firecracker guest) that made ``render`` of the 4k
+    sphere at 512x512 bimodal, 3.4-3.7 ms a frame in some stretches and 5-8 ms in others,
+    process by process and phase by phase (the "slow phases" of
+    `docs/performance_history.md`); three processes each way, medians 4.1-6.3 ms and the
+    slowest tenth 5.7-6.3 ms unpinned, 3.6-3.8 and 4.0-4.3 ms pinned (the 20k torus's
+    slowest tenth 8.2-8.7 -> 5.4-6.1 ms, the 200k torus's 14-15 -> 12.1-12.4 ms). One core
+    alone: 4.8-5.0 ms. This starts JAX's backends: call `keep_freed_memory` and
+    `use_deterministic_ops` first. The command line and the scripts call it; a library
+    user opts in.
+
+    ``prefix``: the name the threads' names start with (XLA's CPU pool by default;
+    ``scripts/bench.py`` pins Mitsuba's ``llvm-worker`` threads the same way).
+
+    **Returns:** how many threads it pinned: 0 where ``$JAXNM_PIN_THREADS`` is ``off``, the
+    system cannot pin threads, or the pool has more threads than the process has cores.
+    """
+    if os.environ.get(PIN_ENV, "").strip().lower() in _OFF:
+        return 0
+    if not hasattr(os, "sched_setaffinity") or not os.path.isdir("/proc/self/task"):
+        return 0
+    if prefix == _WORKER_PREFIX:
+        import jax
+
+        jax.devices("cpu")  # the CPU client starts its pool with it
+    workers = []
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{tid}/comm") as f:
+                if f.read().startswith(prefix):
+                    workers.append(int(tid))
+        except OSError:  # a thread that ended meanwhile
+            continue
+    cpus = sorted(os.sched_getaffinity(0))
+    if not workers or len(workers) > len(cpus):
+        return 0
+    pinned = 0
+    for cpu, tid in zip(cpus, sorted(workers)):
+        try:
+            os.sched_setaffinity(tid, {cpu})
+        except OSError:
+            continue
+        pinned += 1
+    return pinned
 
 
 def _backends_initialised() -> bool:

@@ -60,7 +60,7 @@ import numpy as np  # noqa: E402
 import jaxnm  # noqa: E402
 from jaxnm import fit as F  # noqa: E402
 from jaxnm import procedural  # noqa: E402
-from jaxnm.runtime import keep_freed_memory_unless_disabled  # noqa: E402
+from jaxnm.runtime import keep_freed_memory_unless_disabled, pin_worker_threads  # noqa: E402
 from jaxnm.textures import encode_normal_map  # noqa: E402
 
 GOALS = {
@@ -134,19 +134,21 @@ def jaxnm_calls(p: B.BenchProblem) -> dict:
             "first_forward_s": first_forward}
 
 
-def _interleaved_ms(calls: dict, repeats: int, block: int = 5,
+def _interleaved_ms(calls: dict, repeats: int, block: int = 5, warm: int = 3,
                     seed: int = 0) -> tuple[dict, dict, dict]:
     """(first call s, median ms of the next ``repeats``, the process's minor page faults per
     timed call: a call that faults in its buffers afresh each time shows here) of each
-    call. The calls take turns
-    in blocks of ``block`` timed runs, each block after one untimed run: a slow phase of the
-    machine falls on all of them alike, and each is timed in its own steady state (run right
-    after another renderer, a call pays for its caches and for the other's worker threads
-    still spinning: jaxnm's 4k frame 4.3 -> 7.2 ms, Mitsuba's 4.7 -> 5.5 ms). The order of
-    the turns is shuffled in every cycle, so that no call always follows the same one (in a
-    fixed order jaxnm's first call, always after Mitsuba's gradient, read 4.8-6.8 ms for
-    the 4k sphere at 512^2 where the same frame of a moved mesh, after jaxnm's own calls,
-    read 4.2-5.2)."""
+    call. The calls take turns in blocks of ``block`` timed runs, each block after ``warm``
+    untimed ones: a slow phase of the machine falls on all of them alike, and each is
+    timed in its own steady state. Run right after another renderer, a call pays for its
+    caches and the other's threads: on the 2-core VM, with the worker threads pinned,
+    jaxnm's 4k frame at 512^2 took 5-12 ms for its first one to three frames after
+    Mitsuba's, then 3.5-4.5 ms, Mitsuba's ~4.5 ms for its first and then 3.6-3.9 ms
+    (unpinned, jaxnm's stayed at 5-8 ms for a dozen frames or more in some phases:
+    `jaxnm.runtime.pin_worker_threads`). The order of the turns is shuffled in every
+    cycle, so that no call always follows the same one (in a fixed order jaxnm's first
+    call, always after Mitsuba's gradient, read 4.8-6.8 ms for the 4k sphere at 512^2
+    where the same frame of a moved mesh, after jaxnm's own calls, read 4.2-5.2)."""
     first, times, faults = {}, {k: [] for k in calls}, {k: 0 for k in calls}
     for k, fn in calls.items():
         t = time.perf_counter()
@@ -157,7 +159,8 @@ def _interleaved_ms(calls: dict, repeats: int, block: int = 5,
     for _ in range(-(-repeats // block)):
         for k in rng.permutation(order):
             fn = calls[k]
-            fn()
+            for _ in range(warm):
+                fn()
             for _ in range(block):
                 f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
                 t = time.perf_counter()
@@ -204,6 +207,7 @@ def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool) 
                     "first_forward_s": mi["first_s"]["forward"],
                     "first_backward_s": mi["first_s"]["forward_backward"],
                     "kernel_cache_files_at_start": mi["kernel_cache_files_at_start"],
+                    "pinned_worker_threads": mi["pinned_worker_threads"],
                     "page_faults_per_call": {k: faults[f"mitsuba {k}"] for k in MITSUBA_CALLS}}
                 row["forward_ratio"] = round(j["forward_ms"] / ms["mitsuba forward"], 2)
                 row["forward_moved_ratio"] = round(
@@ -536,6 +540,8 @@ def _r(x, nd: int = 2):
 def markdown(res: dict) -> str:
     kept = ("jaxnm.runtime.keep_freed_memory() on" if res.get("keep_freed_memory")
             else "keep_freed_memory off")
+    kept += (f"; {res['pinned_worker_threads']} XLA worker threads pinned"
+             if res.get("pinned_worker_threads") else "; worker threads not pinned")
     lines = [f"Machine: {res['machine']}; JAX {res['jax']}; {res['mitsuba']}; {res['date']}; "
              f"{kept}.", ""]
     lines += ["| frame | size | jaxnm forward ms | Mitsuba forward ms | ratio | jaxnm fwd+bwd ms "
@@ -628,6 +634,9 @@ def main(argv=None) -> None:
     # as the command line does, before any JAX computation (`JAXNM_KEEP_FREED_MEMORY=off`
     # to measure without): XLA's freed buffers kept for the next call, not faulted in again
     kept = keep_freed_memory_unless_disabled()
+    # XLA's CPU worker threads each on a core of its own (`JAXNM_PIN_THREADS=off` to
+    # measure without), and Mitsuba's too (`bench_mitsuba.forward_calls`)
+    pinned = pin_worker_threads()
     if args.fit_worker:
         return fit_worker(args)
     if args.views_worker:
@@ -644,7 +653,8 @@ def main(argv=None) -> None:
             print(f"Mitsuba 3 unavailable, its columns are empty: {why}", file=sys.stderr)
     res = {"machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.system()}",
            "jax": jax.__version__, "jaxnm": jaxnm.__version__, "mitsuba": why,
-           "date": time.strftime("%Y-%m-%d"), "keep_freed_memory": kept}
+           "date": time.strftime("%Y-%m-%d"), "keep_freed_memory": kept,
+           "pinned_worker_threads": pinned}
     parts = set(args.parts.split(","))
     p = _problem(args.quick)
     sizes = (256,) if args.quick else (512, 1024)

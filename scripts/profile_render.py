@@ -85,7 +85,10 @@ def scene_for(grid, size) -> jaxnm.Scene:
 
 
 def kernel_table(trace_dir: Path, per: int, top: int = 15) -> list[dict]:
-    """The device kernels of the newest trace under ``trace_dir``, by total time / ``per``."""
+    """The device kernels of the newest trace under ``trace_dir``, by total time / ``per``
+    (the first row: all device events, their time and count); then the host's events
+    (Python's frames left out) by total time / ``per``, rows marked ``"host"``: on a GPU,
+    where the host's time goes between the kernels (launches, waits, copies)."""
     path = sorted(trace_dir.rglob("perfetto_trace.json.gz"), key=lambda q: q.stat().st_mtime)[-1]
     with gzip.open(path) as f:
         events = json.load(f)["traceEvents"]
@@ -94,20 +97,29 @@ def kernel_table(trace_dir: Path, per: int, top: int = 15) -> list[dict]:
     threads = {(e["pid"], e["tid"]): e["args"]["name"] for e in events
                if e.get("ph") == "M" and e.get("name") == "thread_name"}
     device = {pid for pid, n in names.items() if "GPU" in n or "TPU" in n}
+    on_gpu = bool(device)
     if not device:  # the CPU backend: XLA's thunks on the host threads
         device = {pid for pid, n in names.items() if "Host" in n or "CPU" in n}
-    total = collections.Counter()
-    count = collections.Counter()
+    total, count = collections.Counter(), collections.Counter()
+    host_total, host_count = collections.Counter(), collections.Counter()
     for e in events:
         # (Python frames, "$file:line name", are the host's: not device work)
-        if e.get("ph") == "X" and e.get("pid") in device and not e["name"].startswith("$"):
-            key = f'{e["name"]} @ {threads.get((e["pid"], e.get("tid")), "?")}'
+        if e.get("ph") != "X" or e["name"].startswith("$"):
+            continue
+        key = f'{e["name"]} @ {threads.get((e["pid"], e.get("tid")), "?")}'
+        if e.get("pid") in device:
             total[key] += e.get("dur", 0.0)
             count[key] += 1
+        elif on_gpu:
+            host_total[key] += e.get("dur", 0.0)
+            host_count[key] += 1
     allk = sum(total.values())
     rows = [{"kernel": k[:120], "us": round(us / per, 1), "calls": count[k] // per,
              "share": round(us / allk, 3)} for k, us in total.most_common(top)]
-    return [{"kernel": "(all device events)", "us": round(allk / per, 1)}] + rows
+    rows += [{"host": k[:120], "us": round(us / per, 1), "calls": host_count[k] // per}
+             for k, us in host_total.most_common(top)]
+    return [{"kernel": "(all device events)", "us": round(allk / per, 1),
+             "calls": sum(count.values()) // per}] + rows
 
 
 def profile_render(name, grid, size, args) -> dict:

@@ -153,3 +153,47 @@ def test_deterministic_ops_reads_the_flag(monkeypatch):
     assert runtime.deterministic_ops()
     monkeypatch.delenv("XLA_FLAGS")
     assert not runtime.deterministic_ops()
+
+
+_PIN_PROBE = """
+import json, os, sys
+from jaxnm import runtime
+n = runtime.pin_worker_threads()
+import jax, jax.numpy as jnp
+assert float(jax.jit(lambda x: jnp.sum(x * 2))(jnp.ones(8))) == 16.0
+workers = [int(t) for t in os.listdir("/proc/self/task")
+           if open(f"/proc/self/task/{t}/comm").read().startswith("tf_XLAEigen")]
+print("PINNED", json.dumps({"returned": n, "workers": [sorted(os.sched_getaffinity(t))
+      for t in workers], "process": sorted(os.sched_getaffinity(0))}))
+"""
+
+
+def _pin_probe(**env: str) -> dict:
+    import json
+
+    out = _run(_PIN_PROBE, "", **env)
+    return json.loads(out.split("PINNED ", 1)[1])
+
+
+def test_pin_worker_threads_puts_each_worker_on_a_core_of_its_own():
+    if not sys.platform.startswith("linux"):
+        pytest.skip("thread affinity through /proc and sched_setaffinity")
+    r = _pin_probe()
+    workers, cpus = r["workers"], set(r["process"])
+    assert workers, "no XLA worker threads found"
+    if len(workers) > len(cpus):
+        assert r["returned"] == 0 and all(set(w) == cpus for w in workers)
+        return
+    assert r["returned"] == len(workers)
+    assert all(len(w) == 1 and set(w) <= cpus for w in workers)
+    assert len({w[0] for w in workers}) == len(workers)  # distinct cores
+    # the process itself (its main thread, threads started later) keeps the cores it had
+    assert cpus == os.sched_getaffinity(0)
+
+
+def test_pin_worker_threads_can_be_turned_off():
+    if not sys.platform.startswith("linux"):
+        pytest.skip("thread affinity through /proc and sched_setaffinity")
+    r = _pin_probe(JAXNM_PIN_THREADS="off")
+    assert r["returned"] == 0
+    assert all(set(w) == set(r["process"]) for w in r["workers"])
