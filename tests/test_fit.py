@@ -681,3 +681,28 @@ def test_prepare_with_stored_neighbour_derivatives_builds_the_whole_image(small)
         np.testing.assert_array_equal(a.pixels[ia], b.pixels[ib])
         np.testing.assert_allclose(a.gbuffer.position[ia], b.gbuffer.position[ib], atol=1e-5)
         np.testing.assert_array_equal(a.images[:, ia], b.images[:, ib])
+
+
+@pytest.mark.parametrize("map_size", [(32, 32), (21, 27)])
+def test_texel_influence_is_the_sampling_operators_column_sums(small, map_size):
+    """`texel_influence` (NumPy, the mip filter's transpose as matrices) against the VJP of
+    sampling the mip chain (JAX), with odd and even levels (21x27 -> 10x13 -> 5x6 -> 2x3 ->
+    1x1)."""
+    from jaxnm import textures as T
+
+    prep = small[3] if map_size == (32, 32) else F.prepare(
+        dataclasses.replace(small[0], map_size=map_size))
+    levels = prep.options[0].levels
+    assert levels == len(T.mip_sizes(map_size)) > 1  # trilinear: the whole chain
+
+    def sampled(t):
+        mips = T.build_mipmaps(t, levels=levels)
+        return [T.apply_plan(b.gbuffer.plan, mips)[..., 0] * b.weights.sum(1)[..., 0]
+                for b in prep.batches]
+
+    _, vjp = jax.vjp(sampled, jnp.zeros(map_size + (1,), jnp.float32))
+    want = np.asarray(vjp([jnp.ones(b.pixels.shape, jnp.float32) for b in prep.batches])[0])
+    got = F.texel_influence(prep)
+    assert got.shape == map_size and got.dtype == np.float32
+    assert (got > 0).sum() > 0.3 * got.size
+    np.testing.assert_allclose(got, want[..., 0], rtol=2e-5, atol=1e-6 * want.max())

@@ -97,8 +97,7 @@ def _objective(solver):
 
 @eqx.filter_jit
 def _init(solver, z, args: ModelArgs):
-    if isinstance(solver, TexelLM):
-        return solver.init(z, args)
+    """An optimistix solver's first state (`TexelLM` makes its own on the host)."""
     fn = _objective(solver)
     f_struct, aux_struct = jax.eval_shape(fn, z, args)
     return solver.init(fn, z, args, {}, f_struct, aux_struct, frozenset())
@@ -133,19 +132,22 @@ def _restore(solver, state):
 @eqx.filter_jit(donate="all-except-first")
 def _step(kept, z, state):
     """One solver step; ``kept = (args, solver)``. Returns the accepted point, the state
-    (`_shed`), whether to stop, the solver's result code, and the loss at the accepted point
-    (from the solver's own evaluation).
+    (`_shed`), whether to stop, the solver's result code, the loss at the accepted point
+    (from the solver's own evaluation) and the accepted point's slopes (``z * scale``,
+    here rather than as a program of its own after every step).
 
     ``z`` and ``state`` are donated (the new state reuses their buffers instead of
     doubling them); ``kept`` is not (the solver too may hold arrays, e.g. Gauss-Newton's
     learning rate), and `_unaliased` makes sure no state array is one of ``args``."""
     args, solver = kept
     if isinstance(solver, TexelLM):
-        return solver.step(z, state, args)
-    fn = _objective(solver)
-    z, state, _ = solver.step(fn, z, args, {}, _restore(solver, state), frozenset())
-    done, result = solver.terminate(fn, z, args, {}, state, frozenset())
-    return z, _shed(solver, state), done, result, state.f_info.as_min()
+        z, state, done, result, loss_value = solver.step(z, state, args)
+    else:
+        fn = _objective(solver)
+        z, state, _ = solver.step(fn, z, args, {}, _restore(solver, state), frozenset())
+        done, result = solver.terminate(fn, z, args, {}, state, frozenset())
+        state, loss_value = _shed(solver, state), state.f_info.as_min()
+    return z, state, done, result, loss_value, z * args.scale
 
 
 #: What `_compile_ahead` has compiled in this process (see there).
@@ -376,18 +378,20 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                                         scale=scale, reduce=options.solver != "lbfgs",
                                         texel_sums=sums)
                 z = jax.device_put((np.asarray(slopes) / scale_host).astype(np.float32))
-                # our own copy: the initial state can hold library-wide constant arrays
-                # (optimistix's result codes), which donating it to `_step` would free
-                state = jax.tree_util.tree_map(
-                    lambda x: _copy(x) if isinstance(x, jax.Array) else x,
-                    _shed(solver, _init(solver, z, args)))
+                if isinstance(solver, TexelLM):  # made on the host, in buffers of its own
+                    state = solver.init(z, args)
+                else:
+                    # our own copy: the initial state can hold library-wide constant arrays
+                    # (optimistix's result codes), which donating it to `_step` would free
+                    state = jax.tree_util.tree_map(
+                        lambda x: _copy(x) if isinstance(x, jax.Array) else x,
+                        _shed(solver, _init(solver, z, args)))
                 _compile_ahead((args, solver), z, state)
                 # optimistix's first step evaluates the start and proposes the first move,
                 # so the start's loss arrives with it: record it as step 0
                 for k in range(options.max_steps + 1):
-                    z, state, done, result, loss_value = _step((args, solver), z,
-                                                               _unaliased(state, (args, solver)))
-                    slopes = z * scale
+                    z, state, done, result, loss_value, slopes = _step(
+                        (args, solver), z, _unaliased(state, (args, solver)))
                     rec = {"level": level, "size": list(size), "step": k,
                            "loss": float(loss_value), "seconds": time.perf_counter() - t_start}
                     if np.isfinite(rec["loss"]) and rec["loss"] < best[0]:

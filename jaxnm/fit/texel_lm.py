@@ -302,12 +302,16 @@ class TexelLM:
     lam0: float = 0.1
 
     def init(self, z: Array, args: ModelArgs) -> TexelLMState:
-        """The state before the first step (which evaluates ``z``)."""
-        zero = jnp.zeros((), z.dtype)
-        factors = tuple(tuple(jnp.zeros(shape, z.dtype) for shape in _factor_shapes(b))
+        """The state before the first step (which evaluates ``z``): zeros made on the host
+        and put on the device in buffers of their own (as an XLA program it compiled in
+        0.02 s on the CPU, 0.1 s on an H100)."""
+        dt = np.dtype(z.dtype)
+        factors = tuple(tuple(np.zeros(shape, dt) for shape in _factor_shapes(b))
                         for b in args.prepared.batches)
-        return TexelLMState(f=jnp.full((), jnp.inf, z.dtype), g=jnp.zeros_like(z),
-                            factors=factors, delta=jnp.zeros_like(z), predicted=zero, lam=zero)
+        zero = np.zeros((), dt)
+        return jax.device_put(TexelLMState(
+            f=np.full((), np.inf, dt), g=np.zeros(z.shape, dt), factors=factors,
+            delta=np.zeros(z.shape, dt), predicted=zero, lam=zero.copy()), may_alias=False)
 
     def step(self, z: Array, state: TexelLMState, args: ModelArgs):
         """Evaluate the proposed point, accept or reject it, propose the next move.
