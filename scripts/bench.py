@@ -134,17 +134,19 @@ def jaxnm_calls(p: B.BenchProblem) -> dict:
             "first_forward_s": first_forward}
 
 
-def _interleaved_ms(calls: dict, repeats: int, block: int = 5, warm: int = 3,
+def _interleaved_ms(calls: dict, repeats: int, block: int = 5, warm: int = 5,
                     seed: int = 0) -> tuple[dict, dict, dict]:
     """(first call s, median ms of the next ``repeats``, the process's minor page faults per
     timed call: a call that faults in its buffers afresh each time shows here) of each
     call. The calls take turns in blocks of ``block`` timed runs, each block after ``warm``
     untimed ones: a slow phase of the machine falls on all of them alike, and each is
-    timed in its own steady state. Run right after another renderer, a call pays for its
-    caches and the other's threads: on the 2-core VM, with the worker threads pinned,
-    jaxnm's 4k frame at 512^2 took 5-12 ms for its first one to three frames after
-    Mitsuba's, then 3.5-4.5 ms, Mitsuba's ~4.5 ms for its first and then 3.6-3.9 ms
-    (unpinned, jaxnm's stayed at 5-8 ms for a dozen frames or more in some phases:
+    timed in its own steady state, as a user who renders frame after frame sees it. Run
+    right after another renderer's calls, a call is slower for a while: on the 2-core VM,
+    with the worker threads pinned, jaxnm's 4k frame at 512^2 took 5-12 ms for its first
+    frame after Mitsuba's gradient, 4-5 ms for the next four, then 3.5-3.9 ms (six
+    alternations: the first three frames' median 4.5-5.1 ms, the next seven's 3.4-3.7),
+    while Mitsuba's took ~4.5 ms for its first and then 3.6-3.9 ms (unpinned, jaxnm's
+    stayed at 5-8 ms for a dozen frames or more in some phases:
     `jaxnm.runtime.pin_worker_threads`). The order of the turns is shuffled in every
     cycle, so that no call always follows the same one (in a fixed order jaxnm's first
     call, always after Mitsuba's gradient, read 4.8-6.8 ms for the 4k sphere at 512^2
