@@ -226,7 +226,8 @@ def _pixel_setup(frags: Fragments):
     height, width = frags.image_shape
     mask = frags.mask
     tri = jnp.maximum(frags.triangle_id, 0)
-    h = xyw(window_homogeneous(frags.clip, width, height))  # (V, 3): x, y, w
+    h = (xyw(window_homogeneous(frags.clip, width, height)) if frags.window is None
+         else frags.window)  # (V, 3): x, y, w
     corner = frags.faces[tri]
     hv = [h[corner[..., v]] for v in range(3)]  # each vertex's (..., 3)
     x, y = frags.window_centers(h.dtype)

@@ -52,7 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .numerics import cumsum, dot, flat_nonzero, materialize, roll_last
+from .numerics import cumsum, dot, flat_nonzero, materialize, roll_last, xyw
 
 __all__ = ["Fragments", "rasterize", "triangle_ids", "window_homogeneous", "pixel_centers",
            "compact", "expand", "TIE_RULE"]
@@ -95,6 +95,11 @@ class Fragments:
       ``(i + 1/2, j + 1/2)``), and the other per-pixel fields have its leading shape.
     - `packed_from`: static; the ``(height, width)`` of the image packed fragments
       come from (None for a whole image).
+    - `window`: None, or the vertices' window x, y and w, (V, 3) (`window_homogeneous`
+      of ``clip`` less its z), computed once by `compact` so that per-pixel stages run in
+      chunks do not redo it for every chunk (the 200k torus: a pass over 100k vertices
+      per chunk); None: computed from ``clip`` where needed. (Replacing ``clip`` in
+      packed fragments: replace ``window`` too, or set it to None.)
 
     ``clip`` and ``faces`` are kept so that later stages can evaluate *the
     pixel's own triangle* anywhere on screen (helper pixels), and so that
@@ -109,6 +114,7 @@ class Fragments:
     pixels: Array | None = None
     packed_from: tuple[int, int] | None = dataclasses.field(default=None,
                                                             metadata=dict(static=True))
+    window: Array | None = None
 
     @property
     def mask(self) -> Array:
@@ -176,7 +182,8 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
     tid = jnp.where(used, ids[at], -1)
     placed = Fragments(triangle_id=tid, depth=None, front_facing=None, clip=clip, faces=faces,
                        pixels=jnp.stack([col, height - 1 - row], -1),
-                       packed_from=(height, width))
+                       packed_from=(height, width),
+                       window=materialize(xyw(window_homogeneous(clip, width, height))))
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     covered = tid >= 0

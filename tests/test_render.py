@@ -1,5 +1,6 @@
 """The composed pipeline: conventions of the outputs, scenes from JSON, the CLI, bad input."""
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -492,6 +493,17 @@ def test_compact_and_expand_round_trip():
                                                                               whole, 0))
     np.testing.assert_allclose(expand(packed.depth, index, 12, 16, 1.0), frags.depth,
                                rtol=0, atol=4e-7)  # the same plane, fused differently
+    # the vertices' window x, y, w computed once for the per-pixel stages: what they would
+    # compute from the clip vertices, and the same interpolation either way
+    from jaxnm.raster import window_homogeneous
+
+    np.testing.assert_array_equal(packed.window, np.asarray(window_homogeneous(
+        frags.clip, 16, 12))[:, [0, 1, 3]])
+    at = jaxnm.interpolate(sc.mesh.uv, packed, derivatives="fine")
+    again = jaxnm.interpolate(sc.mesh.uv, dataclasses.replace(packed, window=None),
+                              derivatives="fine")
+    for u, v in zip((at.value, at.ddx, at.ddy), (again.value, again.ddx, again.ddy)):
+        np.testing.assert_array_equal(u, v)
     with pytest.raises(ValueError, match="packed fragments"):
         jaxnm.interpolate(sc.mesh.uv, packed, derivatives="gbuffer")
     # derivatives of expand (a scatter told its indices are unique, the unused slots' too):
