@@ -248,9 +248,7 @@ def _jaxnm_fit_once(p: B.BenchProblem, targets, well, budget: float, solver: str
             compiles.append(secs)
 
     jax.monitoring.register_event_duration_secs_listener(on)
-    scene = B.jaxnm_scene(p, p.light_dirs[0])
-    problem = F.problem_from_scene(scene, targets, p.gt_texels.shape[:2],
-                                   source="<benchmark>")
+    problem = B.jaxnm_fit_problem(p, targets)
     t0 = time.perf_counter()
     prep = F.prepare(problem)
     t_prep = time.perf_counter() - t0
@@ -276,11 +274,7 @@ def fit_worker(args) -> None:
     use_compilation_cache(args.cache)
     p = _problem(args.quick)
     seen, well = B.texel_masks(p)
-    targets = []
-    for d in p.light_dirs:
-        sc = B.jaxnm_scene(p, d)
-        targets.append(F.FitTarget(B.jaxnm_camera(p), p.width, p.height, sc.lights,
-                                   np.asarray(jaxnm.render(sc)["color"])))
+    targets = B.jaxnm_fit_problem(p).targets
     # as if the targets came from files: the fit compiles everything it runs, including
     # the visibility program its `prepare` shares with `render` (1 s cold)
     jax.clear_caches()

@@ -143,6 +143,17 @@ def jaxnm_scene(p: BenchProblem, light_dir, texels=None) -> Scene:
                  shading="lambert", source="<benchmark problem>").replace()
 
 
+def jaxnm_fit_problem(p: BenchProblem, targets=None) -> F.FitProblem:
+    """The fit benchmark as a jaxnm `FitProblem`: the map fitted to ``targets``, by default
+    jaxnm's renders of the true map under each of the four lights."""
+    if targets is None:
+        targets = [F.FitTarget(jaxnm_camera(p), p.width, p.height, sc.lights,
+                               np.asarray(jaxnm.render(sc)["color"]))
+                   for sc in (jaxnm_scene(p, d) for d in p.light_dirs)]
+    return F.problem_from_scene(jaxnm_scene(p, p.light_dirs[0]), targets,
+                                p.gt_texels.shape[:2], source="<benchmark>")
+
+
 def texel_masks(p: BenchProblem) -> tuple[np.ndarray, np.ndarray]:
     """(seen, well_observed) (h, w) bool masks, from jaxnm's renders of the true map."""
     texels = jnp.asarray(p.gt_texels)

@@ -31,7 +31,6 @@ sys.path.insert(0, str(HERE))
 
 import bench_problem as B  # noqa: E402
 import jax  # noqa: E402
-import numpy as np  # noqa: E402
 
 import jaxnm  # noqa: E402
 from jaxnm import fit as F  # noqa: E402
@@ -89,14 +88,8 @@ def render_phase(p, log: CompileLog) -> dict:
 
 
 def fit_phase(p, log: CompileLog, steps: int) -> dict:
-    targets = []
-    for d in p.light_dirs:
-        sc = B.jaxnm_scene(p, d)
-        targets.append(F.FitTarget(B.jaxnm_camera(p), p.width, p.height, sc.lights,
-                                   np.asarray(jaxnm.render(sc)["color"])))
+    problem = B.jaxnm_fit_problem(p)
     jax.clear_caches()  # as bench.py: the fit compiles everything it runs
-    problem = F.problem_from_scene(B.jaxnm_scene(p, p.light_dirs[0]), targets,
-                                   p.gt_texels.shape[:2], source="<benchmark>")
     opts = F.FitOptions(max_steps=steps, lsmr_steps=10, ftol=0.0)
     log.on = True
     t = time.perf_counter()

@@ -223,14 +223,7 @@ def profile_fit(args) -> list[dict]:
     """The fit benchmark's steps, for each of ``--texel-sums``: the first run (compilation
     included), the time per step of the next, and whether two runs gave the same map bit
     for bit (scatter-adds on a GPU need not, without deterministic ops)."""
-    p = B.make_problem()
-    targets = []
-    for d in p.light_dirs:
-        sc = B.jaxnm_scene(p, d)
-        targets.append(F.FitTarget(B.jaxnm_camera(p), p.width, p.height, sc.lights,
-                                   np.asarray(jaxnm.render(sc)["color"])))
-    problem = F.problem_from_scene(B.jaxnm_scene(p, p.light_dirs[0]), targets,
-                                   p.gt_texels.shape[:2], source="<benchmark>")
+    problem = B.jaxnm_fit_problem(B.make_problem())
     prep = F.prepare(problem)
     steps = 10
     rows, first_map = [], None

@@ -71,10 +71,12 @@ class ModelArgs:
         """Arguments for ``prepared`` (no preconditioning unless ``scale`` is given; see
         `residuals` for ``reduce``)."""
         h, w = prepared.options[0].normal_map_shape
-        return ModelArgs(prepared,
-                         None if smoothness <= 0 else jnp.asarray(smoothness, jnp.float32),
-                         jnp.asarray(strength, jnp.float32),
-                         jnp.ones((h, w, 1), jnp.float32) if scale is None else scale,
+
+        def put(x):  # from the host: `jnp.asarray` of a number compiles a conversion
+            return jax.device_put(np.asarray(x, np.float32))
+
+        return ModelArgs(prepared, None if smoothness <= 0 else put(smoothness), put(strength),
+                         put(np.ones((h, w, 1))) if scale is None else scale,
                          reduce=bool(reduce), texel_sums=texel_sums)
 
 
