@@ -147,13 +147,15 @@ def to_clip(positions: Array, camera: Camera) -> Array:
     p = jnp.asarray(positions)
     # Written out term by term rather than as matmuls: float32 products on any backend (a
     # GPU's default matmul precision, TF32, would round positions to 1e-4), and on the CPU
-    # a third of the time of two matmuls with an inner axis of 3 (100k vertices: 0.5 vs
-    # 1.6 ms, twice per frame)
-    d = [p[:, j] - camera.eye[j] for j in range(3)]
-    a, proj = camera.view, camera.projection
-    e = [d[0] * a[i, 0] + d[1] * a[i, 1] + d[2] * a[i, 2] for i in range(3)]
-    return jnp.stack([e[0] * proj[i, 0] + e[1] * proj[i, 1] + e[2] * proj[i, 2] + proj[i, 3]
-                      for i in range(4)], -1)
+    # a third of the time of two matmuls with an inner axis of 3. Each term is a column of
+    # positions times a row of the matrix, broadcast to (V, 3) then (V, 4): XLA's CPU loop
+    # over the (V, 4) result reads its inputs once; gathered column by column and stacked,
+    # the same sums took twice as long (100k vertices: 0.28 vs 0.57 ms)
+    a, proj = camera.view[None, :3, :3], camera.projection[None]  # (1, 3, 3), (1, 4, 4)
+    d = p - camera.eye[None, :]
+    e = d[:, 0:1] * a[:, :, 0] + d[:, 1:2] * a[:, :, 1] + d[:, 2:3] * a[:, :, 2]
+    return (e[:, 0:1] * proj[:, :, 0] + e[:, 1:2] * proj[:, :, 1] + e[:, 2:3] * proj[:, :, 2]
+            + proj[:, :, 3])
 
 
 def clip_float64(points, camera: Camera, model=None) -> np.ndarray:
