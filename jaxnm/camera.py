@@ -152,7 +152,7 @@ def to_clip(positions: Array, camera: Camera) -> Array:
     # over the (V, 4) result reads its inputs once; gathered column by column and stacked,
     # the same sums took twice as long (100k vertices: 0.28 vs 0.57 ms)
     a, proj = camera.view[None, :3, :3], camera.projection[None]  # (1, 3, 3), (1, 4, 4)
-    d = p - camera.eye[None, :]
+    d = p - jnp.asarray(camera.eye)[None, :]
     e = d[:, 0:1] * a[:, :, 0] + d[:, 1:2] * a[:, :, 1] + d[:, 2:3] * a[:, :, 2]
     return (e[:, 0:1] * proj[:, :, 0] + e[:, 1:2] * proj[:, :, 1] + e[:, 2:3] * proj[:, :, 2]
             + proj[:, :, 3])
