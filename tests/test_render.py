@@ -744,3 +744,7 @@ def test_to_clip_matches_float64_far_from_the_origin(offset):
     scale = np.abs(np.asarray(p, np.float64) - eye64).max(1, keepdims=True) * 4
     err = np.abs(got - ref) / scale
     assert err.max() < 8 * np.finfo(np.float32).eps, err.max()
+    # the eye as a tuple or a JAX array (the camera built by hand, or traced) changes nothing
+    for eye_as in (tuple, jnp.asarray):
+        other = jaxnm.Camera(view=cam.view, projection=cam.projection, eye=eye_as(cam.eye))
+        assert np.array_equal(np.asarray(jaxnm.to_clip(jnp.asarray(p), other), np.float64), got)
