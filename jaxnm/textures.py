@@ -57,6 +57,7 @@ __all__ = [
     "SamplePlan",
     "mip_sizes",
     "build_mipmaps",
+    "box_filter_matrix",
     "lod",
     "plan_sample",
     "apply_plan",
@@ -200,6 +201,23 @@ def _downsample_axis(x: Array, axis: int) -> Array:
 
     return (weight(n - i) * take(0, 2 * n) + weight(np.full(n, float(n))) * take(1, 2 * n)
             + weight(i + 1) * take(2, 2 * n + 1))
+
+
+def box_filter_matrix(n_in: int) -> np.ndarray:
+    """(max(1, n_in // 2), n_in) float64: `build_mipmaps`' box filter along one axis of
+    ``n_in`` texels as a matrix (the weights of `_downsample_axis`; an axis of 1 kept), for
+    host-side work through the mip chain, such as its transpose."""
+    if n_in == 1:
+        return np.ones((1, 1))
+    n_out = n_in // 2
+    m = np.zeros((n_out, n_in))
+    i = np.arange(n_out)
+    if n_in % 2 == 0:
+        m[i, 2 * i] = m[i, 2 * i + 1] = 0.5
+    else:
+        n = n_out
+        m[i, 2 * i], m[i, 2 * i + 1], m[i, 2 * i + 2] = (n - i) / n_in, n / n_in, (i + 1) / n_in
+    return m
 
 
 def _renormalize(x: Array) -> Array:

@@ -20,6 +20,7 @@ from jaxnm.numerics import safe_normalize
 from jaxnm.textures import (
     SamplePlan,
     apply_plan,
+    box_filter_matrix,
     build_mipmaps,
     decode_normal_map,
     encode_normal_map,
@@ -801,3 +802,15 @@ def test_matches_the_gl_texture_unit():
     dx = np.stack([2.0**lods / TEX_HW[1], np.zeros(N)], -1).astype(np.float32)
     ours = sample(MIPS, UV, dx, np.zeros_like(dx), filter="trilinear")
     np.testing.assert_allclose(ours, gl, atol=2e-6)
+
+
+@pytest.mark.parametrize("shape", [(8, 6), (7, 9), (1, 5), (3, 1)])
+def test_box_filter_matrix_is_build_mipmaps_filter(shape):
+    """`box_filter_matrix` along each axis gives `build_mipmaps`' next level (even, odd
+    and size-1 axes)."""
+    tex = np.random.default_rng(5).uniform(-1, 1, shape + (1,)).astype(np.float32)
+    want = np.asarray(build_mipmaps(jnp.asarray(tex), levels=2)[1])[..., 0]
+    got = (box_filter_matrix(shape[0]) @ tex[..., 0].astype(np.float64)
+           @ box_filter_matrix(shape[1]).T)
+    assert got.shape == mip_sizes(shape)[1]
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)

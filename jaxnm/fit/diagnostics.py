@@ -52,26 +52,10 @@ def texel_influence(prep: Prepared) -> np.ndarray:
     levels = np.split(acc, np.cumsum(sizes)[:-1])
     grad = levels[-1].reshape(shapes[-1])
     for k in range(len(shapes) - 2, -1, -1):  # coarse to fine: through each filter
-        (hk, wk), (hn, wn) = shapes[k], shapes[k + 1]
-        grad = (_box_filter(hk, hn).T @ grad @ _box_filter(wk, wn)
+        hk, wk = shapes[k]
+        grad = (_tex.box_filter_matrix(hk).T @ grad @ _tex.box_filter_matrix(wk)
                 + levels[k].reshape(hk, wk))
     return grad.astype(np.float32)
-
-
-def _box_filter(n_in: int, n_out: int) -> np.ndarray:
-    """(n_out, n_in): `jaxnm.textures`' exact box filter along one axis as a matrix (2
-    taps of 1/2 for even ``n_in``; for ``n_in = 2n + 1``, 3 taps with weights
-    ``(n - i, n, i + 1) / (2n + 1)``; an axis of 1 kept)."""
-    if n_in == 1:
-        return np.ones((1, 1))
-    m = np.zeros((n_out, n_in))
-    i = np.arange(n_out)
-    if n_in % 2 == 0:
-        m[i, 2 * i] = m[i, 2 * i + 1] = 0.5
-    else:
-        n = n_out
-        m[i, 2 * i], m[i, 2 * i + 1], m[i, 2 * i + 2] = (n - i) / n_in, n / n_in, (i + 1) / n_in
-    return m
 
 
 def angular_error(a, b) -> np.ndarray:
