@@ -442,9 +442,9 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     # the mesh's shift to the camera is left to the compiled programs (``shift``): done here
     # it would be an eager operation and a transfer per frame (1.1 ms of host time on an H100)
     scene, origin, shift = _camera_relative(scene, defer_shift=True)
+    camera, lights, albedo, origin, shift = _on_device(scene, origin, shift)
     nm = None if scene.normal_map is None else jnp.asarray(scene.normal_map)
-    args = (scene.mesh, scene.camera, nm, scene.albedo, scene.lights, scene.material,
-            np.asarray(origin, np.float32), shift)
+    args = (scene.mesh, camera, nm, albedo, lights, scene.material, origin, shift)
     pixels = opts.width * opts.height
     slots = _traced_capacity(pack, pixels, scene.source)
     if pack is None:
@@ -452,7 +452,7 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     if (pack is False or opts.derivatives == "gbuffer"
             or (slots is None and not _concrete(scene.mesh, scene.camera))):
         return _render(*args, opts=dataclasses.replace(opts, cull_back=cull))
-    tid, count, clip, orientation = _visible(scene.mesh, scene.camera, shift, width=opts.width,
+    tid, count, clip, orientation = _visible(scene.mesh, camera, shift, width=opts.width,
                                              height=opts.height, cull_back=cull)
     if not isinstance(count, jax.core.Tracer):
         return _render(*args, tid, clip, orientation, opts=opts,
@@ -548,6 +548,43 @@ def _camera_relative(scene: Scene, *, defer_shift: bool):
         lights = dataclasses.replace(lights, point=dataclasses.replace(p, position=moved))
     return (dataclasses.replace(scene, mesh=mesh, camera=camera, lights=lights, model=None), eye,
             shift)
+
+
+def _on_device(scene: Scene, origin, shift):
+    """The small host arrays of a frame as device arrays: the camera-relative view and eye,
+    the moved point lights, ``origin`` and ``shift`` that `_camera_relative` made, and a
+    constant albedo given as NumPy; ``(camera, lights, albedo, origin, shift)``. Each NumPy
+    argument of a compiled program is one host-to-device copy per call (a 0.1-0.2 ms wait
+    each on a GPU), so the same values are copied once and kept: a few cached sets, keyed
+    by their bytes, the default device and the x64 mode. Other arrays (JAX's, traced, an
+    albedo texture) pass through."""
+    camera, lights, albedo = scene.camera, scene.lights, scene.albedo
+    point = None if lights is None else lights.point
+    values = [camera.view, camera.eye, np.asarray(origin, np.float32), shift,
+              None if point is None else point.position,
+              albedo if np.ndim(albedo) == 1 else None]
+    host = tuple(i for i, x in enumerate(values) if isinstance(x, np.ndarray))
+    if host:
+        on_device = _device_constants(
+            tuple((values[i].tobytes(), values[i].dtype.str, values[i].shape) for i in host),
+            jax.config.jax_default_device, jax.config.jax_enable_x64, jax.default_backend())
+        for i, x in zip(host, on_device):
+            values[i] = x
+    view, eye, origin, shift, position, constant = values
+    if point is not None:
+        lights = dataclasses.replace(lights, point=dataclasses.replace(point, position=position))
+    return (Camera(view=view, projection=camera.projection, eye=eye), lights,
+            albedo if constant is None else constant, origin, shift)
+
+
+@functools.lru_cache(maxsize=16)
+def _device_constants(key, *_context):
+    """`_on_device`'s cache: ``key`` holds each array's (bytes, dtype, shape); ``_context``
+    the default device, x64 mode and backend. Copied now even inside a caller's trace
+    (where the arrays are then constants), so that no tracer is cached."""
+    with jax.ensure_compile_time_eval():
+        return tuple(jax.device_put(np.frombuffer(b, dtype).reshape(shape))
+                     for b, dtype, shape in key)
 
 
 #: The shift of a mesh already where it belongs: `_visible` and `_render` always take one

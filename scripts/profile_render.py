@@ -209,6 +209,7 @@ def profile_host(name, grid, size, args) -> dict:
         "RenderOptions.of": lambda: R.RenderOptions.of(v),
         "with_tangents+check_mesh": lambda: (R.with_tangents_if_needed(v, opts),
                                              R.check_mesh(v.mesh, opts, v.source)),
+        "back_faces_hidden": lambda: R.back_faces_hidden(v.mesh, v.camera, v.model),
         # the public function shifts the mesh eagerly; `render` leaves that to its programs
         "camera_relative (eager shift)": lambda: R.camera_relative(v),
         "whole render (host part)": lambda: jaxnm.render(scene)["color"],
