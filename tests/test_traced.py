@@ -1,0 +1,144 @@
+"""The disk cache of traced programs (`jaxnm.traced.cached_jit`): a second process (here:
+the in-memory programs forgotten) calls the exported program instead of tracing again,
+with the same results, and never reuses a program across other options, shapes, code or
+an unreadable file; traced calls (the caller's jit, grad) stay plain `jax.jit`'s."""
+
+import importlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxnm
+from jaxnm.procedural import default_scene
+
+T = importlib.import_module("jaxnm.traced")
+R = importlib.import_module("jaxnm.render")
+
+pytest.importorskip("flatbuffers")
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    """The traced-program cache in a fresh folder (JAX's own compilation cache stays off)."""
+    folder = tmp_path / T.SUBDIR
+    monkeypatch.setattr(T, "traced_cache_dir", lambda: folder)
+    return folder
+
+
+TRACES = []
+
+
+@T.cached_jit(static_argnames=("power",))
+def _poly(x, pair, *, power: int):
+    TRACES.append(power)  # runs only while tracing
+    return {"sum": jnp.sum(x ** power) + pair[0], "scaled": x * pair[1]}
+
+
+def _args(n=5):
+    x = jnp.linspace(0.5, 2.0, n, dtype=jnp.float32)
+    return x, (jnp.float32(1.5), jnp.arange(n, dtype=jnp.float32))
+
+
+def test_a_second_process_calls_the_exported_program(cache):
+    TRACES.clear()
+    _poly.clear_cache()
+    x, pair = _args()
+    first = _poly(x, pair, power=3)
+    assert TRACES == [3] and len(list(cache.glob("*.bin"))) == 1
+    _poly.clear_cache()  # as in a new process: only the file is left
+    again = _poly(x, pair, power=3)
+    assert TRACES == [3]  # not traced again
+    want = {"sum": np.sum(np.asarray(x, np.float64) ** 3) + 1.5,
+            "scaled": np.asarray(x) * np.arange(5)}
+    for out in (first, again):
+        assert set(out) == {"sum", "scaled"}
+        np.testing.assert_allclose(out["sum"], want["sum"], rtol=1e-6)
+        np.testing.assert_array_equal(out["scaled"], want["scaled"])
+    assert np.array_equal(first["sum"], again["sum"])
+
+
+def test_other_options_shapes_and_code_are_other_programs(cache, monkeypatch):
+    TRACES.clear()
+    _poly.clear_cache()
+    x, pair = _args()
+    _poly(x, pair, power=2)
+    _poly(x, pair, power=3)  # another static option
+    x7, pair7 = _args(7)
+    _poly(x7, pair7, power=2)  # another shape
+    _poly(x.astype(jnp.int32), pair, power=2)  # another dtype
+    assert TRACES == [2, 3, 2, 2] and len(list(cache.glob("*.bin"))) == 4
+    _poly.clear_cache()
+    monkeypatch.setattr(T, "_code_fingerprint", lambda: "jaxnm edited")
+    out = _poly(x, pair, power=2)  # the same call, but the code changed: traced again
+    assert TRACES == [2, 3, 2, 2, 2] and len(list(cache.glob("*.bin"))) == 5
+    np.testing.assert_allclose(out["sum"], float(jnp.sum(x ** 2)) + 1.5, rtol=1e-6)
+
+
+def test_an_unreadable_entry_is_traced_again(cache):
+    TRACES.clear()
+    _poly.clear_cache()
+    x, pair = _args()
+    want = _poly(x, pair, power=2)["sum"]
+    (path,) = cache.glob("*.bin")
+    path.write_bytes(b"not a program")
+    _poly.clear_cache()
+    assert np.array_equal(_poly(x, pair, power=2)["sum"], want)
+    assert TRACES == [2, 2]
+    _poly.clear_cache()
+    _poly(x, pair, power=2)  # the entry was written again
+    assert TRACES == [2, 2]
+
+
+def test_traced_calls_are_plain_jit(cache):
+    TRACES.clear()
+    _poly.clear_cache()
+    x, pair = _args()
+
+    def loss(x):
+        return _poly(x, pair, power=2)["sum"]
+
+    g = jax.grad(loss)(x)
+    np.testing.assert_allclose(g, 2 * np.asarray(x), rtol=1e-6)
+    np.testing.assert_allclose(jax.jit(loss)(x), float(jnp.sum(x ** 2)) + 1.5, rtol=1e-6)
+    assert not list(cache.glob("*.bin"))  # nothing exported from inside a trace
+
+
+def test_off_without_the_compilation_cache_or_by_the_switch(monkeypatch, tmp_path):
+    before = jax.config.jax_compilation_cache_dir
+    assert before is None  # the suite runs with the compilation cache off
+    assert T.traced_cache_dir() is None
+    try:  # (nothing compiles in between: JAX's cache is not started)
+        jax.config.update("jax_compilation_cache_dir", str(tmp_path))
+        assert T.traced_cache_dir() == tmp_path / T.SUBDIR
+        monkeypatch.setenv(T.TRACED_ENV, "off")
+        assert T.traced_cache_dir() is None
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)
+
+
+def test_render_reuses_its_exported_programs(cache, monkeypatch):
+    """`render`'s visibility and frame programs, exported by one call, are called by the
+    next without tracing (`to_clip` runs only while tracing visibility), and the image is
+    the same bit for bit as plain `jax.jit`'s."""
+    scene = default_scene(width=40, height=24)
+    clips = []
+    to_clip = R.to_clip
+    monkeypatch.setattr(R, "to_clip", lambda *a, **k: clips.append(1) or to_clip(*a, **k))
+    R._visible.clear_cache()
+    R._render.clear_cache()
+    first = render_color(scene)
+    traced = len(clips)
+    assert traced > 0 and len(list(cache.glob("*.bin"))) == 2
+    R._visible.clear_cache()
+    R._render.clear_cache()
+    assert np.array_equal(render_color(scene), first) and len(clips) == traced
+    monkeypatch.setattr(T, "traced_cache_dir", lambda: None)
+    R._visible.clear_cache()
+    R._render.clear_cache()
+    assert np.array_equal(render_color(scene), first)  # plain jax.jit: the same image
+
+
+def render_color(scene):
+    return np.asarray(jaxnm.render(scene, outputs=("color",), pack=True)["color"])
