@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import importlib
+import io
 import os
 import pickle
 from pathlib import Path
@@ -33,7 +35,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-__all__ = ["cached_jit", "traced_cache_dir", "SUBDIR", "TRACED_ENV"]
+__all__ = ["cached_jit", "cached_filter_jit", "traced_cache_dir", "SUBDIR", "TRACED_ENV"]
 
 #: The folder inside the compilation cache that holds the traced programs.
 SUBDIR = "jaxnm-traced"
@@ -161,6 +163,146 @@ class _CachedJit:
 
     def lower(self, *args, **kwargs):
         return self._jit.lower(*args, **kwargs)
+
+
+def cached_filter_jit(fun=None, *, donate: str = "none"):
+    """`equinox.filter_jit(fun, donate=donate)` (``"none"`` or ``"all-except-first"``) whose
+    traced program is also kept on disk as `cached_jit`'s: the arguments' arrays are the
+    program's inputs, everything else in them (hashable, with a repr that names no memory
+    address) belongs to the key; outputs that are not arrays come back as they were traced.
+    Other calls (traced arguments, unhashable options) are plain `equinox.filter_jit`'s.
+    ``.lower(*args)`` lowers the program a call would run (to compile it ahead)."""
+    if fun is None:
+        return functools.partial(cached_filter_jit, donate=donate)
+    if donate not in ("none", "all-except-first"):
+        raise ValueError(f"cached_filter_jit: donate must be 'none' or 'all-except-first', "
+                         f"got {donate!r}")
+    return _CachedFilterJit(fun, donate)
+
+
+class _CachedFilterJit:
+    def __init__(self, fun, donate):
+        import equinox as eqx
+
+        self._eqx = eqx.filter_jit(fun, donate=donate)
+        self._fun = fun
+        self._donate = donate
+        self._name = f"{fun.__module__}.{fun.__qualname__}"
+        self._calls: dict = {}  # key -> (compiled callable, output's static part, tree)
+        functools.update_wrapper(self, fun)
+
+    def _entry(self, args):
+        """``(callable, leaves, output static part, output tree)`` for ``args``, or None
+        where the call is not for the disk cache."""
+        import equinox as eqx
+
+        folder = traced_cache_dir()
+        if folder is None:
+            return None
+        dynamic, static = eqx.partition(args, eqx.is_array)
+        leaves, tree = jax.tree_util.tree_flatten(dynamic)
+        avals = _avals(leaves)
+        if avals is None:
+            return None
+        options, options_tree = jax.tree_util.tree_flatten(static)
+        key = (tuple(options), options_tree, tree, avals, bool(jax.config.jax_enable_x64),
+               jax.default_backend())
+        try:
+            entry = self._calls.get(key)
+        except TypeError:  # an unhashable option
+            return None
+        if entry is None:
+            described = repr((self._name, self._donate, options, str(options_tree),
+                              str(tree), [(sh, str(dt), w) for sh, dt, w in avals],
+                              key[4:], jax.devices()[0].device_kind, _code_fingerprint()))
+            if " at 0x" in described:  # an option known only by its address
+                return None
+            first = len(jax.tree_util.tree_leaves(eqx.filter(args[0], eqx.is_array)))
+            donated = (tuple(range(first, len(leaves))) if self._donate == "all-except-first"
+                       else ())
+            entry = self._calls[key] = self._load_or_export(
+                folder, hashlib.sha256(described.encode()).hexdigest()[:40], tree, static,
+                leaves, donated)
+        return (entry[0], leaves, *entry[1:])
+
+    def _load_or_export(self, folder: Path, digest: str, tree, static, leaves, donated):
+        import equinox as eqx
+
+        path = folder / f"{digest}.bin"
+        try:
+            out_static, out_tree, blob = _loads(path.read_bytes())
+            exported = jax.export.deserialize(bytearray(blob))
+        except Exception:  # absent, or unreadable: trace it again
+            box = []
+
+            def flat(*leaves):
+                args = eqx.combine(jax.tree_util.tree_unflatten(tree, leaves), static)
+                out_dynamic, out_static = eqx.partition(self._fun(*args), eqx.is_array)
+                out_leaves, out_tree = jax.tree_util.tree_flatten(out_dynamic)
+                box.append((out_static, out_tree))
+                return out_leaves
+
+            exported = jax.export.export(jax.jit(flat))(*leaves)
+            out_static, out_tree = box[0]
+            try:
+                blob = _dumps((out_static, out_tree, bytes(exported.serialize())))
+                back = _loads(blob)
+                if (jax.tree_util.tree_flatten(back[0]) == jax.tree_util.tree_flatten(out_static)
+                        and back[1] == out_tree):
+                    folder.mkdir(parents=True, exist_ok=True)
+                    tmp = path.with_suffix(f".{os.getpid()}.tmp")
+                    tmp.write_bytes(blob)
+                    os.replace(tmp, path)
+            except Exception:
+                pass  # not storable (an output that does not survive pickling, a read-only
+                # cache): this process still uses the program
+        return jax.jit(exported.call, donate_argnums=donated), out_static, out_tree
+
+    def __call__(self, *args):
+        import equinox as eqx
+
+        entry = self._entry(args)
+        if entry is None:
+            return self._eqx(*args)
+        fn, leaves, out_static, out_tree = entry
+        return eqx.combine(jax.tree_util.tree_unflatten(out_tree, fn(*leaves)), out_static)
+
+    def lower(self, *args):
+        entry = self._entry(args)
+        if entry is None:
+            return self._eqx.lower(*args)
+        fn, leaves = entry[:2]
+        return fn.lower(*leaves)
+
+    def clear_cache(self) -> None:
+        self._calls.clear()
+
+
+class _Pickler(pickle.Pickler):
+    """Pickles module-level singletons that pytree definitions hold (equinox's ``MISSING``
+    marker) by name, so that they come back as the same object."""
+
+    def persistent_id(self, obj):
+        kind = type(obj)
+        if kind.__module__.startswith("equinox") and kind.__name__ == "_Missing":
+            return (kind.__module__, "MISSING")
+        return None
+
+
+class _Unpickler(pickle.Unpickler):
+    def persistent_load(self, pid):
+        module, name = pid
+        return getattr(importlib.import_module(module), name)
+
+
+def _dumps(obj) -> bytes:
+    buf = io.BytesIO()
+    _Pickler(buf).dump(obj)
+    return buf.getvalue()
+
+
+def _loads(blob: bytes):
+    return _Unpickler(io.BytesIO(blob)).load()
 
 
 def _avals(leaves) -> tuple | None:

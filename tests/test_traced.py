@@ -142,3 +142,75 @@ def test_render_reuses_its_exported_programs(cache, monkeypatch):
 
 def render_color(scene):
     return np.asarray(jaxnm.render(scene, outputs=("color",), pack=True)["color"])
+
+
+FILTER_TRACES = []
+
+
+@T.cached_filter_jit(donate="all-except-first")
+def _update(kept, z, state):
+    """An equinox-style step: ``kept = (scale, label)``, a solver-like result out."""
+    import optimistix as optx
+
+    scale, label = kept
+    FILTER_TRACES.append(label)
+    return z + scale, {"count": state["count"] + 1, "label": label}, optx.RESULTS.successful
+
+
+def test_filter_jit_programs_come_back_from_disk_with_their_static_outputs(cache):
+    import optimistix as optx
+
+    FILTER_TRACES.clear()
+    _update.clear_cache()
+
+    def run():
+        z, state = jnp.zeros(4), {"count": jnp.int32(0), "label": "a"}
+        out = _update((jnp.float32(2.0), "a"), z, state)
+        return out, z
+
+    (z1, s1, r1), z_in = run()
+    assert FILTER_TRACES == ["a"] and len(list(cache.glob("*.bin"))) == 1
+    assert z_in.is_deleted()  # donated, as equinox.filter_jit(donate="all-except-first")
+    _update.clear_cache()
+    (z2, s2, r2), _ = run()
+    assert FILTER_TRACES == ["a"]  # from the file: not traced
+    for z, s, r in ((z1, s1, r1), (z2, s2, r2)):
+        np.testing.assert_array_equal(z, np.full(4, 2.0, np.float32))
+        assert int(s["count"]) == 1 and s["label"] == "a"  # a static output, as traced
+        assert bool(r == optx.RESULTS.successful)
+    # an option known only by its address is not written to disk
+    _update.clear_cache()
+    _update((jnp.float32(1.0), object()), jnp.zeros(4), {"count": jnp.int32(0), "label": "c"})
+    assert len(list(cache.glob("*.bin"))) == 1
+
+
+def test_a_fit_through_the_disk_cache_is_the_same_fit(cache, monkeypatch):
+    """The LM step kept on disk: a second fit (the in-memory programs forgotten) traces
+    nothing and ends at the same map, bit for bit, as a fit with the cache off."""
+    from jaxnm import fit as F
+    from jaxnm.fit.texel_lm import TexelLM
+    from jaxnm.procedural import default_problem
+
+    S = importlib.import_module("jaxnm.fit.solve")
+    problem, _, _ = default_problem(render_size=48, map_size=16, n_lights=4, views=1)
+    prep = F.prepare(problem, chunk=None)
+    opts = F.FitOptions(max_steps=4, lsmr_steps=5, ftol=0.0)
+    steps = []
+    step = TexelLM.step
+    monkeypatch.setattr(TexelLM, "step", lambda self, *a: steps.append(1) or step(self, *a))
+
+    def fit():
+        S._COMPILED_AHEAD.clear()
+        S._step.clear_cache()
+        return F.fit_normal_map(problem, opts, prepared=prep, progress=False).slopes
+
+    before = len(list(cache.glob("*.bin")))  # the targets' and prepare's programs
+    on = fit()
+    traced = len(steps)
+    assert traced > 0 and len(list(cache.glob("*.bin"))) == before + 1  # the step's
+    again = fit()
+    assert len(steps) == traced  # the step came from its file
+    monkeypatch.setattr(T, "traced_cache_dir", lambda: None)
+    off = fit()
+    assert len(steps) > traced
+    assert np.array_equal(on, off) and np.array_equal(again, off)

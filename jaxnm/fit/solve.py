@@ -34,6 +34,7 @@ import optimistix as optx
 from jax import Array
 
 from ..runtime import deterministic_ops, release_memory
+from ..traced import cached_filter_jit
 from .diagnostics import angular_error, check_identifiability, seen_texels, texel_influence
 from .model import ModelArgs, loss, residuals
 from .prepare import Prepared, prepare, shard_views, with_map_size
@@ -129,7 +130,7 @@ def _restore(solver, state):
                        is_leaf=lambda x: x is None)
 
 
-@eqx.filter_jit(donate="all-except-first")
+@cached_filter_jit(donate="all-except-first")
 def _step(kept, z, state):
     """One solver step; ``kept = (args, solver)``. Returns the accepted point, the state
     (`_shed`), whether to stop, the solver's result code, the loss at the accepted point
