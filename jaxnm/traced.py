@@ -208,14 +208,17 @@ class _CachedFilterJit:
         key = (tuple(options), options_tree, tree, avals, bool(jax.config.jax_enable_x64),
                jax.default_backend())
         try:
-            entry = self._calls.get(key)
+            entry = self._calls.get(key, False)
         except TypeError:  # an unhashable option
             return None
-        if entry is None:
+        if entry is None:  # known not to be for the disk
+            return None
+        if entry is False:
             described = repr((self._name, self._donate, options, str(options_tree),
                               str(tree), [(sh, str(dt), w) for sh, dt, w in avals],
                               key[4:], jax.devices()[0].device_kind, _code_fingerprint()))
             if " at 0x" in described:  # an option known only by its address
+                self._calls[key] = None
                 return None
             first = len(jax.tree_util.tree_leaves(eqx.filter(args[0], eqx.is_array)))
             donated = (tuple(range(first, len(leaves))) if self._donate == "all-except-first"
