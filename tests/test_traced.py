@@ -199,17 +199,34 @@ def test_a_fit_through_the_disk_cache_is_the_same_fit(cache, monkeypatch):
     step = TexelLM.step
     monkeypatch.setattr(TexelLM, "step", lambda self, *a: steps.append(1) or step(self, *a))
 
+    compiles, counting = [], [False]
+
+    def listen(name, seconds, **kwargs):
+        if counting[0] and name == "/jax/core/compile/backend_compile_duration":
+            compiles.append(seconds)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)  # (0.8.0: cannot unregister)
+
     def fit():
         S._COMPILED_AHEAD.clear()
         S._step.clear_cache()
-        return F.fit_normal_map(problem, opts, prepared=prep, progress=False).slopes
+        compiles.clear()
+        counting[0] = True
+        try:
+            return F.fit_normal_map(problem, opts, prepared=prep, progress=False).slopes
+        finally:
+            counting[0] = False
 
     before = len(list(cache.glob("*.bin")))  # the targets' and prepare's programs
     on = fit()
     traced = len(steps)
     assert traced > 0 and len(list(cache.glob("*.bin"))) == before + 1  # the step's
+    # compiled once: the first state (made on the host) and the later ones (the step's
+    # outputs) are placed alike (an uncommitted first state was a second compilation)
+    assert len(compiles) == 1, compiles
     again = fit()
     assert len(steps) == traced  # the step came from its file
+    assert len(compiles) == 1, compiles
     monkeypatch.setattr(T, "traced_cache_dir", lambda: None)
     off = fit()
     assert len(steps) > traced
