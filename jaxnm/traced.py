@@ -115,9 +115,15 @@ class _CachedJit:
         # (static options are hashable, as `jax.jit` requires; their repr names the file)
         key = (tuple(sorted(kwargs.items())), in_tree, avals, bool(jax.config.jax_enable_x64),
                jax.default_backend())
-        entry = self._calls.get(key)
+        entry = self._calls.get(key, False)
+        if entry is False:
+            try:
+                entry = self._load_or_export(folder, key, args, kwargs)
+            except Exception:  # JAX cannot export it (a host callback, say): plain jit
+                entry = None
+            self._calls[key] = entry
         if entry is None:
-            entry = self._calls[key] = self._load_or_export(folder, key, args, kwargs)
+            return self._jit(*args, **kwargs)
         fn, out_tree = entry
         return jax.tree_util.tree_unflatten(out_tree, fn(*leaves))
 
@@ -223,9 +229,15 @@ class _CachedFilterJit:
             first = len(jax.tree_util.tree_leaves(eqx.filter(args[0], eqx.is_array)))
             donated = (tuple(range(first, len(leaves))) if self._donate == "all-except-first"
                        else ())
-            entry = self._calls[key] = self._load_or_export(
-                folder, hashlib.sha256(described.encode()).hexdigest()[:40], tree, static,
-                leaves, donated)
+            try:
+                entry = self._load_or_export(
+                    folder, hashlib.sha256(described.encode()).hexdigest()[:40], tree, static,
+                    leaves, donated)
+            except Exception:  # JAX cannot export it (a host callback, say): plain jit
+                entry = None
+            self._calls[key] = entry
+            if entry is None:
+                return None
         return (entry[0], leaves, *entry[1:])
 
     def _load_or_export(self, folder: Path, digest: str, tree, static, leaves, donated):

@@ -231,3 +231,16 @@ def test_a_fit_through_the_disk_cache_is_the_same_fit(cache, monkeypatch):
     off = fit()
     assert len(steps) > traced
     assert np.array_equal(on, off) and np.array_equal(again, off)
+
+
+@T.cached_jit
+def _with_callback(x):
+    return jax.pure_callback(lambda a: np.asarray(a) * 2,
+                             jax.ShapeDtypeStruct(x.shape, x.dtype), x)
+
+
+def test_a_program_jax_cannot_export_runs_as_plain_jit(cache):
+    x = jnp.arange(3, dtype=jnp.float32)
+    for _ in range(2):
+        np.testing.assert_array_equal(_with_callback(x), [0.0, 2.0, 4.0])
+    assert not list(cache.glob("*.bin"))
