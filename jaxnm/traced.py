@@ -2,9 +2,10 @@
 
 JAX's persistent cache (`jaxnm.runtime.use_compilation_cache`) spares a second process the
 compiler, but not the tracing and lowering that come before it: JAX must build the
-program to look it up. For `render`'s and a fit's `prepare`'s programs that is most of a
-warm start (a warm ``prepare`` on an H100: 0.8 s of tracing and 0.4 s of lowering, 0.2 s
-of reading the compiled programs). `cached_jit` is `jax.jit` plus a second cache: the
+program to look it up. For `render`'s and a fit's programs that is most of a warm start
+(a warm ``prepare`` on an H100: 0.8 s of tracing and 0.4 s of lowering, 0.2 s of reading
+the compiled programs). `cached_jit` is `jax.jit` plus a second cache (`cached_filter_jit`
+the same for `equinox.filter_jit`, the fit's LM step): the
 first process to run a program with given argument shapes, dtypes and static options
 exports it (`jax.export`, the lowered StableHLO) into ``<compilation cache>/jaxnm-traced``,
 and later processes call the exported program instead of tracing the Python function.
@@ -17,9 +18,13 @@ The cache is used only where it is safe and pays:
   `grad` or `vmap` (traced arguments), or with arrays spread over several devices, the
   call is plain `jax.jit`'s;
 - an entry's key holds the function's name, the static options, the arguments' tree,
-  shapes and dtypes, the x64 mode, the backend and device kind, the JAX and jaxlib
-  versions and a hash of jaxnm's own source files, so a program is never reused across a
-  change of the code that made it. An unreadable entry is exported again.
+  shapes and dtypes, the x64 mode, the backend and device kind, the versions of JAX,
+  jaxlib, equinox, lineax and optimistix and a hash of jaxnm's own source files, so a
+  program is never reused across a change of the code that made it. An unreadable entry
+  is exported again; options known only by their address, outputs that do not survive
+  pickling and programs JAX cannot export are not stored (those calls are plain jit's).
+
+The files are pickles: the folder is trusted as JAX's compilation cache is.
 """
 
 from __future__ import annotations
@@ -132,20 +137,16 @@ class _CachedJit:
         described = (self._name, [(k, repr(v)) for k, v in statics], str(in_tree),
                      [(shape, str(dtype), weak) for shape, dtype, weak in avals], x64, backend,
                      jax.devices()[0].device_kind, _code_fingerprint())
-        digest = hashlib.sha256(repr(described).encode()).hexdigest()[:40]
-        path = folder / f"{digest}.bin"
+        if " at 0x" in repr(described):  # an option known only by its address
+            return None
+        path = folder / f"{hashlib.sha256(repr(described).encode()).hexdigest()[:40]}.bin"
         try:
-            out_tree, blob = pickle.loads(path.read_bytes())
+            out_tree, blob = _loads(path.read_bytes())
             exported = jax.export.deserialize(bytearray(blob))
         except Exception:  # absent, or unreadable: trace it again
             exported, out_tree = self._export(args, kwargs)
-            try:
-                folder.mkdir(parents=True, exist_ok=True)
-                tmp = path.with_suffix(f".{os.getpid()}.tmp")
-                tmp.write_bytes(pickle.dumps((out_tree, bytes(exported.serialize()))))
-                os.replace(tmp, path)
-            except OSError:
-                pass  # a read-only cache: this process still uses the program
+            _store(path, (out_tree, bytes(exported.serialize())),
+                   lambda back: back[0] == out_tree)
         return jax.jit(exported.call), out_tree
 
     def _export(self, args, kwargs):
@@ -259,18 +260,10 @@ class _CachedFilterJit:
 
             exported = jax.export.export(jax.jit(flat))(*leaves)
             out_static, out_tree = box[0]
-            try:
-                blob = _dumps((out_static, out_tree, bytes(exported.serialize())))
-                back = _loads(blob)
-                if (jax.tree_util.tree_flatten(back[0]) == jax.tree_util.tree_flatten(out_static)
-                        and back[1] == out_tree):
-                    folder.mkdir(parents=True, exist_ok=True)
-                    tmp = path.with_suffix(f".{os.getpid()}.tmp")
-                    tmp.write_bytes(blob)
-                    os.replace(tmp, path)
-            except Exception:
-                pass  # not storable (an output that does not survive pickling, a read-only
-                # cache): this process still uses the program
+            flat_static = jax.tree_util.tree_flatten(out_static)
+            _store(path, (out_static, out_tree, bytes(exported.serialize())),
+                   lambda back: (jax.tree_util.tree_flatten(back[0]) == flat_static
+                                 and back[1] == out_tree))
         return (jax.jit(exported.call, donate_argnums=donated), out_static, out_tree,
                 frozenset(donated))
 
@@ -327,6 +320,22 @@ class _Unpickler(pickle.Unpickler):
     def persistent_load(self, pid):
         module, name = pid
         return getattr(importlib.import_module(module), name)
+
+
+def _store(path: Path, payload: tuple, same) -> None:
+    """``payload`` pickled into ``path`` (atomically), if it comes back as it went (``same``
+    of the unpickled payload); else, or where the folder is not writable, nothing: the
+    process still uses its program, and a later one traces it again."""
+    try:
+        blob = _dumps(payload)
+        if not same(_loads(blob)):
+            return
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_bytes(blob)
+        os.replace(tmp, path)
+    except Exception:
+        pass
 
 
 def _dumps(obj) -> bytes:

@@ -753,7 +753,7 @@ def test_to_clip_matches_float64_far_from_the_origin(offset):
 def test_a_repeated_render_copies_nothing_to_the_device(plane_scene):
     """The host-made camera-relative constants (view, eye, origin, shift, point lights) are
     copied to the device once and reused: rendering the same scene again makes no implicit
-    host-to-device transfer (each was one per call, 0.1-0.2 ms of host time on a GPU), and
+    host-to-device transfer (each was one per call: together 0.1-0.2 ms on an H100), and
     a moved camera still renders its own view (the cache is keyed by the values)."""
     import jax
 
