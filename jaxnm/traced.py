@@ -122,36 +122,18 @@ class _CachedJit:
                jax.default_backend())
         entry = self._calls.get(key, False)
         if entry is False:
-            try:
-                entry = self._load_or_export(folder, key, args, kwargs)
-            except Exception:  # JAX cannot export it (a host callback, say): plain jit
-                entry = None
-            self._calls[key] = entry
+            described = repr((self._name, [(k, repr(v)) for k, v in key[0]], str(in_tree),
+                              [(sh, str(dt), w) for sh, dt, w in avals], key[3:],
+                              jax.devices()[0].device_kind, _code_fingerprint()))
+            entry = self._calls[key] = _load_or_export(
+                folder, described, lambda: self._export(in_tree, leaves, kwargs))
         if entry is None:
             return self._jit(*args, **kwargs)
         fn, out_tree = entry
         return jax.tree_util.tree_unflatten(out_tree, fn(*leaves))
 
-    def _load_or_export(self, folder: Path, key, args, kwargs):
-        statics, in_tree, avals, x64, backend = key
-        described = (self._name, [(k, repr(v)) for k, v in statics], str(in_tree),
-                     [(shape, str(dtype), weak) for shape, dtype, weak in avals], x64, backend,
-                     jax.devices()[0].device_kind, _code_fingerprint())
-        if " at 0x" in repr(described):  # an option known only by its address
-            return None
-        path = folder / f"{hashlib.sha256(repr(described).encode()).hexdigest()[:40]}.bin"
-        try:
-            out_tree, blob = _loads(path.read_bytes())
-            exported = jax.export.deserialize(bytearray(blob))
-        except Exception:  # absent, or unreadable: trace it again
-            exported, out_tree = self._export(args, kwargs)
-            _store(path, (out_tree, bytes(exported.serialize())),
-                   lambda back: back[0] == out_tree)
-        return jax.jit(exported.call), out_tree
-
-    def _export(self, args, kwargs):
+    def _export(self, in_tree, leaves, kwargs):
         """The program as a function of the flat arguments, exported, and its output tree."""
-        _, in_tree = jax.tree_util.tree_flatten(args)
         trees = []
 
         def flat(*leaves):
@@ -160,16 +142,12 @@ class _CachedJit:
             trees.append(out_tree)
             return out_leaves
 
-        leaves = jax.tree_util.tree_leaves(args)
         exported = jax.export.export(jax.jit(flat))(*leaves)
         return exported, trees[0]
 
     def clear_cache(self) -> None:
         self._calls.clear()
         self._jit.clear_cache()
-
-    def lower(self, *args, **kwargs):
-        return self._jit.lower(*args, **kwargs)
 
 
 def cached_filter_jit(fun=None, *, donate: str = "none"):
@@ -195,7 +173,7 @@ class _CachedFilterJit:
         self._fun = fun
         self._donate = donate
         self._name = f"{fun.__module__}.{fun.__qualname__}"
-        self._calls: dict = {}  # key -> (compiled callable, output's static part, tree)
+        self._calls: dict = {}  # key -> (callable, (output static part, tree), donated)
         functools.update_wrapper(self, fun)
 
     def _entry(self, args):
@@ -224,48 +202,33 @@ class _CachedFilterJit:
             described = repr((self._name, self._donate, options, str(options_tree),
                               str(tree), [(sh, str(dt), w) for sh, dt, w in avals],
                               key[4:], jax.devices()[0].device_kind, _code_fingerprint()))
-            if " at 0x" in described:  # an option known only by its address
-                self._calls[key] = None
-                return None
             first = len(jax.tree_util.tree_leaves(eqx.filter(args[0], eqx.is_array)))
             donated = (tuple(range(first, len(leaves))) if self._donate == "all-except-first"
                        else ())
-            try:
-                entry = self._load_or_export(
-                    folder, hashlib.sha256(described.encode()).hexdigest()[:40], tree, static,
-                    leaves, donated)
-            except Exception:  # JAX cannot export it (a host callback, say): plain jit
-                entry = None
-            self._calls[key] = entry
+            loaded = _load_or_export(folder, described,
+                                     lambda: self._export(tree, static, leaves), donated)
+            entry = self._calls[key] = None if loaded is None else (*loaded, frozenset(donated))
             if entry is None:
                 return None
-        return (entry[0], leaves, *entry[1:])
+        fn, (out_static, out_tree), donated = entry
+        return fn, leaves, out_static, out_tree, donated
 
-    def _load_or_export(self, folder: Path, digest: str, tree, static, leaves, donated):
+    def _export(self, tree, static, leaves):
+        """The program as a function of the arguments' arrays, exported, and its output's
+        static part and tree."""
         import equinox as eqx
 
-        path = folder / f"{digest}.bin"
-        try:
-            out_static, out_tree, blob = _loads(path.read_bytes())
-            exported = jax.export.deserialize(bytearray(blob))
-        except Exception:  # absent, or unreadable: trace it again
-            box = []
+        box = []
 
-            def flat(*leaves):
-                args = eqx.combine(jax.tree_util.tree_unflatten(tree, leaves), static)
-                out_dynamic, out_static = eqx.partition(self._fun(*args), eqx.is_array)
-                out_leaves, out_tree = jax.tree_util.tree_flatten(out_dynamic)
-                box.append((out_static, out_tree))
-                return out_leaves
+        def flat(*leaves):
+            args = eqx.combine(jax.tree_util.tree_unflatten(tree, leaves), static)
+            out_dynamic, out_static = eqx.partition(self._fun(*args), eqx.is_array)
+            out_leaves, out_tree = jax.tree_util.tree_flatten(out_dynamic)
+            box.append((out_static, out_tree))
+            return out_leaves
 
-            exported = jax.export.export(jax.jit(flat))(*leaves)
-            out_static, out_tree = box[0]
-            flat_static = jax.tree_util.tree_flatten(out_static)
-            _store(path, (out_static, out_tree, bytes(exported.serialize())),
-                   lambda back: (jax.tree_util.tree_flatten(back[0]) == flat_static
-                                 and back[1] == out_tree))
-        return (jax.jit(exported.call, donate_argnums=donated), out_static, out_tree,
-                frozenset(donated))
+        exported = jax.export.export(jax.jit(flat))(*leaves)
+        return exported, box[0]
 
     def __call__(self, *args):
         import equinox as eqx
@@ -286,6 +249,29 @@ class _CachedFilterJit:
 
     def clear_cache(self) -> None:
         self._calls.clear()
+
+
+def _load_or_export(folder: Path, described: str, export, donated=()):
+    """``(jax.jit of the exported program's call, meta)`` for the program ``described`` (its
+    key as text): read from its file in ``folder``, or made by ``export() -> (exported,
+    meta)`` and stored (``meta``: what the caller needs besides the program, e.g. the output
+    tree). None where it is not for the disk: an option known only by its address (the key
+    would differ in every process), or a program JAX cannot export (a host callback, say)."""
+    if " at 0x" in described:
+        return None
+    path = folder / f"{hashlib.sha256(described.encode()).hexdigest()[:40]}.bin"
+    try:
+        try:
+            meta, blob = _loads(path.read_bytes())
+            exported = jax.export.deserialize(bytearray(blob))
+        except Exception:  # absent, or unreadable: trace it again
+            exported, meta = export()
+            flat_meta = jax.tree_util.tree_flatten(meta)
+            _store(path, (meta, bytes(exported.serialize())),
+                   lambda back: jax.tree_util.tree_flatten(back[0]) == flat_meta)
+    except Exception:
+        return None
+    return jax.jit(exported.call, donate_argnums=donated), meta
 
 
 def _committed(leaves, which) -> list:
