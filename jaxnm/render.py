@@ -661,7 +661,9 @@ def _visible(mesh: Mesh, camera: Camera, shift=None, *, width: int, height: int,
     (`compact`). Only the options visibility depends on are static: one compilation serves
     every output, frame and map. ``shift``: see `_camera_relative`."""
     mesh = _shifted(mesh, shift)
-    clip = to_clip(mesh.positions, camera)
+    # computed once: XLA fused the transform into the snapping's loop as well as the
+    # output's, doing it twice (200k torus at 512^2: frame 0.95-0.97x, one process A/B)
+    clip = materialize(to_clip(mesh.positions, camera))
     tid, orientation = triangle_ids(clip, mesh.faces, width=width, height=height,
                                     cull_back=cull_back)
     return tid, jnp.count_nonzero(tid >= 0), clip, orientation
