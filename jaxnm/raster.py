@@ -351,16 +351,49 @@ def _window_box(pts, keep):
     return (*materialize((xmin, xmax, ymin, ymax)), bad_w)
 
 
-def _triangle_setup(v: list[list[Array]], width: int, height: int, block: int,
-                    cull_back: bool):
+def _triangle_setup(tri: _Corners, width: int, height: int, block: int, cull_back: bool):
     """Per-triangle sign, block bounding box and validity.
 
-    ``v``: the homogeneous window coordinates of the corners (`_Corners.components`).
+    ``tri``: the triangles' (snapped) homogeneous window corners.
     Returns ``sigma`` (F,) sign of det M, the first tile ``tx0, ty0`` of the bounding box
     on the image's grid of ``block x block`` tiles (tile ``(tx, ty)`` holds window pixels
     ``i // block == tx``, ``j // block == ty``) and the box's size in tiles ``nbx, nby``
     (F,); ``nbx = nby = 0`` for triangles that cannot cover a pixel.
+
+    The usual frame has every vertex snapped (``w = 1``: in front of the eye, within the
+    snapping range) with a depth in [0, 1]: then nothing is clipped, no corner is divided,
+    and a triangle needs only its corners' x and y, gathered as (F, 2) rows (three
+    gathers instead of twelve; the 200k torus's set-up 1.6 -> 1.0 ms on the 2-core VM).
+    Both ways give the same result there, bit for bit: a product with ``w = 1`` is exact.
     """
+    h = tri.vertices
+    z, w = h[:, 2], h[:, 3]
+    snapped = jnp.all((w == 1.0) & (z >= 0.0) & (z <= 1.0))
+    kw = dict(width=width, height=height, block=block, cull_back=cull_back)
+    return jax.lax.cond(snapped, functools.partial(_snapped_setup, **kw),
+                        functools.partial(_general_setup, **kw), h, tri.faces)
+
+
+def _snapped_setup(h: Array, faces: Array, *, width, height, block, cull_back):
+    """`_triangle_setup` where every vertex has ``w = 1`` and a depth in [0, 1]."""
+    xy = materialize(h[:, :2])
+    corners = []
+    for k in range(3):
+        row = xy[faces[:, k]]
+        corners.append([row[:, 0], row[:, 1], None, jnp.ones_like(row[:, 0])])
+    x, y = materialize(([c[0] for c in corners], [c[1] for c in corners]))
+    for k in range(3):
+        corners[k][:2] = x[k], y[k]
+    sigma = jnp.sign(_orientation(corners))
+    valid = (sigma > 0) if cull_back else (sigma != 0)
+    return sigma, *_box_tiles(functools.reduce(jnp.minimum, x), functools.reduce(jnp.maximum, x),
+                              functools.reduce(jnp.minimum, y), functools.reduce(jnp.maximum, y),
+                              valid, width, height, block)
+
+
+def _general_setup(h: Array, faces: Array, *, width, height, block, cull_back):
+    """`_triangle_setup` for any homogeneous corners: the box clipped at the near plane."""
+    v = _Corners(h, faces).components()
     sigma = jnp.sign(_orientation(v))
 
     # Clipped bounding box: vertices in front of the near plane, plus the points where
@@ -392,8 +425,24 @@ def _triangle_setup(v: list[list[Array]], width: int, height: int, block: int,
     ymin = jnp.where(bad_w, 0.0, ymin)
     xmax = jnp.where(bad_w, float(width), xmax)
     ymax = jnp.where(bad_w, float(height), ymax)
+
+    finite = functools.reduce(jnp.logical_and, [jnp.isfinite(c) for k in v for c in k])
+    valid = (
+        finite
+        & (sigma != 0)
+        & (front[0] | front[1] | front[2])
+        & (in_far[0] | in_far[1] | in_far[2])
+    )
+    if cull_back:
+        valid = valid & (sigma > 0)
+    return sigma, *_box_tiles(xmin, xmax, ymin, ymax, valid, width, height, block)
+
+
+def _box_tiles(xmin, xmax, ymin, ymax, valid, width: int, height: int, block: int):
+    """The first tile ``tx0, ty0`` and the size in tiles ``nbx, nby`` (0 where not ``valid``
+    or where the box holds no pixel centre) of window-space boxes (`_triangle_setup`)."""
     # pixel-centre ranges: i + 1/2 in [xmin, xmax], widened by a hair for rounding in the
-    # division above (exact coverage is decided per pixel, so a wider box is only slower)
+    # box's divisions (exact coverage is decided per pixel: a wider box is only slower)
     lim = float(1 << 24)
 
     def lo(v):
@@ -407,24 +456,13 @@ def _triangle_setup(v: list[list[Array]], width: int, height: int, block: int,
     i0, i1, j0, j1 = lo(xmin), hi(xmax), lo(ymin), hi(ymax)
     i0, j0 = jnp.maximum(i0, 0), jnp.maximum(j0, 0)
     i1, j1 = jnp.minimum(i1, width - 1), jnp.minimum(j1, height - 1)
-
-    finite = functools.reduce(jnp.logical_and, [jnp.isfinite(c) for k in v for c in k])
-    valid = (
-        finite
-        & (sigma != 0)
-        & (front[0] | front[1] | front[2])
-        & (in_far[0] | in_far[1] | in_far[2])
-        & (i0 <= i1)
-        & (j0 <= j1)
-    )
-    if cull_back:
-        valid = valid & (sigma > 0)
+    valid = valid & (i0 <= i1) & (j0 <= j1)
     # the tiles of the image's block x block grid that the box touches
     # (i0, j0 >= 0, and i1, j1 too wherever valid)
     tx0, ty0 = _div(i0, block), _div(j0, block)
     nbx = jnp.where(valid, _div(i1, block) - tx0 + 1, 0)
     nby = jnp.where(valid, _div(j1, block) - ty0 + 1, 0)
-    return sigma, tx0, ty0, nbx, nby
+    return tx0, ty0, nbx, nby
 
 
 # --------------------------------------------------------------------------------------
@@ -718,7 +756,7 @@ def _visible_triangles(clip, faces, *, width, height, cull_back, block, slots, s
     tiles = (-(-width // block)) * (-(-height // block))
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
-    setup = _triangle_setup(tri.components(), width, height, block, cull_back)
+    setup = _triangle_setup(tri, width, height, block, cull_back)
     _, _, _, nbx, nby = setup
     buf = _each_pass(lambda n, buf: _depth_test(tri, tri_depth, setup, n, buf, **kw),
                      nbx * nby, _empty_depth_buffer(tiles, block, clip.dtype), tiles=tiles,
@@ -774,7 +812,7 @@ def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_b
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     tiles = (-(-width // block)) * (-(-height // block))
-    setup = _triangle_setup(tri.components(), width, height, block, cull_back)
+    setup = _triangle_setup(tri, width, height, block, cull_back)
     _, _, _, nbx, nby = setup
 
     def one_pass(counts, count):

@@ -176,6 +176,65 @@ def test_a_clipped_triangle_elsewhere_changes_no_other_pixel():
         np.testing.assert_array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)))
 
 
+@pytest.mark.parametrize("cull", [False, True])
+def test_snapped_setup_equals_the_general_one(cull):
+    """Where every vertex is snapped (w = 1) with a depth in [0, 1], the triangle set-up
+    takes a short way (corners' x and y only); it must give what the general set-up (near
+    plane clipping, divisions, validity checks) gives, bit for bit: random triangles,
+    degenerate ones, ones partly and wholly off screen, slivers between pixel centres."""
+    from jaxnm import raster
+
+    w, h = 37, 29
+    pos, faces = random_soup(4, n_vertices=60, n_faces=120)
+    clip = clip_of(pos, perspective_mvp((0.3, 0.4, 2.5), aspect=w / h)).astype(np.float32)
+    extra = np.array([
+        [0.1, 0.1, 0, 1], [0.3, 0.3, 0, 1], [0.5, 0.5, 0, 1],  # collinear
+        [0.2, 0.2, 0, 1], [0.2, 0.2, 0, 1], [0.2, 0.2, 0, 1],  # a point
+        [-9, -9, 0, 1], [-8, -9, 0, 1], [-9, -8, 0, 1],  # off screen
+        [-1.5, 0.2, 0.3, 1], [0.1, 0.25, 0.3, 1], [-1.5, 0.3, 0.3, 1],  # partly off screen
+        [0.01, 0.0, 0.5, 2], [0.02, 0.0, 0.5, 2], [0.015, 1e-3, 0.5, 2],  # a sliver
+    ], np.float32)
+    clip = np.concatenate([clip, extra])
+    faces = np.concatenate([faces, len(clip) - len(extra) + np.arange(len(extra)).reshape(-1, 3)])
+    tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=w,
+                                    height=h, subpixel_bits=8)
+    hv = np.asarray(tri.vertices)
+    assert np.all(hv[:, 3] == 1) and np.all((hv[:, 2] >= 0) & (hv[:, 2] <= 1))
+    kw = dict(width=w, height=h, block=4, cull_back=cull)
+    short = raster._snapped_setup(tri.vertices, tri.faces, **kw)
+    general = raster._general_setup(tri.vertices, tri.faces, **kw)
+    for a, b in zip(short, general):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    counts = np.asarray(general[2] * general[3])
+    assert (counts > 0).sum() > 0.3 * len(faces) and (counts == 0).sum() >= 4
+    sigma = np.asarray(general[0])
+    assert set(np.unique(sigma)) == {-1, 0, 1}  # both orientations and degenerate ones
+    assert np.all(counts[sigma == 0] == 0)
+    assert np.any(counts[sigma < 0] > 0) != cull
+
+
+def test_a_vertex_outside_the_snapping_range_changes_no_other_pixel():
+    """Vertices too far out to be snapped (they keep their w, here 2) send the whole mesh
+    through the general set-up: every fragment must stay the same."""
+    w, h = 48, 40
+    pos, faces = random_soup(3)
+    clip = clip_of(pos, perspective_mvp((0.3, 0.4, 2.5), aspect=w / h)).astype(np.float32)
+    far_out = np.array([[-6e4, 0.0, 0.0, 2.0], [-6e4 + 2, 0.0, 0.0, 2.0],
+                        [-6e4, 2.0, 0.0, 2.0]], np.float32)  # ~7e5 px left of the image
+    more = np.concatenate([clip, far_out])
+    more_faces = np.concatenate([faces, len(clip) + np.arange(3)[None]])
+    from jaxnm import raster
+
+    tri, _ = raster._window_corners(jnp.asarray(more), jnp.asarray(more_faces, jnp.int32),
+                                    width=w, height=h, subpixel_bits=8)
+    assert not np.all(np.asarray(tri.vertices)[:, 3] == 1)
+    a = jaxnm.rasterize(clip, faces, width=w, height=h)
+    b = jaxnm.rasterize(more, more_faces, width=w, height=h)
+    assert np.asarray(a.mask).sum() > 0.2 * w * h
+    for field in ("triangle_id", "depth", "front_facing"):
+        np.testing.assert_array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)))
+
+
 def test_fully_clipped_and_degenerate_triangles_draw_nothing():
     clip = np.array([
         [0, 0, -3, 1], [1, 0, -3, 1], [0, 1, -3, 1],   # in front of near plane entirely
@@ -309,7 +368,7 @@ def test_many_rounds_and_passes_give_the_same_image():
     # that was many passes
     tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=40,
                                     height=40, subpixel_bits=8)
-    _, _, _, nbx, nby = raster._triangle_setup(tri.components(), 40, 40, 4, False)
+    _, _, _, nbx, nby = raster._triangle_setup(tri, 40, 40, 4, False)
     assert int(raster._slot_passes(nbx * nby, 32)[1]) > 5
     # a pass size the faces x tiles bound exceeds but the frame's slots fit: one pass,
     # found by the float32 sum (not the exact running sums), the same image again
