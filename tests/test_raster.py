@@ -180,15 +180,16 @@ def test_a_clipped_triangle_elsewhere_changes_no_other_pixel():
 def test_snapped_setup_equals_the_general_one(cull):
     """Where every vertex is snapped (w = 1) with a depth in [0, 1], the triangle set-up
     takes a short way (corners' x and y only); it must give what the general set-up (near
-    plane clipping, divisions, validity checks) gives, bit for bit: random triangles,
-    degenerate ones, ones partly and wholly off screen, slivers between pixel centres."""
+    plane clipping, divisions, validity checks) gives, bit for bit, but for the sub-pixel
+    triangles it drops: random triangles, degenerate ones, ones partly and wholly off
+    screen, slivers between pixel centres."""
     from jaxnm import raster
 
     w, h = 37, 29
     pos, faces = random_soup(4, n_vertices=60, n_faces=120)
     clip = clip_of(pos, perspective_mvp((0.3, 0.4, 2.5), aspect=w / h)).astype(np.float32)
     extra = np.array([
-        [0.1, 0.1, 0, 1], [0.3, 0.3, 0, 1], [0.5, 0.5, 0, 1],  # collinear
+        [0.1, 0.1, 0, 1], [0.3, 0.3, 0, 1], [0.5, 0.5, 0, 1],  # collinear (before snapping)
         [0.2, 0.2, 0, 1], [0.2, 0.2, 0, 1], [0.2, 0.2, 0, 1],  # a point
         [-9, -9, 0, 1], [-8, -9, 0, 1], [-9, -8, 0, 1],  # off screen
         [-1.5, 0.2, 0.3, 1], [0.1, 0.25, 0.3, 1], [-1.5, 0.3, 0.3, 1],  # partly off screen
@@ -201,16 +202,71 @@ def test_snapped_setup_equals_the_general_one(cull):
     hv = np.asarray(tri.vertices)
     assert np.all(hv[:, 3] == 1) and np.all((hv[:, 2] >= 0) & (hv[:, 2] <= 1))
     kw = dict(width=w, height=h, block=4, cull_back=cull)
-    short = raster._snapped_setup(tri.vertices, tri.faces, **kw)
-    general = raster._general_setup(tri.vertices, tri.faces, **kw)
-    for a, b in zip(short, general):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    counts = np.asarray(general[2] * general[3])
-    assert (counts > 0).sum() > 0.3 * len(faces) and (counts == 0).sum() >= 4
+    short = [np.asarray(x) for x in raster._snapped_setup(tri.vertices, tri.faces, **kw)]
+    general = [np.asarray(x) for x in raster._general_setup(tri.vertices, tri.faces, **kw)]
+    for a, b in zip(short[:3], general[:3]):  # orientation, first tile
+        np.testing.assert_array_equal(a, b)
+    # the same slots, but for the triangles the short way drops (they cover nothing: next test)
+    kept = short[4] > 0
+    np.testing.assert_array_equal(short[4][kept], general[4][kept])
+    np.testing.assert_array_equal(short[3][kept], general[3][kept])
+    assert kept.sum() > 0.9 * (general[4] > 0).sum()
+    counts = general[4]
+    assert (counts > 0).sum() > 0.3 * len(faces) and (counts == 0).sum() >= 3
     sigma = np.asarray(general[0])
     assert set(np.unique(sigma)) == {-1, 0, 1}  # both orientations and degenerate ones
     assert np.all(counts[sigma == 0] == 0)
     assert np.any(counts[sigma < 0] > 0) != cull
+
+
+def _tiny_triangles_on_centres(seed, w, h, n=3000):
+    """Sub-pixel triangles with corners on the 1/256 grid a few steps from pixel centres:
+    many of their edges and corners fall exactly on a centre (ties), many miss every
+    centre by a grid step or less. Clip coordinates (w = 1), depths in (0, 1)."""
+    rng = np.random.default_rng(seed)
+    centre = np.stack([rng.integers(0, w, n), rng.integers(0, h, n)], -1) + 0.5
+    corners = centre[:, None, :] + rng.integers(-160, 161, (n, 3, 2)) / 256.0
+    through = rng.random(n) < 0.3  # an edge through the centre: corner 2 opposite corner 1
+    corners[through, 2] = 2 * centre[through] - corners[through, 1]
+    on = rng.random((n, 3)) < 0.15  # a corner on the centre
+    corners = np.where(on[..., None], centre[:, None, :], corners)
+    ndc = corners / np.array([w, h]) * 2.0 - 1.0
+    z = rng.uniform(-0.9, 0.9, (n, 3, 1))
+    clip = np.concatenate([ndc, z, np.ones((n, 3, 1))], -1).reshape(-1, 4).astype(np.float32)
+    return clip, np.arange(3 * n).reshape(n, 3)
+
+
+@pytest.mark.parametrize("cull", [False, True])
+def test_triangles_dropped_before_their_slots_cover_nothing(cull, monkeypatch):
+    """The short set-up drops triangles whose one or two box centres it finds clearly
+    missed (`raster._misses_centre`). Against the general set-up, which drops none: the
+    same winners and depths, and the same count of fragments per pixel (`overdraw`), on
+    sub-pixel triangles whose edges run through or within a grid step of pixel centres."""
+    from jaxnm import raster
+
+    w, h = 24, 20
+    clip, faces = _tiny_triangles_on_centres(5, w, h)
+    kw = dict(width=w, height=h, cull_back=cull)
+    tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=w,
+                                    height=h, subpixel_bits=8)
+    args = (tri.vertices, tri.faces)
+    short = raster._snapped_setup(*args, width=w, height=h, block=4, cull_back=cull)
+    general = raster._general_setup(*args, width=w, height=h, block=4, cull_back=cull)
+    drawn = [np.asarray(s[4]) > 0 for s in (short, general)]
+    assert np.all(drawn[0] <= drawn[1])
+    assert (drawn[1] & ~drawn[0]).sum() > 0.15 * drawn[1].sum()  # many dropped
+    a = jaxnm.rasterize(clip, faces, **kw)
+    count_a = np.asarray(overdraw(clip, faces, **kw))
+    jax.clear_caches()
+    monkeypatch.setattr(raster, "_snapped_setup", raster._general_setup)
+    b = jaxnm.rasterize(clip, faces, **kw)
+    count_b = np.asarray(overdraw(clip, faces, **kw))
+    jax.clear_caches()
+    assert np.asarray(a.mask).sum() > 0.3 * w * h
+    assert count_b.sum() > np.asarray(a.mask).sum()  # hidden fragments counted too
+    np.testing.assert_array_equal(count_a, count_b)
+    for field in ("triangle_id", "depth", "front_facing"):
+        np.testing.assert_array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)))
 
 
 def test_a_vertex_outside_the_snapping_range_changes_no_other_pixel():
@@ -368,11 +424,11 @@ def test_many_rounds_and_passes_give_the_same_image():
     # that was many passes
     tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=40,
                                     height=40, subpixel_bits=8)
-    _, _, _, nbx, nby = raster._triangle_setup(tri, 40, 40, 4, False)
-    assert int(raster._slot_passes(nbx * nby, 32)[1]) > 5
+    count = raster._triangle_setup(tri, 40, 40, 4, False)[4]
+    assert int(raster._slot_passes(count, 32)[1]) > 5
     # a pass size the faces x tiles bound exceeds but the frame's slots fit: one pass,
     # found by the float32 sum (not the exact running sums), the same image again
-    total = int(jnp.sum(nbx * nby))
+    total = int(jnp.sum(count))
     one = 1 << total.bit_length()
     assert len(faces) * 100 > one > total
     d_tid, _, _ = raster._rasterize(jnp.asarray(clip), jnp.asarray(faces, jnp.int32),
