@@ -370,18 +370,24 @@ def _triangle_setup(tri: _Corners, width: int, height: int, block: int, cull_bac
     h = tri.vertices
     z, w = h[:, 2], h[:, 3]
     snapped = jnp.all((w == 1.0) & (z >= 0.0) & (z <= 1.0))
+    # corners on the 1/256 grid (snapped with up to 8 sub-pixel bits): `_misses_centre`'s
+    # differences are exact
+    q = h[:, :2] * 256.0
+    on_grid = jnp.all(q == jnp.round(q))
     kw = dict(width=width, height=height, block=block, cull_back=cull_back)
     return jax.lax.cond(snapped, functools.partial(_snapped_setup, **kw),
-                        functools.partial(_general_setup, **kw), h, tri.faces)
+                        functools.partial(_general_setup, **kw), h, tri.faces, on_grid)
 
 
-def _snapped_setup(h: Array, faces: Array, *, width, height, block, cull_back):
+def _snapped_setup(h: Array, faces: Array, on_grid: Array, *, width, height, block,
+                   cull_back):
     """`_triangle_setup` where every vertex has ``w = 1`` and a depth in [0, 1].
 
-    Also drops the triangles whose box holds one or two pixel centres that the triangle
-    clearly misses (`_misses_centre`): a dense mesh's many sub-pixel triangles cover no
-    pixel at all (the 200k torus at 512^2: 28,787 of its 72,897 triangles with a box, 36 %
-    of the (triangle, tile) slots), and the test costs less than their slots."""
+    Where also every corner is on the 1/256 grid (``on_grid``: snapped, the default), it
+    drops the triangles whose box holds one or two pixel centres that the triangle clearly
+    misses (`_misses_centre`): a dense mesh's many sub-pixel triangles cover no pixel at
+    all (the 200k torus at 512^2: 28,787 of its 72,897 triangles with a box, 36 % of the
+    (triangle, tile) slots), and the test costs less than their slots."""
     xy = materialize(h[:, :2])
     corners = []
     for k in range(3):
@@ -400,8 +406,7 @@ def _snapped_setup(h: Array, faces: Array, *, width, height, block, cull_back):
     few = (ni >= 1) & (nj >= 1) & (ni * nj <= 2)
     first = _misses_centre(x, y, sigma, i0, j0)
     second = _misses_centre(x, y, sigma, i0 + (ni == 2), j0 + (nj == 2))
-    # (computed once: the tile counts across and up would each test the centres again)
-    valid = valid & ~(few & first & second)
+    valid = valid & ~(on_grid & few & first & second)
     return sigma, *_box_tiles(i0, i1, j0, j1, valid, block)
 
 
@@ -409,10 +414,11 @@ def _misses_centre(x, y, sigma, i, j) -> Array:
     """Whether triangles with (snapped, ``w = 1``) corners ``x[k], y[k]`` and orientation
     ``sigma`` certainly do not cover pixel centre ``(i + 1/2, j + 1/2)``: some edge function
     there is below minus a bound of the rounding of both its evaluation here and the slots'
-    (`_slot_fragments`, at the tile's first centre and stepped by ``a dx + b dy``). Corners
-    and centres are on the 1/256 grid within 2^15 px of each other, so their differences
-    are exact in float32 and each product rounds once; the bound, 2^-16 (|dx_j| + |dx_k| +
-    4)(|dy_j| + |dy_k| + 4), is 16x what the two evaluations can err by together."""
+    (`_slot_fragments`, at the tile's first centre and stepped by ``a dx + b dy``). For
+    corners on the 1/256 grid (the caller's condition) the differences to a centre are
+    exact in float32 (within 2^16 px; farther, the bound grows with them) and each product
+    rounds once; the bound, 2^-16 (|dx_j| + |dx_k| + 4)(|dy_j| + |dy_k| + 4), is 16x what
+    the two evaluations can err by together."""
     px = i.astype(x[0].dtype) + 0.5
     py = j.astype(x[0].dtype) + 0.5
     dx = [xk - px for xk in x]
@@ -427,8 +433,10 @@ def _misses_centre(x, y, sigma, i, j) -> Array:
     return out
 
 
-def _general_setup(h: Array, faces: Array, *, width, height, block, cull_back):
-    """`_triangle_setup` for any homogeneous corners: the box clipped at the near plane."""
+def _general_setup(h: Array, faces: Array, on_grid=None, *, width, height, block,
+                   cull_back):
+    """`_triangle_setup` for any homogeneous corners: the box clipped at the near plane
+    (``on_grid`` unused: `_snapped_setup`'s, for `jax.lax.cond`)."""
     v = _Corners(h, faces).components()
     sigma = jnp.sign(_orientation(v))
 

@@ -1,5 +1,7 @@
 """Visibility against an independent float64 reference, watertightness, clipping, bad input."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -202,8 +204,11 @@ def test_snapped_setup_equals_the_general_one(cull):
     hv = np.asarray(tri.vertices)
     assert np.all(hv[:, 3] == 1) and np.all((hv[:, 2] >= 0) & (hv[:, 2] <= 1))
     kw = dict(width=w, height=h, block=4, cull_back=cull)
-    short = [np.asarray(x) for x in raster._snapped_setup(tri.vertices, tri.faces, **kw)]
-    general = [np.asarray(x) for x in raster._general_setup(tri.vertices, tri.faces, **kw)]
+    # compiled, as in a frame (XLA contracts products into FMAs, eagerly nothing is)
+    short = [np.asarray(x) for x in jax.jit(functools.partial(raster._snapped_setup, **kw))(
+        tri.vertices, tri.faces, True)]
+    general = [np.asarray(x) for x in jax.jit(functools.partial(raster._general_setup, **kw))(
+        tri.vertices, tri.faces)]
     for a, b in zip(short[:3], general[:3]):  # orientation, first tile
         np.testing.assert_array_equal(a, b)
     # the same slots, but for the triangles the short way drops (they cover nothing: next test)
@@ -246,15 +251,15 @@ def test_triangles_dropped_before_their_slots_cover_nothing(cull, monkeypatch):
 
     w, h = 24, 20
     clip, faces = _tiny_triangles_on_centres(5, w, h)
-    kw = dict(width=w, height=h, cull_back=cull)
     tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=w,
                                     height=h, subpixel_bits=8)
-    args = (tri.vertices, tri.faces)
-    short = raster._snapped_setup(*args, width=w, height=h, block=4, cull_back=cull)
-    general = raster._general_setup(*args, width=w, height=h, block=4, cull_back=cull)
+    kw = dict(width=w, height=h, block=4, cull_back=cull)
+    short = jax.jit(functools.partial(raster._snapped_setup, **kw))(tri.vertices, tri.faces, True)
+    general = jax.jit(functools.partial(raster._general_setup, **kw))(tri.vertices, tri.faces)
     drawn = [np.asarray(s[4]) > 0 for s in (short, general)]
     assert np.all(drawn[0] <= drawn[1])
     assert (drawn[1] & ~drawn[0]).sum() > 0.15 * drawn[1].sum()  # many dropped
+    kw = dict(width=w, height=h, cull_back=cull)
     a = jaxnm.rasterize(clip, faces, **kw)
     count_a = np.asarray(overdraw(clip, faces, **kw))
     jax.clear_caches()
@@ -267,6 +272,27 @@ def test_triangles_dropped_before_their_slots_cover_nothing(cull, monkeypatch):
     np.testing.assert_array_equal(count_a, count_b)
     for field in ("triangle_id", "depth", "front_facing"):
         np.testing.assert_array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)))
+
+
+def test_corners_off_the_snapping_grid_drop_no_triangle():
+    """Unsnapped corners with w = 1 (`subpixel_bits=None`, an orthographic camera) take the
+    short set-up, but are not on the 1/256 grid that `raster._misses_centre`'s bound needs:
+    no triangle is dropped, and the slots are the general set-up's."""
+    from jaxnm import raster
+
+    w, h = 24, 20
+    clip, faces = _tiny_triangles_on_centres(6, w, h, n=600)
+    clip[:, :2] += np.float32(1e-4)  # off the grid
+    tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=w,
+                                    height=h, subpixel_bits=None)
+    q = np.asarray(tri.vertices)[:, :2] * 256
+    assert np.all(np.asarray(tri.vertices)[:, 3] == 1) and not np.all(q == np.round(q))
+    kw = dict(width=w, height=h, block=4, cull_back=False)
+    setup = jax.jit(lambda t: raster._triangle_setup(t, w, h, 4, False))(tri)
+    general = jax.jit(functools.partial(raster._general_setup, **kw))(tri.vertices, tri.faces)
+    np.testing.assert_array_equal(np.asarray(setup[4]), np.asarray(general[4]))
+    on = jax.jit(functools.partial(raster._snapped_setup, **kw))(tri.vertices, tri.faces, True)
+    assert (np.asarray(on[4]) < np.asarray(general[4])).sum() > 50  # (it would drop these)
 
 
 def test_a_vertex_outside_the_snapping_range_changes_no_other_pixel():
