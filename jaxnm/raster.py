@@ -376,7 +376,8 @@ def _triangle_setup(tri: _Corners, width: int, height: int, block: int, cull_bac
     on_grid = jnp.all(q == jnp.round(q))
     kw = dict(width=width, height=height, block=block, cull_back=cull_back)
     return jax.lax.cond(snapped, functools.partial(_snapped_setup, **kw),
-                        functools.partial(_general_setup, **kw), h, tri.faces, on_grid)
+                        lambda h, faces, _: _general_setup(h, faces, **kw), h, tri.faces,
+                        on_grid)
 
 
 def _snapped_setup(h: Array, faces: Array, on_grid: Array, *, width, height, block,
@@ -389,14 +390,10 @@ def _snapped_setup(h: Array, faces: Array, on_grid: Array, *, width, height, blo
     all (the 200k torus at 512^2: 28,787 of its 72,897 triangles with a box, 36 % of the
     (triangle, tile) slots), and the test costs less than their slots."""
     xy = materialize(h[:, :2])
-    corners = []
-    for k in range(3):
-        row = xy[faces[:, k]]
-        corners.append([row[:, 0], row[:, 1], None, jnp.ones_like(row[:, 0])])
-    x, y = materialize(([c[0] for c in corners], [c[1] for c in corners]))
-    for k in range(3):
-        corners[k][:2] = x[k], y[k]
-    sigma = jnp.sign(_orientation(corners))
+    rows = [xy[faces[:, k]] for k in range(3)]
+    x, y = materialize(([r[:, 0] for r in rows], [r[:, 1] for r in rows]))
+    one = jnp.ones_like(x[0])
+    sigma = jnp.sign(_orientation([[x[k], y[k], None, one] for k in range(3)]))
     valid = (sigma > 0) if cull_back else (sigma != 0)
     i0, i1, j0, j1 = _centre_ranges(
         functools.reduce(jnp.minimum, x), functools.reduce(jnp.maximum, x),
@@ -433,10 +430,8 @@ def _misses_centre(x, y, sigma, i, j) -> Array:
     return out
 
 
-def _general_setup(h: Array, faces: Array, on_grid=None, *, width, height, block,
-                   cull_back):
-    """`_triangle_setup` for any homogeneous corners: the box clipped at the near plane
-    (``on_grid`` unused: `_snapped_setup`'s, for `jax.lax.cond`)."""
+def _general_setup(h: Array, faces: Array, *, width, height, block, cull_back):
+    """`_triangle_setup` for any homogeneous corners: the box clipped at the near plane."""
     v = _Corners(h, faces).components()
     sigma = jnp.sign(_orientation(v))
 
