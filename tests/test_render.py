@@ -1,6 +1,7 @@
 """The composed pipeline: conventions of the outputs, scenes from JSON, the CLI, bad input."""
 
 import dataclasses
+import importlib
 import json
 from pathlib import Path
 
@@ -771,3 +772,52 @@ def test_a_repeated_render_copies_nothing_to_the_device(plane_scene):
     assert not np.array_equal(np.asarray(other), np.asarray(first))
     assert np.array_equal(np.asarray(render(scene, outputs=("color",))["color"]),
                           np.asarray(first))
+
+
+def test_a_scene_is_prepared_once_and_again_when_it_changes(plane_scene, monkeypatch):
+    """`render` remembers its host work for a scene (validation, the culling test, the
+    camera-relative copies) by the identities of its JAX arrays and the bytes of its small
+    NumPy ones: the same scene again is not validated again, nor one with a new normal map
+    of the same shape; an eye changed in place, other outputs or a NumPy mesh (which could
+    change in place) are prepared again, and each renders what a fresh preparation
+    renders (an eye moved behind the plane in place is refused)."""
+    R = importlib.import_module("jaxnm.render")
+    calls = []
+    real = R.validate_scene
+    monkeypatch.setattr(R, "validate_scene", lambda s: (calls.append(1), real(s))[1])
+    eye = np.array([0.2, 0.1, 2.5])
+    cam = dataclasses.replace(plane_scene.camera, eye=eye)
+    rng = np.random.default_rng(3)
+    maps = [jnp.asarray(rng.uniform(0.3, 0.7, (8, 8, 3)), jnp.float32) for _ in range(2)]
+    scene = dataclasses.replace(plane_scene, camera=cam, normal_map=maps[0])
+
+    def fresh(s, **kw):  # prepared from scratch
+        R._PREPARED.clear()
+        return np.asarray(render(s, **kw)["color"])
+
+    R._PREPARED.clear()
+    first = np.asarray(render(scene)["color"])
+    assert np.array_equal(np.asarray(render(scene)["color"]), first)
+    other_map = dataclasses.replace(scene, normal_map=maps[1])
+    got = np.asarray(render(other_map)["color"])
+    assert len(calls) == 1
+    assert not np.array_equal(got, first) and np.array_equal(got, fresh(other_map))
+    calls.clear()
+    render(scene)  # the entry `fresh` made for the other map serves: the map is not in it
+    assert calls == []
+    eye[0] = 0.6  # in place: the key holds the eye's bytes
+    moved = np.asarray(render(scene)["color"])
+    render(scene, outputs=("color", "uv"))
+    assert len(calls) == 2
+    assert not np.array_equal(moved, first) and np.array_equal(moved, fresh(scene))
+    eye[2] = -2.5
+    with pytest.raises(ValueError, match="near plane"):
+        render(scene)
+    eye[2] = 2.5
+    m = procedural.plane(2.0, 8)  # 81 vertices: more than a small array's 64 values
+    host = dataclasses.replace(scene, mesh=jaxnm.Mesh(*(np.asarray(a) for a in (
+        m.positions, m.faces, m.uv, m.normals))))
+    calls.clear()
+    render(host)
+    render(host)
+    assert len(calls) == 2
