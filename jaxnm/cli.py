@@ -228,9 +228,11 @@ def main(argv=None) -> int:
         pin_worker_threads,
         use_compilation_cache,
         use_deterministic_ops,
+        use_wide_vectors,
     )
 
     keep_freed_memory_unless_disabled()  # before JAX initialises a backend
+    use_wide_vectors()  # likewise
     if not args.nondeterministic:
         use_deterministic_ops()  # before JAX initialises a backend
     if not args.no_compile_cache:

@@ -60,7 +60,11 @@ import numpy as np  # noqa: E402
 import jaxnm  # noqa: E402
 from jaxnm import fit as F  # noqa: E402
 from jaxnm import procedural  # noqa: E402
-from jaxnm.runtime import keep_freed_memory_unless_disabled, pin_worker_threads  # noqa: E402
+from jaxnm.runtime import (  # noqa: E402
+    keep_freed_memory_unless_disabled,
+    pin_worker_threads,
+    use_wide_vectors,
+)
 from jaxnm.textures import encode_normal_map  # noqa: E402
 
 GOALS = {
@@ -538,6 +542,8 @@ def markdown(res: dict) -> str:
             else "keep_freed_memory off")
     kept += (f"; {res['pinned_worker_threads']} XLA worker threads pinned"
              if res.get("pinned_worker_threads") else "; worker threads not pinned")
+    kept += ("; XLA's CPU vectors 512-bit (`use_wide_vectors`)" if res.get("wide_vectors")
+             else "; XLA's default CPU vector width")
     lines = [f"Machine: {res['machine']}; JAX {res['jax']}; {res['mitsuba']}; {res['date']}; "
              f"{kept}.", ""]
     lines += ["| frame | size | jaxnm forward ms | Mitsuba forward ms | ratio | jaxnm fwd+bwd ms "
@@ -630,6 +636,9 @@ def main(argv=None) -> None:
     # as the command line does, before any JAX computation (`JAXNM_KEEP_FREED_MEMORY=off`
     # to measure without): XLA's freed buffers kept for the next call, not faulted in again
     kept = keep_freed_memory_unless_disabled()
+    # XLA's CPU code in 512-bit vectors where the CPU has them, as the command line does
+    # (`JAXNM_WIDE_VECTORS=off` to measure without)
+    wide = use_wide_vectors()
     # XLA's CPU worker threads each on a core of its own (`JAXNM_PIN_THREADS=off` to
     # measure without), and Mitsuba's too (`bench_mitsuba.forward_calls`)
     pinned = pin_worker_threads()
@@ -650,7 +659,7 @@ def main(argv=None) -> None:
     res = {"machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.system()}",
            "jax": jax.__version__, "jaxnm": jaxnm.__version__, "mitsuba": why,
            "date": time.strftime("%Y-%m-%d"), "keep_freed_memory": kept,
-           "pinned_worker_threads": pinned}
+           "pinned_worker_threads": pinned, "wide_vectors": wide}
     parts = set(args.parts.split(","))
     p = _problem(args.quick)
     sizes = (256,) if args.quick else (512, 1024)

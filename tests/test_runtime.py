@@ -4,6 +4,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 _ALLOC_PROBE = """
@@ -200,3 +201,54 @@ def test_pin_worker_threads_can_be_turned_off():
     r = _pin_probe(JAXNM_PIN_THREADS="off")
     assert r["returned"] == 0
     assert all(set(w) == set(r["process"]) for w in r["workers"])
+
+
+_VECTORS_PROBE = """
+import json, os, sys
+import numpy as np
+from jaxnm import runtime
+if sys.argv[1] == "late":
+    import jax
+    jax.numpy.ones(2).block_until_ready()  # the backend has started
+calls = [runtime.use_wide_vectors(), runtime.use_wide_vectors()]
+import jaxnm
+from jaxnm.procedural import default_scene
+out = jaxnm.render(default_scene(width=96, height=96),
+                   outputs=("triangle_id", "depth", "uv", "normal", "color"))
+np.savez(sys.argv[2], **{k: np.asarray(v) for k, v in out.items()})
+print("RESULT", json.dumps({"calls": calls, "flags": os.environ.get("XLA_FLAGS", "").split()}))
+"""
+
+
+def _vectors_probe(mode: str, path, **env: str) -> dict:
+    import json
+
+    env = {"XLA_FLAGS": "", **env}
+    out = _run(_VECTORS_PROBE.replace("sys.argv[2]", repr(str(path))), mode, **env)
+    return json.loads(out.split("RESULT", 1)[1])
+
+
+def test_wide_vectors_change_nothing_but_the_last_bits(tmp_path):
+    """`use_wide_vectors` adds its flag once, before JAX starts, where the CPU has AVX-512
+    (not once JAX has started, nor with ``$JAXNM_WIDE_VECTORS=off``); XLA accepts it, and
+    a frame rendered with it has the same triangle ids, depth and uv as one without,
+    normals within 4 float32 ulps and colours within what that makes of the highlight."""
+    from jaxnm.runtime import WIDE_VECTORS_FLAG, _has_avx512
+
+    wide = _vectors_probe("early", tmp_path / "wide.npz")
+    off = _vectors_probe("early", tmp_path / "off.npz", JAXNM_WIDE_VECTORS="off")
+    late = _vectors_probe("late", tmp_path / "late.npz")
+    assert off == {"calls": [False, False], "flags": []}
+    assert late == {"calls": [False, False], "flags": []}
+    if not _has_avx512():
+        assert wide == {"calls": [False, False], "flags": []}
+        pytest.skip("no AVX-512 on this CPU: the flag is not added")
+    assert wide == {"calls": [True, True], "flags": [WIDE_VECTORS_FLAG]}
+    a, b = np.load(tmp_path / "wide.npz"), np.load(tmp_path / "off.npz")
+    for name in ("triangle_id", "depth", "uv"):
+        assert np.array_equal(a[name], b[name]), name
+    assert (a["triangle_id"] >= 0).sum() > 1000  # the torus fills much of the frame
+    ulp = np.spacing(np.float32(1.0))
+    assert np.max(np.abs(a["normal"] - b["normal"])) <= 4 * ulp
+    # Blinn-Phong's highlight (shininess 48) scales a normal's change by up to 48x
+    assert np.max(np.abs(a["color"] - b["color"])) <= 4 * 48 * ulp
