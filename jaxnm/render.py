@@ -429,7 +429,10 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     camera, lights, material) may be traced, e.g. ``jax.grad`` of a loss of
     ``render(scene.replace(normal_map=x))["color"]`` with respect to ``x``
     (visibility is piecewise constant: silhouettes and occlusion boundaries
-    contribute no gradient). The scene is validated first (`validate_scene`).
+    contribute no gradient). The scene is validated first (`validate_scene`); that host
+    work is remembered for the last few scenes, keyed by their JAX arrays' identities and
+    their small NumPy arrays' bytes, so rendering the same scene again (or with another
+    normal map of the same shape) skips it.
     """
     prep = _prepare(scene, outputs, derivatives, frame, precision)
     opts, cull = prep.opts, prep.cull
