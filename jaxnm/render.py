@@ -20,6 +20,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import functools
+import threading
 import weakref
 from typing import NamedTuple
 
@@ -495,6 +496,7 @@ class _Prepared(NamedTuple):
 #: `_PREPARED_MAX` least recent, or `release_frame_programs` forgets them all.
 _PREPARED: collections.OrderedDict = collections.OrderedDict()
 _PREPARED_MAX = 8
+_PREPARED_LOCK = threading.Lock()  # `render` may be called from several threads
 _SMALL_HOST_ARRAY = 64  # elements: a NumPy array up to this size is keyed by its bytes
 _SCENE_OPTIONS = tuple(f.name for f in dataclasses.fields(Scene) if f.metadata.get("static"))
 
@@ -536,7 +538,9 @@ def _prepare(scene: Scene, outputs, derivatives, frame, precision) -> _Prepared:
     key, arrays = _prepared_key(scene, (outputs, derivatives, frame, precision))
     hit = None if key is None else _PREPARED.get(key)
     if hit is not None and all(r() is x for r, x in zip(hit[0], arrays)):
-        _PREPARED.move_to_end(key)
+        with _PREPARED_LOCK:  # (another thread may have dropped it meanwhile)
+            if key in _PREPARED:
+                _PREPARED.move_to_end(key)
         return hit[1]
     scene = validate_scene(scene)
     opts = RenderOptions.of(scene, outputs=outputs, derivatives=derivatives, frame=frame,
@@ -557,9 +561,10 @@ def _prepare(scene: Scene, outputs, derivatives, frame, precision) -> _Prepared:
     prepared = _Prepared(opts, cull, scene.mesh, camera, lights, albedo, scene.material,
                          origin, shift)
     if key is not None:
-        _PREPARED[key] = (tuple(weakref.ref(x) for x in arrays), prepared)
-        while len(_PREPARED) > _PREPARED_MAX:
-            _PREPARED.popitem(last=False)
+        with _PREPARED_LOCK:
+            _PREPARED[key] = (tuple(weakref.ref(x) for x in arrays), prepared)
+            while len(_PREPARED) > _PREPARED_MAX:
+                _PREPARED.popitem(last=False)
     return prepared
 
 
@@ -582,7 +587,8 @@ def release_frame_programs() -> None:
     which `covered_gbuffer` (a fit's `jaxnm.fit.prepare`) runs again for the same image
     size (1 s to compile). `jaxnm fit` calls it once the targets are rendered."""
     _render.clear_cache()
-    _PREPARED.clear()
+    with _PREPARED_LOCK:
+        _PREPARED.clear()
 
 
 def _concrete(*xs) -> bool:
