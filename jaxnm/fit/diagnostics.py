@@ -30,6 +30,10 @@ def seen_texels(prep: Prepared, map_size: tuple[int, int], *,
     return acc.reshape(h, w) >= min_weight
 
 
+#: Pixels per piece of `texel_influence`'s sums.
+_INFLUENCE_ROWS = 1 << 16
+
+
 def texel_influence(prep: Prepared) -> np.ndarray:
     """(h, w) float32: each texel's total filter weight over all used pixels, views and
     targets.
@@ -45,10 +49,18 @@ def texel_influence(prep: Prepared) -> np.ndarray:
     sizes = [a * b for a, b in shapes]
     acc = np.zeros(sum(sizes))
     for b in prep.batches:
-        used = np.asarray(b.weights, np.float64).sum(1)[..., 0]  # (V, K)
+        used = np.asarray(b.weights).sum(1, dtype=np.float64)[..., 0].reshape(-1)
         idx = np.asarray(b.gbuffer.plan.index)
-        wt = np.asarray(b.gbuffer.plan.weight, np.float64) * used[..., None]
-        acc += np.bincount(idx.ravel(), weights=wt.ravel(), minlength=acc.size)
+        idx = idx.reshape(-1, idx.shape[-1])  # (pixels of every view, taps)
+        weight = np.asarray(b.gbuffer.plan.weight).reshape(idx.shape)
+        # in pieces: float64 copies of a 64-view batch's taps at once (~1M pixels x 8
+        # taps) held ~200 MB for a moment, the fit's peak. Each piece's count is as long as
+        # the levels, so a piece is never much shorter
+        rows = max(_INFLUENCE_ROWS, acc.size // idx.shape[1])
+        for k in range(0, idx.shape[0], rows):
+            wt = weight[k:k + rows].astype(np.float64) * used[k:k + rows, None]
+            acc += np.bincount(idx[k:k + rows].ravel(), weights=wt.ravel(),
+                               minlength=acc.size)
     levels = np.split(acc, np.cumsum(sizes)[:-1])
     grad = levels[-1].reshape(shapes[-1])
     for k in range(len(shapes) - 2, -1, -1):  # coarse to fine: through each filter
