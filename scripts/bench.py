@@ -588,14 +588,15 @@ def markdown(res: dict) -> str:
     if v:
         lines += ["", "| solver | views (x2 lights) | size | chunk (pixel-targets) | "
                   "pixels (all views) | prepared MB | LM s / step | "
-                  "fit s (3 steps, compile included) | peak RSS MB | "
+                  "fit s (3 steps, compile included) | peak RSS MB | prepare's own MB | "
                   "fit's own MB: first fit / again |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in v:
             lines.append(f"| {r.get('solver', 'lm')} | {r['views']} | {r.get('size', 128)} | "
                          f"{r.get('chunk', '-')} | "
                          f"{r['pixels']} | {r.get('prepared_mb', '-')} | {r['s_per_step']} | "
-                         f"{r['fit_s']} | {r['peak_rss_mb']} | {r.get('fit_working_mb', '-')} / "
+                         f"{r['fit_s']} | {r['peak_rss_mb']} | "
+                         f"{r.get('prepare_working_mb', '-')} | {r.get('fit_working_mb', '-')} / "
                          f"{r.get('steps_working_mb', '-')} |")
     d = res.get("devices")
     if d:
