@@ -24,10 +24,11 @@ def test_markdown_reports_the_views_rows():
                       "prepared_mb": 1.5, "s_per_step": 0.1, "fit_s": 2.0, "peak_rss_mb": 500},
                      {"views": 64, "size": 256, "chunk": "none", "pixels": 16000,
                       "prepared_mb": 20.0, "s_per_step": 1.5, "fit_s": 9.0,
-                      "peak_rss_mb": 900}]}
+                      "peak_rss_mb": 900, "prepare_working_mb": 310, "fit_working_mb": 250,
+                      "steps_working_mb": 120}]}
     md = bench.markdown(res)
     assert "| 4 | 128 | 2097152 | 1000 | 1.5 | 0.1 | 2.0 | 500 |" in md
-    assert "| 64 | 256 | none | 16000 | 20.0 | 1.5 | 9.0 | 900 |" in md
+    assert "| 64 | 256 | none | 16000 | 20.0 | 1.5 | 9.0 | 900 | 310 | 250 / 120 |" in md
 
 
 def test_child_peak_memory_is_the_childs_not_the_benchmarks():
