@@ -88,15 +88,17 @@ def _median_time(fn, reps: int) -> float:
     return float(np.median(ts))
 
 
-def run_one(cfg: dict, surf: Torus, reps: int) -> dict:
-    """Time and measure one configuration (``float64`` runs with 64-bit JAX enabled)."""
+def run_one(cfg: dict, surf: Torus, reps: int, *, grad: bool = True) -> dict:
+    """Time and measure one configuration (``float64`` runs with 64-bit JAX enabled);
+    ``grad=False`` leaves out the forward + backward timing (``grad_compile_s`` and
+    ``grad_ms`` None)."""
     if cfg["precision"] == "float64":
         with jax.enable_x64(True):
-            return _run_one(cfg, surf, reps)
-    return _run_one(cfg, surf, reps)
+            return _run_one(cfg, surf, reps, grad)
+    return _run_one(cfg, surf, reps, grad)
 
 
-def _run_one(cfg: dict, surf: Torus, reps: int) -> dict:
+def _run_one(cfg: dict, surf: Torus, reps: int, with_grad: bool) -> dict:
     base = default_scene(width=cfg["size"], height=cfg["size"])
     mesh = jaxnm.Mesh(jnp.asarray(surf.pos, jnp.float32), jnp.asarray(surf.faces, jnp.int32),
                       jnp.asarray(surf.uv, jnp.float32), jnp.asarray(surf.nrm, jnp.float32))
@@ -121,12 +123,14 @@ def _run_one(cfg: dict, surf: Torus, reps: int) -> dict:
         color = jaxnm.render(scene.replace(normal_map=texels))["color"]
         return jnp.sum(color * weights[None, None])
 
-    grad = jax.jit(jax.grad(loss))
     texels = jnp.asarray(scene.normal_map)
-    t = time.perf_counter()
-    jax.block_until_ready(grad(texels))
-    gfirst = time.perf_counter() - t
-    gms = _median_time(lambda: grad(texels), max(2, reps // 2))
+    gfirst = gms = None
+    if with_grad:
+        grad = jax.jit(jax.grad(loss))
+        t = time.perf_counter()
+        jax.block_until_ready(grad(texels))
+        gfirst = time.perf_counter() - t
+        gms = _median_time(lambda: grad(texels), max(2, reps // 2))
 
     m = (np.asarray(out["mask"])[..., 0] > 0) & (np.asarray(out["front_facing"])[..., 0] > 0)
     p = np.asarray(out["position"], np.float64)[m]
@@ -147,7 +151,8 @@ def _run_one(cfg: dict, surf: Torus, reps: int) -> dict:
                    albedo=jnp.broadcast_to(jnp.asarray(scene.albedo, jnp.float32), p.shape))
     diff = np.asarray(out["color"], np.float64)[m] - np.asarray(c_true, np.float64)
     return {**cfg, "pixels": int(m.sum()), "compile_s": first - fwd, "forward_ms": 1e3 * fwd,
-            "grad_compile_s": gfirst - gms, "grad_ms": 1e3 * gms,
+            "grad_compile_s": None if gms is None else gfirst - gms,
+            "grad_ms": None if gms is None else 1e3 * gms,
             "normal_mean": float(err.mean()), "normal_p95": float(np.percentile(err, 95)),
             "normal_max": float(err.max()), "image_rmse": float(np.sqrt(np.mean(diff ** 2))),
             "finite": bool(np.isfinite(err).all())}
@@ -177,8 +182,10 @@ def _table(rows, front) -> str:
              "error mean / p95 (deg) | image RMSE |", "|---|---|---|---|---|---|"]
     for i, r in sorted(enumerate(rows), key=lambda ir: (ir[1]["size"], ir[1]["normal_mean"])):
         star = " **(Pareto)**" if i in front else ""
-        lines.append(f"| {_label(r)}{star} | {r['forward_ms']:.1f} | {r['grad_ms']:.1f} | "
-                     f"{r['compile_s']:.1f} / {r['grad_compile_s']:.1f} | "
+        g, gc = (("-", "-") if r["grad_ms"] is None else
+                 (f"{r['grad_ms']:.1f}", f"{r['grad_compile_s']:.1f}"))
+        lines.append(f"| {_label(r)}{star} | {r['forward_ms']:.1f} | {g} | "
+                     f"{r['compile_s']:.1f} / {gc} | "
                      f"{r['normal_mean']:.3g} / {r['normal_p95']:.3g} | "
                      f"{r['image_rmse']:.2e} |")
     return "\n".join(lines) + "\n"
