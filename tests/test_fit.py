@@ -110,6 +110,7 @@ def test_prepare_hands_back_each_copied_view_and_prepares_the_same(small, monkey
     P = importlib.import_module("jaxnm.fit.prepare")
     problem, _, _, prep, _ = small
     trims = []
+    default = P.TRIM_BYTES
     monkeypatch.setattr(P, "release_memory", lambda **kw: trims.append(kw))
     monkeypatch.setattr(P, "TRIM_BYTES", 1)
     again = F.prepare(problem)
@@ -117,7 +118,7 @@ def test_prepare_hands_back_each_copied_view_and_prepares_the_same(small, monkey
     for x, y in zip(jax.tree_util.tree_leaves(prep), jax.tree_util.tree_leaves(again)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     trims.clear()
-    monkeypatch.setattr(P, "TRIM_BYTES", 1 << 40)
+    monkeypatch.setattr(P, "TRIM_BYTES", default)
     F.prepare(problem)
     assert trims == []  # a small problem never trims
 
@@ -704,10 +705,12 @@ def test_prepare_with_stored_neighbour_derivatives_builds_the_whole_image(small)
 
 
 @pytest.mark.parametrize("map_size", [(32, 32), (21, 27)])
-def test_texel_influence_is_the_sampling_operators_column_sums(small, map_size):
+def test_texel_influence_is_the_sampling_operators_column_sums(small, map_size, monkeypatch):
     """`texel_influence` (NumPy, the mip filter's transpose as matrices) against the VJP of
     sampling the mip chain (JAX), with odd and even levels (21x27 -> 10x13 -> 5x6 -> 2x3 ->
-    1x1)."""
+    1x1); summed in one piece and in pieces of a few pixels."""
+    import importlib
+
     from jaxnm import textures as T
 
     prep = small[3] if map_size == (32, 32) else F.prepare(
@@ -726,3 +729,10 @@ def test_texel_influence_is_the_sampling_operators_column_sums(small, map_size):
     assert got.shape == map_size and got.dtype == np.float32
     assert (got > 0).sum() > 0.3 * got.size
     np.testing.assert_allclose(got, want[..., 0], rtol=2e-5, atol=1e-6 * want.max())
+    D = importlib.import_module("jaxnm.fit.diagnostics")
+    b = prep.batches[0]
+    texels = sum(h * w for h, w in T.mip_sizes(map_size))
+    assert b.pixels.size <= D._INFLUENCE_ROWS  # one piece above; several below:
+    assert b.pixels.size > 2 * max(7, texels // b.gbuffer.plan.index.shape[-1])
+    monkeypatch.setattr(D, "_INFLUENCE_ROWS", 7)  # pieces as short as the levels allow
+    np.testing.assert_allclose(F.texel_influence(prep), got, rtol=1e-6, atol=1e-7 * got.max())
