@@ -360,7 +360,8 @@ def _assemble(views: list[View], options: tuple[RenderOptions, ...],
 
 
 def _nbytes(view: View) -> int:
-    return sum(np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(
+    """The bytes of a view's arrays (read from their sizes: nothing is copied)."""
+    return sum(x.nbytes for x in jax.tree_util.tree_leaves(
         (view.gbuffer, view.pixels, view.images, view.weights, view.lights)))
 
 
