@@ -15,6 +15,7 @@ unselected branch is multiplied by zero, and ``0 * inf`` is NaN.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -40,6 +41,7 @@ __all__ = [
     "angle_between",
     "cumsum",
     "flat_nonzero",
+    "ranked_nonzero",
     "SumTables",
     "sum_tables",
     "sum_by_tables",
@@ -186,8 +188,25 @@ _NTH_BIT = _nth_bit_table()
 
 
 def _nonzero_by_words(mask: Array, size: int, fill_value: int) -> Array:
-    """`flat_nonzero` from the output side: the mask as 32-bit words, and for each slot
-    ``s`` the word holding the ``s``-th true entry and that entry's bit in it."""
+    """`flat_nonzero` from the output side (`ranked_nonzero`)."""
+    return ranked_nonzero(mask)[1](0, size, fill_value)
+
+
+def ranked_nonzero(mask: ArrayLike) -> tuple[Array, Callable[[ArrayLike, int, int], Array]]:
+    """The true entries of a 1-D boolean ``mask`` by rank: ``(total, window)``, where
+    ``total`` is their number and ``window(first, size, fill_value)`` the indices (int32,
+    ascending) of those ranked ``first`` to ``first + size - 1`` (``first`` may be traced),
+    then ``fill_value``: ``jnp.nonzero(mask, size=first + size, fill_value=fill_value)[0][
+    first:]``. Each window costs work in its ``size`` and a 32nd of the mask's length, not
+    the mask's length: a long mask's entries can be taken a window at a time.
+
+    The mask is packed into 32-bit words once, with a running count of their set bits; each
+    *output* slot then finds its entry: which word by the running count of the words that
+    start in the window, which bit from the word's bytes and a table."""
+    mask = jnp.asarray(mask)
+    if mask.ndim != 1 or mask.dtype != jnp.bool_:
+        raise ValueError(f"ranked_nonzero: expected a 1-D boolean mask, got "
+                         f"{mask.dtype}{mask.shape}")
     n = mask.shape[0]
     n_words = -(-n // 32)
     bits = jnp.pad(mask, (0, n_words * 32 - n)).reshape(n_words, 32)
@@ -200,23 +219,36 @@ def _nonzero_by_words(mask: Array, size: int, fill_value: int) -> Array:
     ends = cumsum(counts)
     starts = ends - counts
     total = ends[-1]
-    # the words with a true entry, in order, and each one's first slot marked: the running
-    # count of marks up to slot s is the rank of the word that holds the s-th entry
+    # the words with a true entry, in order, with their first and past-last ranks (past
+    # the busy words: above every rank)
     busy = _nonzero_by_scatter(counts > 0, n_words, 0)
-    marks = jnp.zeros((size,), jnp.int32).at[jnp.where(counts > 0, starts, size)].add(
-        1, mode="drop")
-    s = jnp.arange(size, dtype=jnp.int32)
-    w = busy[jnp.clip(cumsum(marks) - 1, 0, n_words - 1)]
-    word, j = words[w], s - starts[w]  # the j-th set bit of `word` (0-based)
-    # which byte: the first whose end has more than j set bits below it
-    below = [jax.lax.population_count(word & jnp.uint32((1 << (8 * k)) - 1)).astype(jnp.int32)
-             for k in (1, 2, 3)]
-    byte = sum((j >= b).astype(jnp.int32) for b in below)
-    skipped = jax.lax.population_count(
-        word & ((jnp.uint32(1) << (8 * byte).astype(jnp.uint32)) - 1)).astype(jnp.int32)
-    value = ((word >> (8 * byte).astype(jnp.uint32)) & jnp.uint32(0xFF)).astype(jnp.int32)
-    bit = 8 * byte + jnp.asarray(_NTH_BIT)[value * 8 + (j - skipped)]
-    return jnp.where(s < total, w * 32 + bit, fill_value)
+    some = jnp.arange(n_words) < jnp.sum(counts > 0)
+    big = np.iinfo(np.int32).max
+    busy_starts = jnp.where(some, starts[busy], big)
+    busy_ends = jnp.where(some, ends[busy], big)
+
+    def window(first, size: int, fill_value: int) -> Array:
+        first = jnp.asarray(first, jnp.int32)
+        s = first + jnp.arange(size, dtype=jnp.int32)
+        # the busy words ending at or before `first` are passed; the running count of the
+        # busy words starting after it, up to slot s, is the rank of the one holding s
+        passed = jnp.searchsorted(busy_ends, first, side="right").astype(jnp.int32)
+        after = busy_starts - first
+        marks = jnp.zeros((size,), jnp.int32).at[
+            jnp.where((after > 0) & (after < size), after, size)].add(1, mode="drop")
+        w = busy[jnp.clip(passed + cumsum(marks), 0, n_words - 1)]
+        word, j = words[w], s - starts[w]  # the j-th set bit of `word` (0-based)
+        # which byte: the first whose end has more than j set bits below it
+        below = [jax.lax.population_count(word & jnp.uint32((1 << (8 * k)) - 1)).astype(
+            jnp.int32) for k in (1, 2, 3)]
+        byte = sum((j >= b).astype(jnp.int32) for b in below)
+        skipped = jax.lax.population_count(
+            word & ((jnp.uint32(1) << (8 * byte).astype(jnp.uint32)) - 1)).astype(jnp.int32)
+        value = ((word >> (8 * byte).astype(jnp.uint32)) & jnp.uint32(0xFF)).astype(jnp.int32)
+        bit = 8 * byte + jnp.asarray(_NTH_BIT)[value * 8 + (j - skipped)]
+        return jnp.where(s < total, w * 32 + bit, fill_value)
+
+    return total, window
 
 
 @jax.tree_util.register_dataclass

@@ -105,6 +105,32 @@ def test_both_ways_of_flat_nonzero_give_numpys_indices(n):
                 np.testing.assert_array_equal(np.asarray(got), want)
 
 
+@pytest.mark.parametrize("n", [32, 4099])
+def test_ranked_nonzero_windows_are_numpys_indices(n):
+    """`ranked_nonzero`'s windows are the slices of NumPy's indices from any first rank
+    (traced, so one compiled program serves them all): at word boundaries, inside runs
+    that span words, at and past the last entry, and filled past it."""
+    from jaxnm.numerics import ranked_nonzero
+
+    rng = np.random.default_rng(n + 1)
+    runs = np.zeros(n, bool)
+    runs[5:n // 2] = True
+    size = 37
+    window = jax.jit(lambda m, first: ranked_nonzero(m)[1](first, size, -1))
+    total = jax.jit(lambda m: ranked_nonzero(m)[0])
+    for mask in (rng.random(n) < 0.3, rng.random(n) < 0.97, runs, np.zeros(n, bool)):
+        ref = np.flatnonzero(mask)
+        assert int(total(jnp.asarray(mask))) == len(ref)
+        for first in sorted({0, 1, 31, 32, 33, 64, len(ref) // 2, max(len(ref) - 3, 0),
+                             len(ref), len(ref) + 40}):
+            want = np.full(size, -1)
+            part = ref[first:first + size]
+            want[:len(part)] = part
+            np.testing.assert_array_equal(np.asarray(window(jnp.asarray(mask), first)), want)
+    with pytest.raises(ValueError, match="1-D boolean"):
+        ranked_nonzero(jnp.ones((3,), jnp.int32))
+
+
 def test_cumsum_and_flat_nonzero_reject_what_they_do_not_handle():
     with pytest.raises(ValueError, match="1-D integer"):
         cumsum(jnp.ones((3,), jnp.float32))

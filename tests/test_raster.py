@@ -397,8 +397,10 @@ def test_float64_clip_and_64_bit_callers_rasterize_alike(x64):
 
         kw = dict(width=40, height=40, cull_back=False, block=4, slots=64, subpixel_bits=8)
         for c, want in ((jnp.asarray(clip, dtype), tid), (jnp.asarray(clip), tid32)):
-            passes = raster._rasterize(c, jnp.asarray(faces, jnp.int32), pass_slots=32, **kw)
-            assert np.array_equal(np.asarray(passes[0]), want)
+            for pass_triangles in (len(faces), 5):  # and in windows of 5 triangles
+                passes = raster._rasterize(c, jnp.asarray(faces, jnp.int32), pass_slots=32,
+                                           pass_triangles=pass_triangles, **kw)
+                assert np.array_equal(np.asarray(passes[0]), want)
     assert (tid >= 0).mean() > 0.2
     assert np.array_equal(tid[~amb], ref["triangle_id"][~amb])
     assert np.array_equal(tid32[~amb], ref["triangle_id"][~amb])
@@ -430,9 +432,12 @@ def test_triangle_ids_and_orientation_give_rasterize_and_compact():
             assert np.array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)))
 
 
-def test_many_rounds_and_passes_give_the_same_image():
+@pytest.mark.parametrize("pass_triangles", [None, 13])
+def test_many_rounds_and_passes_give_the_same_image(pass_triangles):
     """A tiny slot budget forces many rounds, a tiny pass size many passes (the int32
-    overflow path of frames with over 2**30 slots): the result must not change."""
+    overflow path of frames with over 2**30 slots), a tiny window of triangles with slots
+    many windows (`raster.PASS_TRIANGLES`), alone and within each pass: the result must not
+    change."""
     pos, faces = icosphere(2)
     clip = clip_of(pos, perspective_mvp((0.2, 0.5, 2.6))).astype(np.float32)
     a = jaxnm.rasterize(clip, faces, width=40, height=40)
@@ -440,15 +445,27 @@ def test_many_rounds_and_passes_give_the_same_image():
     assert np.array_equal(np.asarray(a.triangle_id), np.asarray(b.triangle_id))
     from jaxnm import raster
 
-    kw = dict(width=40, height=40, cull_back=False, block=4, slots=64, subpixel_bits=8)
+    kw = dict(width=40, height=40, cull_back=False, block=4, slots=64, subpixel_bits=8,
+              pass_triangles=pass_triangles or len(faces))
+    reference = np.asarray(raster.overdraw(clip, faces, width=40, height=40))
+    if pass_triangles:  # windows alone (one pass), then many passes below
+        tid, _, front = raster._rasterize(jnp.asarray(clip), jnp.asarray(faces, jnp.int32),
+                                          **kw)
+        assert np.array_equal(np.asarray(a.triangle_id), np.asarray(tid))
+        assert np.array_equal(np.asarray(a.front_facing), np.asarray(front))
+        counts = raster._overdraw(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), **kw)
+        assert np.array_equal(np.asarray(counts), reference)
+        covering = (np.asarray(raster._triangle_setup(
+            raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=40,
+                                   height=40, subpixel_bits=8)[0], 40, 40, 4, False)[4]) > 0)
+        assert covering.sum() > 10 * pass_triangles  # that was many windows
     c_tid, c_depth, c_front = raster._rasterize(
         jnp.asarray(clip), jnp.asarray(faces, jnp.int32), pass_slots=32, **kw)
     assert np.array_equal(np.asarray(a.triangle_id), np.asarray(c_tid))
     assert np.array_equal(np.asarray(a.front_facing), np.asarray(c_front))
     counts = raster._overdraw(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), pass_slots=32,
                               **kw)
-    assert np.array_equal(np.asarray(counts), np.asarray(raster.overdraw(clip, faces, width=40,
-                                                                         height=40)))
+    assert np.array_equal(np.asarray(counts), reference)
     # that was many passes
     tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=40,
                                     height=40, subpixel_bits=8)
