@@ -432,8 +432,7 @@ def test_triangle_ids_and_orientation_give_rasterize_and_compact():
             assert np.array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)))
 
 
-@pytest.mark.parametrize("pass_triangles", [None, 13])
-def test_many_rounds_and_passes_give_the_same_image(pass_triangles):
+def test_many_rounds_passes_and_windows_give_the_same_image():
     """A tiny slot budget forces many rounds, a tiny pass size many passes (the int32
     overflow path of frames with over 2**30 slots), a tiny window of triangles with slots
     many windows (`raster.PASS_TRIANGLES`), alone and within each pass: the result must not
@@ -446,19 +445,8 @@ def test_many_rounds_and_passes_give_the_same_image(pass_triangles):
     from jaxnm import raster
 
     kw = dict(width=40, height=40, cull_back=False, block=4, slots=64, subpixel_bits=8,
-              pass_triangles=pass_triangles or len(faces))
+              pass_triangles=len(faces))
     reference = np.asarray(raster.overdraw(clip, faces, width=40, height=40))
-    if pass_triangles:  # windows alone (one pass), then many passes below
-        tid, _, front = raster._rasterize(jnp.asarray(clip), jnp.asarray(faces, jnp.int32),
-                                          **kw)
-        assert np.array_equal(np.asarray(a.triangle_id), np.asarray(tid))
-        assert np.array_equal(np.asarray(a.front_facing), np.asarray(front))
-        counts = raster._overdraw(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), **kw)
-        assert np.array_equal(np.asarray(counts), reference)
-        covering = (np.asarray(raster._triangle_setup(
-            raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=40,
-                                   height=40, subpixel_bits=8)[0], 40, 40, 4, False)[4]) > 0)
-        assert covering.sum() > 10 * pass_triangles  # that was many windows
     c_tid, c_depth, c_front = raster._rasterize(
         jnp.asarray(clip), jnp.asarray(faces, jnp.int32), pass_slots=32, **kw)
     assert np.array_equal(np.asarray(a.triangle_id), np.asarray(c_tid))
@@ -466,11 +454,23 @@ def test_many_rounds_and_passes_give_the_same_image(pass_triangles):
     counts = raster._overdraw(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), pass_slots=32,
                               **kw)
     assert np.array_equal(np.asarray(counts), reference)
+    # windows of 13 triangles with slots: alone (one pass), and within many passes
+    windowed = dict(kw, pass_triangles=13)
+    tid, _, front = raster._rasterize(jnp.asarray(clip), jnp.asarray(faces, jnp.int32),
+                                      **windowed)
+    assert np.array_equal(np.asarray(a.triangle_id), np.asarray(tid))
+    assert np.array_equal(np.asarray(a.front_facing), np.asarray(front))
+    counts = raster._overdraw(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), **windowed)
+    assert np.array_equal(np.asarray(counts), reference)
+    tid, _, _ = raster._rasterize(jnp.asarray(clip), jnp.asarray(faces, jnp.int32),
+                                  pass_slots=32, **windowed)
+    assert np.array_equal(np.asarray(a.triangle_id), np.asarray(tid))
     # that was many passes
     tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=40,
                                     height=40, subpixel_bits=8)
     count = raster._triangle_setup(tri, 40, 40, 4, False)[4]
     assert int(raster._slot_passes(count, 32)[1]) > 5
+    assert int(jnp.sum(count > 0)) > 10 * 13  # and many windows
     # a pass size the faces x tiles bound exceeds but the frame's slots fit: one pass,
     # found by the float32 sum (not the exact running sums), the same image again
     total = int(jnp.sum(count))
@@ -479,6 +479,17 @@ def test_many_rounds_and_passes_give_the_same_image(pass_triangles):
     d_tid, _, _ = raster._rasterize(jnp.asarray(clip), jnp.asarray(faces, jnp.int32),
                                     pass_slots=one, **kw)
     assert np.array_equal(np.asarray(a.triangle_id), np.asarray(d_tid))
+
+
+def test_windows_of_triangles_by_backend():
+    """The CPU takes triangles with slots 2^16 at a time (`raster.PASS_TRIANGLES`), never
+    more than the mesh has; a GPU all of them at once (no host wait per window)."""
+    from jaxnm import raster
+
+    assert raster.default_pass_triangles(200_000, "cpu") == 1 << 16
+    assert raster.default_pass_triangles(20_480, "cpu") == 20_480
+    assert raster.default_pass_triangles(200_000, "gpu") == 200_000
+    assert raster.default_pass_triangles(0, "cpu") == 1
 
 
 def test_round_size_by_backend_does_not_change_the_image():
