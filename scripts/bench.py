@@ -138,62 +138,43 @@ def jaxnm_calls(p: B.BenchProblem) -> dict:
             "first_forward_s": first_forward}
 
 
-def _first_calls(calls: dict) -> dict:
-    """Each call's first run, in s (compilation included)."""
-    first = {}
+def _interleaved_ms(calls: dict, repeats: int, block: int = 5, warm: int = 5,
+                    seed: int = 0) -> tuple[dict, dict, dict]:
+    """(first call s, median ms of the next ``repeats``, the process's minor page faults per
+    timed call: a call that faults in its buffers afresh each time shows here) of each
+    call. The calls take turns in blocks of ``block`` timed runs, each block after ``warm``
+    untimed ones: a slow phase of the machine falls on all of them alike, and each is
+    timed in its own steady state, as a user who renders frame after frame sees it. Run
+    right after another renderer's calls, a call is slower for a while: on the 2-core VM,
+    with the worker threads pinned, jaxnm's 4k frame at 512^2 took 5-12 ms for its first
+    frame after Mitsuba's gradient, 4-5 ms for the next four, then 3.5-3.9 ms (six
+    alternations: the first three frames' median 4.5-5.1 ms, the next seven's 3.4-3.7),
+    while Mitsuba's took ~4.5 ms for its first and then 3.6-3.9 ms (unpinned, jaxnm's
+    stayed at 5-8 ms for a dozen frames or more in some phases:
+    `jaxnm.runtime.pin_worker_threads`). The order of the turns is shuffled in every
+    cycle, so that no call always follows the same one (in a fixed order jaxnm's first
+    call, always after Mitsuba's gradient, read 4.8-6.8 ms for the 4k sphere at 512^2
+    where the same frame of a moved mesh, after jaxnm's own calls, read 4.2-5.2)."""
+    first, times, faults = {}, {k: [] for k in calls}, {k: 0 for k in calls}
     for k, fn in calls.items():
         t = time.perf_counter()
         fn()
         first[k] = time.perf_counter() - t
-    return first
-
-
-def _cycle(calls: dict, times: dict, faults: dict, rng, block: int = 5, warm: int = 5) -> None:
-    """One cycle of the calls' turns, in an order shuffled by ``rng``: each call ``warm``
-    untimed runs then ``block`` timed ones, appended to ``times[k]`` (s), with the
-    process's minor page faults added to ``faults[k]``.
-
-    The calls take turns so that a slow phase of the machine falls on all of them alike,
-    and each is timed in its own steady state, as a user who renders frame after frame
-    sees it. Run right after another renderer's calls, a call is slower for a while: on
-    the 2-core VM, with the worker threads pinned, jaxnm's 4k frame at 512^2 took 5-12 ms
-    for its first frame after Mitsuba's gradient, 4-5 ms for the next four, then 3.5-3.9
-    ms (six alternations: the first three frames' median 4.5-5.1 ms, the next seven's
-    3.4-3.7), while Mitsuba's took ~4.5 ms for its first and then 3.6-3.9 ms (unpinned,
-    jaxnm's stayed at 5-8 ms for a dozen frames or more in some phases:
-    `jaxnm.runtime.pin_worker_threads`). The order is shuffled in every cycle, so that no
-    call always follows the same one (in a fixed order jaxnm's first call, always after
-    Mitsuba's gradient, read 4.8-6.8 ms for the 4k sphere at 512^2 where the same frame of
-    a moved mesh, after jaxnm's own calls, read 4.2-5.2)."""
-    for k in rng.permutation(list(calls)):
-        fn = calls[k]
-        for _ in range(warm):
-            fn()
-        for _ in range(block):
-            f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-            t = time.perf_counter()
-            fn()
-            times[k].append(time.perf_counter() - t)
-            faults[k] += resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0
-
-
-def _interleaved_ms(cells: list[dict], repeats: int, block: int = 5,
-                    seed: int = 0) -> list[tuple[dict, dict]]:
-    """(median ms of ``repeats`` timed runs, the process's minor page faults per timed call:
-    a call that faults in its buffers afresh each time shows here) of each call of each
-    cell (a dict of calls, each already run once). A cell's calls take turns in cycles
-    (`_cycle`), and the cells take turns too, cycle by cycle: each cell's runs are spread
-    over the whole benchmark rather than gathered in a few seconds of it, so that a slow
-    stretch of the machine (seconds to half a minute on the 2-core VM) weighs on every
-    cell alike instead of deciding one cell's figures."""
+    order = list(calls)
     rng = np.random.default_rng(seed)
-    times = [{k: [] for k in calls} for calls in cells]
-    faults = [{k: 0 for k in calls} for calls in cells]
     for _ in range(-(-repeats // block)):
-        for i in rng.permutation(len(cells)):
-            _cycle(cells[i], times[i], faults[i], rng, block=block)
-    return [({k: 1e3 * statistics.median(v) for k, v in t.items()},
-             {k: round(n / len(t[k])) for k, n in f.items()}) for t, f in zip(times, faults)]
+        for k in rng.permutation(order):
+            fn = calls[k]
+            for _ in range(warm):
+                fn()
+            for _ in range(block):
+                f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+                t = time.perf_counter()
+                fn()
+                times[k].append(time.perf_counter() - t)
+                faults[k] += resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0
+    return (first, {k: 1e3 * statistics.median(v) for k, v in times.items()},
+            {k: round(n / len(times[k])) for k, n in faults.items()})
 
 
 #: The timed calls of `bench_forward`: jaxnm's (`jaxnm_calls`) and Mitsuba's
@@ -204,9 +185,9 @@ MITSUBA_CALLS = ("forward", "forward_moved", "forward_backward")
 
 def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool) -> list[dict]:
     """Per mesh and size: jaxnm's and Mitsuba's forward and forward+backward calls, taking
-    turns in blocks, and the cells taking turns too (`_interleaved_ms`: the ratios compare
-    the same phases of a noisy machine)."""
-    cells = []
+    turns in blocks (`_interleaved_ms`: the ratios compare the same phases of a noisy
+    machine)."""
+    rows = []
     for name, mesh in _meshes(quick).items():
         for size in sizes:
             q = _with_mesh(p, mesh, size)
@@ -216,35 +197,31 @@ def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool) 
             if mitsuba is not None:
                 mi = mitsuba.forward_calls(q)
                 calls.update({f"mitsuba {k}": mi[k] for k in MITSUBA_CALLS})
-            cells.append((name, q, jc, mi, calls, _first_calls(calls)))
-            print(f"bench forward: {name} at {size}^2 compiled", file=sys.stderr, flush=True)
-    timed = _interleaved_ms([c[4] for c in cells], repeats)
-    rows = []
-    for (name, q, jc, mi, calls, first), (ms, faults) in zip(cells, timed):
-        j = {f"{k}_ms": round(ms[f"jaxnm {k}"], 2) for k in JAXNM_CALLS}
-        j["page_faults_per_call"] = {k: faults[f"jaxnm {k}"] for k in JAXNM_CALLS}
-        j.update({"first_forward_s": round(jc["first_forward_s"], 2),
-                  "first_backward_s": round(first["jaxnm forward_backward"], 2),
-                  "first_backward_packed_s": round(first["jaxnm forward_backward_packed"], 2),
-                  "triangles": int(q.faces.shape[0]), "size": f"{q.width}x{q.height}"})
-        row = {"mesh": name, "jaxnm": j}
-        if mi is not None:
-            row["mitsuba"] = {
-                "forward_ms": ms["mitsuba forward"],
-                "forward_moved_ms": ms["mitsuba forward_moved"],
-                "forward_backward_ms": ms["mitsuba forward_backward"],
-                "first_forward_s": mi["first_s"]["forward"],
-                "first_backward_s": mi["first_s"]["forward_backward"],
-                "kernel_cache_files_at_start": mi["kernel_cache_files_at_start"],
-                "pinned_worker_threads": mi["pinned_worker_threads"],
-                "page_faults_per_call": {k: faults[f"mitsuba {k}"] for k in MITSUBA_CALLS}}
-            row["forward_ratio"] = round(j["forward_ms"] / ms["mitsuba forward"], 2)
-            row["forward_moved_ratio"] = round(
-                j["forward_moved_ms"] / ms["mitsuba forward_moved"], 2)
-            for key in ("forward_backward", "forward_backward_packed"):
-                row[f"{key}_ratio"] = round(j[f"{key}_ms"] / ms["mitsuba forward_backward"], 2)
-        rows.append(row)
-        print(json.dumps(row), file=sys.stderr, flush=True)
+            first, ms, faults = _interleaved_ms(calls, repeats)
+            j = {f"{k}_ms": round(ms[f"jaxnm {k}"], 2) for k in JAXNM_CALLS}
+            j["page_faults_per_call"] = {k: faults[f"jaxnm {k}"] for k in JAXNM_CALLS}
+            j.update({"first_forward_s": round(jc["first_forward_s"], 2),
+                      "first_backward_s": round(first["jaxnm forward_backward"], 2),
+                      "first_backward_packed_s": round(first["jaxnm forward_backward_packed"], 2),
+                      "triangles": int(q.faces.shape[0]), "size": f"{q.width}x{q.height}"})
+            row = {"mesh": name, "jaxnm": j}
+            if mi is not None:
+                row["mitsuba"] = {
+                    "forward_ms": ms["mitsuba forward"],
+                    "forward_moved_ms": ms["mitsuba forward_moved"],
+                    "forward_backward_ms": ms["mitsuba forward_backward"],
+                    "first_forward_s": mi["first_s"]["forward"],
+                    "first_backward_s": mi["first_s"]["forward_backward"],
+                    "kernel_cache_files_at_start": mi["kernel_cache_files_at_start"],
+                    "pinned_worker_threads": mi["pinned_worker_threads"],
+                    "page_faults_per_call": {k: faults[f"mitsuba {k}"] for k in MITSUBA_CALLS}}
+                row["forward_ratio"] = round(j["forward_ms"] / ms["mitsuba forward"], 2)
+                row["forward_moved_ratio"] = round(
+                    j["forward_moved_ms"] / ms["mitsuba forward_moved"], 2)
+                for key in ("forward_backward", "forward_backward_packed"):
+                    row[f"{key}_ratio"] = round(j[f"{key}_ms"] / ms["mitsuba forward_backward"], 2)
+            rows.append(row)
+            print(json.dumps(row), file=sys.stderr, flush=True)
     return rows
 
 
