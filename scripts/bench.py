@@ -139,7 +139,7 @@ def jaxnm_calls(p: B.BenchProblem) -> dict:
 
 
 def _interleaved_ms(calls: dict, repeats: int, block: int = 5, warm: int = 5,
-                    seed: int = 0) -> tuple[dict, dict, dict]:
+                    seed: int = 0, first_calls: bool = True) -> tuple[dict, dict, dict]:
     """(first call s, median ms of the next ``repeats``, the process's minor page faults per
     timed call: a call that faults in its buffers afresh each time shows here) of each
     call. The calls take turns in blocks of ``block`` timed runs, each block after ``warm``
@@ -156,7 +156,7 @@ def _interleaved_ms(calls: dict, repeats: int, block: int = 5, warm: int = 5,
     call, always after Mitsuba's gradient, read 4.8-6.8 ms for the 4k sphere at 512^2
     where the same frame of a moved mesh, after jaxnm's own calls, read 4.2-5.2)."""
     first, times, faults = {}, {k: [] for k in calls}, {k: 0 for k in calls}
-    for k, fn in calls.items():
+    for k, fn in (calls.items() if first_calls else ()):
         t = time.perf_counter()
         fn()
         first[k] = time.perf_counter() - t
@@ -183,11 +183,16 @@ JAXNM_CALLS = ("forward", "forward_moved", "forward_backward", "forward_backward
 MITSUBA_CALLS = ("forward", "forward_moved", "forward_backward")
 
 
-def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool) -> list[dict]:
+def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool,
+                  runs: int = 1) -> list[dict]:
     """Per mesh and size: jaxnm's and Mitsuba's forward and forward+backward calls, taking
     turns in blocks (`_interleaved_ms`: the ratios compare the same phases of a noisy
-    machine)."""
-    rows = []
+    machine), one cell after the other; ``runs`` times over, where each figure is the
+    median of the runs' (and each ratio the median of the runs' ratios, each side by side
+    in its run), and the runs' forward ratios are listed (``"forward_ratio_runs"``). A slow
+    stretch of the machine (seconds to half a minute on the 2-core VM) that catches one
+    cell in one run then decides none of its figures."""
+    cells, timed = [], []
     for name, mesh in _meshes(quick).items():
         for size in sizes:
             q = _with_mesh(p, mesh, size)
@@ -198,29 +203,63 @@ def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool) 
                 mi = mitsuba.forward_calls(q)
                 calls.update({f"mitsuba {k}": mi[k] for k in MITSUBA_CALLS})
             first, ms, faults = _interleaved_ms(calls, repeats)
-            j = {f"{k}_ms": round(ms[f"jaxnm {k}"], 2) for k in JAXNM_CALLS}
-            j["page_faults_per_call"] = {k: faults[f"jaxnm {k}"] for k in JAXNM_CALLS}
-            j.update({"first_forward_s": round(jc["first_forward_s"], 2),
-                      "first_backward_s": round(first["jaxnm forward_backward"], 2),
-                      "first_backward_packed_s": round(first["jaxnm forward_backward_packed"], 2),
-                      "triangles": int(q.faces.shape[0]), "size": f"{q.width}x{q.height}"})
-            row = {"mesh": name, "jaxnm": j}
-            if mi is not None:
-                row["mitsuba"] = {
-                    "forward_ms": ms["mitsuba forward"],
-                    "forward_moved_ms": ms["mitsuba forward_moved"],
-                    "forward_backward_ms": ms["mitsuba forward_backward"],
-                    "first_forward_s": mi["first_s"]["forward"],
-                    "first_backward_s": mi["first_s"]["forward_backward"],
-                    "kernel_cache_files_at_start": mi["kernel_cache_files_at_start"],
-                    "pinned_worker_threads": mi["pinned_worker_threads"],
-                    "page_faults_per_call": {k: faults[f"mitsuba {k}"] for k in MITSUBA_CALLS}}
-                row["forward_ratio"] = round(j["forward_ms"] / ms["mitsuba forward"], 2)
-                row["forward_moved_ratio"] = round(
-                    j["forward_moved_ms"] / ms["mitsuba forward_moved"], 2)
-                for key in ("forward_backward", "forward_backward_packed"):
-                    row[f"{key}_ratio"] = round(j[f"{key}_ms"] / ms["mitsuba forward_backward"], 2)
-            rows.append(row)
+            cells.append((name, q, jc, mi, calls, first))
+            timed.append([(ms, faults)])
+            if runs == 1:  # the cell's row now
+                _forward_rows(cells[-1:], timed[-1:])
+            else:
+                print(f"bench forward: {name} at {size}^2, run 1 of {runs}", file=sys.stderr,
+                      flush=True)
+    for r in range(1, runs):
+        for (name, q, _, _, calls, _), t in zip(cells, timed):
+            t.append(_interleaved_ms(calls, repeats, seed=r, first_calls=False)[1:])
+            print(f"bench forward: {name} at {q.width}^2, run {r + 1} of {runs}",
+                  file=sys.stderr, flush=True)
+    return _forward_rows(cells, timed, echo=runs > 1)
+
+
+def _forward_rows(cells, timed, echo: bool = True) -> list[dict]:
+    """`bench_forward`'s rows of ``cells`` from each cell's runs ``timed`` ((ms, faults) per
+    run): medians over the runs."""
+    rows = []
+    for (name, q, jc, mi, calls, first), t in zip(cells, timed):
+        def med(k, t=t):
+            return statistics.median(ms[k] for ms, _ in t)
+
+        j = {f"{k}_ms": round(med(f"jaxnm {k}"), 2) for k in JAXNM_CALLS}
+        j["page_faults_per_call"] = {k: max(f[f"jaxnm {k}"] for _, f in t) for k in JAXNM_CALLS}
+        j.update({"first_forward_s": round(jc["first_forward_s"], 2),
+                  "first_backward_s": round(first["jaxnm forward_backward"], 2),
+                  "first_backward_packed_s": round(first["jaxnm forward_backward_packed"], 2),
+                  "triangles": int(q.faces.shape[0]), "size": f"{q.width}x{q.height}"})
+        row = {"mesh": name, "jaxnm": j}
+        if mi is not None:
+            row["mitsuba"] = {
+                "forward_ms": med("mitsuba forward"),
+                "forward_moved_ms": med("mitsuba forward_moved"),
+                "forward_backward_ms": med("mitsuba forward_backward"),
+                "first_forward_s": mi["first_s"]["forward"],
+                "first_backward_s": mi["first_s"]["forward_backward"],
+                "kernel_cache_files_at_start": mi["kernel_cache_files_at_start"],
+                "pinned_worker_threads": mi["pinned_worker_threads"],
+                "page_faults_per_call": {k: max(f[f"mitsuba {k}"] for _, f in t)
+                                         for k in MITSUBA_CALLS}}
+
+            def ratio(ours, theirs, t=t):
+                return round(statistics.median(ms[f"jaxnm {ours}"] / ms[f"mitsuba {theirs}"]
+                                               for ms, _ in t), 2)
+
+            row["forward_ratio"] = ratio("forward", "forward")
+            row["forward_moved_ratio"] = ratio("forward_moved", "forward_moved")
+            for key in ("forward_backward", "forward_backward_packed"):
+                row[f"{key}_ratio"] = ratio(key, "forward_backward")
+            if len(t) > 1:
+                row["forward_ratio_runs"] = [
+                    round(ms["jaxnm forward"] / ms["mitsuba forward"], 2) for ms, _ in t]
+        if len(t) > 1:
+            j["forward_ms_runs"] = [round(ms["jaxnm forward"], 2) for ms, _ in t]
+        rows.append(row)
+        if echo:
             print(json.dumps(row), file=sys.stderr, flush=True)
     return rows
 
@@ -619,6 +658,9 @@ def main(argv=None) -> None:
                     help="comma-separated parts to run (default: %(default)s)")
     ap.add_argument("--budget", type=float, default=30.0, help="seconds per fit")
     ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--runs", type=int, default=1,
+                    help="time the forward cells this many times over, one cell after the "
+                         "other each time, and report the medians (default: %(default)s)")
     ap.add_argument("--devices", type=int, default=1,
                     help="also time LM steps with the views over this many devices")
     ap.add_argument("--fit-worker", action="store_true", help=argparse.SUPPRESS)
@@ -665,7 +707,8 @@ def main(argv=None) -> None:
     p = _problem(args.quick)
     sizes = (256,) if args.quick else (512, 1024)
     if "forward" in parts:
-        res["forward"] = bench_forward(p, mitsuba, sizes, args.repeats, args.quick)
+        res["forward"] = bench_forward(p, mitsuba, sizes, args.repeats, args.quick,
+                                       runs=args.runs)
     if "fit" in parts:
         res["fit"] = bench_fit(args, mitsuba)
     if "cli" in parts and not args.no_cli:

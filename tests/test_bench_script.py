@@ -76,3 +76,29 @@ def test_markdown_forward_row_without_mitsuba_leaves_its_columns_empty():
     md = bench.markdown(res)
     assert ("| 4k sphere (3968 tris) | 256x256 | 3.0 | - | - | 5.0 (4.0) | - | - (-) | "
             "2.0, 2.5 (3.5) | 3.1 / - (-) |") in md
+
+
+def test_forward_rows_take_the_median_of_the_runs():
+    """With several runs, each figure is the median of the runs' medians, each ratio the
+    median of the runs' side-by-side ratios, and the runs' forward ratios are listed."""
+    from types import SimpleNamespace
+
+    bench = load_script("bench")
+    calls = [f"jaxnm {k}" for k in bench.JAXNM_CALLS] + [f"mitsuba {k}"
+                                                         for k in bench.MITSUBA_CALLS]
+    runs = []
+    for jax_ms, mi_ms in ((4.0, 5.0), (9.0, 4.0), (5.0, 6.0)):  # a slow stretch each
+        ms = {k: (jax_ms if k.startswith("jaxnm") else mi_ms) for k in calls}
+        runs.append((ms, {k: 1 for k in calls}))
+    q = SimpleNamespace(faces=np.zeros((7, 3)), width=64, height=64)
+    jc = {"first_forward_s": 2.0}
+    mi = {"first_s": {"forward": 0.1, "forward_backward": 0.2},
+          "kernel_cache_files_at_start": 0, "pinned_worker_threads": 2}
+    first = {"jaxnm forward_backward": 3.0, "jaxnm forward_backward_packed": 4.0}
+    (row,) = bench._forward_rows([("mesh", q, jc, mi, calls, first)], [runs], echo=False)
+    assert row["jaxnm"]["forward_ms"] == 5.0 and row["mitsuba"]["forward_ms"] == 5.0
+    assert row["forward_ratio_runs"] == [0.8, 2.25, 0.83]
+    assert row["forward_ratio"] == 0.83  # the median of the runs' ratios, not 5.0 / 5.0
+    assert row["jaxnm"]["forward_ms_runs"] == [4.0, 9.0, 5.0]
+    (one,) = bench._forward_rows([("mesh", q, jc, mi, calls, first)], [runs[1:2]], echo=False)
+    assert one["forward_ratio"] == 2.25 and "forward_ratio_runs" not in one
