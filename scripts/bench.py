@@ -191,44 +191,49 @@ def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool,
     median of the runs' (and each ratio the median of the runs' ratios, each side by side
     in its run), and the runs' forward ratios are listed (``"forward_ratio_runs"``). A slow
     stretch of the machine (seconds to half a minute on the 2-core VM) that catches one
-    cell in one run then decides none of its figures."""
-    cells, timed = [], []
-    for name, mesh in _meshes(quick).items():
-        for size in sizes:
-            q = _with_mesh(p, mesh, size)
-            jc = jaxnm_calls(q)
-            calls = {f"jaxnm {k}": jc[k] for k in JAXNM_CALLS}
-            mi = None
-            if mitsuba is not None:
-                mi = mitsuba.forward_calls(q)
-                calls.update({f"mitsuba {k}": mi[k] for k in MITSUBA_CALLS})
-            first, ms, faults = _interleaved_ms(calls, repeats)
-            cells.append((name, q, jc, mi, calls, first))
-            timed.append([(ms, faults)])
-            if runs == 1:  # the cell's row now
-                _forward_rows(cells[-1:], timed[-1:])
-            else:
-                print(f"bench forward: {name} at {size}^2, run 1 of {runs}", file=sys.stderr,
-                      flush=True)
-    for r in range(1, runs):
-        for (name, q, _, _, calls, _), t in zip(cells, timed):
-            t.append(_interleaved_ms(calls, repeats, seed=r, first_calls=False)[1:])
-            print(f"bench forward: {name} at {q.width}^2, run {r + 1} of {runs}",
-                  file=sys.stderr, flush=True)
-    return _forward_rows(cells, timed, echo=runs > 1)
+    cell in one run then decides none of its figures.
+
+    Each run sets every cell up again (the first run's first calls are the compile times)
+    and lets it go before the next: with all six cells' Mitsuba scenes alive at once,
+    Mitsuba's frames were up to 1.5x slower (4k sphere 3.7 -> 5.5 ms at 512^2)."""
+    cells, timed = {}, {}
+    for r in range(runs):
+        for name, mesh in _meshes(quick).items():
+            for size in sizes:
+                q = _with_mesh(p, mesh, size)
+                jc = jaxnm_calls(q)
+                calls = {f"jaxnm {k}": jc[k] for k in JAXNM_CALLS}
+                mi = None
+                if mitsuba is not None:
+                    mi = mitsuba.forward_calls(q)
+                    calls.update({f"mitsuba {k}": mi[k] for k in MITSUBA_CALLS})
+                first, ms, faults = _interleaved_ms(calls, repeats, seed=r, first_calls=r == 0)
+                if r == 0:  # what the rows keep of the cell: its first calls
+                    mi = None if mi is None else {
+                        k: mi[k] for k in ("first_s", "kernel_cache_files_at_start",
+                                           "pinned_worker_threads")}
+                    cells[name, size] = (name, q, jc["first_forward_s"], mi, first)
+                timed.setdefault((name, size), []).append((ms, faults))
+                del calls, jc, mi
+                if runs == 1:  # the cell's row now
+                    _forward_rows([cells[name, size]], [timed[name, size]])
+                else:
+                    print(f"bench forward: {name} at {size}^2, run {r + 1} of {runs}",
+                          file=sys.stderr, flush=True)
+    return _forward_rows(list(cells.values()), list(timed.values()), echo=runs > 1)
 
 
 def _forward_rows(cells, timed, echo: bool = True) -> list[dict]:
     """`bench_forward`'s rows of ``cells`` from each cell's runs ``timed`` ((ms, faults) per
     run): medians over the runs."""
     rows = []
-    for (name, q, jc, mi, calls, first), t in zip(cells, timed):
+    for (name, q, first_forward_s, mi, first), t in zip(cells, timed):
         def med(k, t=t):
             return statistics.median(ms[k] for ms, _ in t)
 
         j = {f"{k}_ms": round(med(f"jaxnm {k}"), 2) for k in JAXNM_CALLS}
         j["page_faults_per_call"] = {k: max(f[f"jaxnm {k}"] for _, f in t) for k in JAXNM_CALLS}
-        j.update({"first_forward_s": round(jc["first_forward_s"], 2),
+        j.update({"first_forward_s": round(first_forward_s, 2),
                   "first_backward_s": round(first["jaxnm forward_backward"], 2),
                   "first_backward_packed_s": round(first["jaxnm forward_backward_packed"], 2),
                   "triangles": int(q.faces.shape[0]), "size": f"{q.width}x{q.height}"})

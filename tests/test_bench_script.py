@@ -91,14 +91,13 @@ def test_forward_rows_take_the_median_of_the_runs():
         ms = {k: (jax_ms if k.startswith("jaxnm") else mi_ms) for k in calls}
         runs.append((ms, {k: 1 for k in calls}))
     q = SimpleNamespace(faces=np.zeros((7, 3)), width=64, height=64)
-    jc = {"first_forward_s": 2.0}
     mi = {"first_s": {"forward": 0.1, "forward_backward": 0.2},
           "kernel_cache_files_at_start": 0, "pinned_worker_threads": 2}
     first = {"jaxnm forward_backward": 3.0, "jaxnm forward_backward_packed": 4.0}
-    (row,) = bench._forward_rows([("mesh", q, jc, mi, calls, first)], [runs], echo=False)
+    (row,) = bench._forward_rows([("mesh", q, 2.0, mi, first)], [runs], echo=False)
     assert row["jaxnm"]["forward_ms"] == 5.0 and row["mitsuba"]["forward_ms"] == 5.0
     assert row["forward_ratio_runs"] == [0.8, 2.25, 0.83]
     assert row["forward_ratio"] == 0.83  # the median of the runs' ratios, not 5.0 / 5.0
     assert row["jaxnm"]["forward_ms_runs"] == [4.0, 9.0, 5.0]
-    (one,) = bench._forward_rows([("mesh", q, jc, mi, calls, first)], [runs[1:2]], echo=False)
+    (one,) = bench._forward_rows([("mesh", q, 2.0, mi, first)], [runs[1:2]], echo=False)
     assert one["forward_ratio"] == 2.25 and "forward_ratio_runs" not in one
