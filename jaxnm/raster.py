@@ -613,34 +613,34 @@ def _window_corners(clip, faces, *, width, height, subpixel_bits):
     return _Corners(materialize(h), faces), _Corners(h_unsnapped, faces)
 
 
-def _triangle_windows(counts: Array, pass_triangles: int):
+def _triangle_windows(counts: Array, window_triangles: int):
     """The triangles with slots (``counts > 0``, (F,)) in windows of at most
-    ``pass_triangles``, in order: ``(n_windows, window)``, ``window(w)`` giving window
-    ``w``'s triangles ``order`` and their slot counts, each (``pass_triangles``,) (padded
-    with triangle 0 and no slots); ``n_windows`` is static (1) where ``pass_triangles >=
+    ``window_triangles``, in order: ``(n_windows, window)``, ``window(w)`` giving window
+    ``w``'s triangles ``order`` and their slot counts, each (``window_triangles``,) (padded
+    with triangle 0 and no slots); ``n_windows`` is static (1) where ``window_triangles >=
     F``. A dense mesh has far fewer triangles with slots than triangles (the 200k torus at
     512^2: 44,163): packed into a list of 2^16 rather than of 200k, the list and its running
-    sums cost a third (`PASS_TRIANGLES`)."""
+    sums cost a third (`WINDOW_TRIANGLES`)."""
     n = counts.shape[0]
-    if n <= pass_triangles:
+    if n <= window_triangles:
         order = flat_nonzero(counts > 0, n, 0)
         live = jnp.arange(n) < jnp.sum(counts > 0)
         return 1, lambda w: (order, jnp.where(live, counts[order], 0))
     total, ranked = ranked_nonzero(counts > 0)
 
     def window(w):
-        first = w * pass_triangles
-        order = ranked(first, pass_triangles, 0)
-        live = jnp.arange(pass_triangles) < total - first
+        first = w * window_triangles
+        order = ranked(first, window_triangles, 0)
+        live = jnp.arange(window_triangles) < total - first
         return order, jnp.where(live, counts[order], 0)
 
-    return _div(total + (pass_triangles - 1), pass_triangles), window
+    return _div(total + (window_triangles - 1), window_triangles), window
 
 
-def _each_window(fn, counts, carry, pass_triangles: int):
+def _each_window(fn, counts, carry, window_triangles: int):
     """``carry = fn(order, counts_w, carry)`` for each window of `_triangle_windows` in
     turn (a while loop where there may be more than one)."""
-    n_windows, window = _triangle_windows(counts, pass_triangles)
+    n_windows, window = _triangle_windows(counts, window_triangles)
     if isinstance(n_windows, int):
         return fn(*window(0), carry)
     x64 = bool(jax.config.jax_enable_x64)  # the caller's
@@ -673,18 +673,18 @@ def _fragment_source(tri, tri_depth, setup, order, counts, *, width, height, blo
 
 
 _STATIC = ("width", "height", "cull_back", "block", "slots", "subpixel_bits",
-           "pass_triangles")
+           "window_triangles")
 
 
 def _depth_test(tri, tri_depth, setup, counts, buf, *, width, height, block, slots,
-                pass_triangles):
+                window_triangles):
     """Depth-test triangles into the tiled buffer ``buf`` (tiles, block, block): uint64 keys
     (`_depth_keys`) where the depth is at most 32 bits wide, else a pair (depth, triangle).
-    ``counts`` (F,): each triangle's slots (`_each_pass`), taken ``pass_triangles``
+    ``counts`` (F,): each triangle's slots (`_each_pass`), taken ``window_triangles``
     triangles with slots at a time (`_each_window`)."""
     return _each_window(lambda order, n, buf: _depth_test_window(
         tri, tri_depth, setup, order, n, buf, width=width, height=height, block=block,
-        slots=slots), counts, buf, pass_triangles)
+        slots=slots), counts, buf, window_triangles)
 
 
 def _depth_test_window(tri, tri_depth, setup, order, counts, buf, *, width, height, block,
@@ -788,14 +788,14 @@ PASS_SLOTS = 1 << 30
 #: triangles with slots), 0.92x in 1.5 * 2^16, 0.95x in 2^17; at 1024^2 0.96x in windows
 #: of 2^16 (two), 1.5 * 2^16 or 2^17 alike; the whole frame 0.94x and 1.00x. A GPU would
 #: wait on the host once more per window.
-PASS_TRIANGLES = {"cpu": 1 << 16}
+WINDOW_TRIANGLES = {"cpu": 1 << 16}
 
 
-def default_pass_triangles(num_faces: int, backend: str | None = None) -> int:
-    """`PASS_TRIANGLES` of the ``backend`` (JAX's default if None), at most ``num_faces``
+def default_window_triangles(num_faces: int, backend: str | None = None) -> int:
+    """`WINDOW_TRIANGLES` of the ``backend`` (JAX's default if None), at most ``num_faces``
     (and at least 1)."""
     backend = jax.default_backend() if backend is None else backend
-    return int(max(1, min(num_faces, PASS_TRIANGLES.get(backend, num_faces))))
+    return int(max(1, min(num_faces, WINDOW_TRIANGLES.get(backend, num_faces))))
 
 
 def _slot_passes(counts: Array, pass_slots: int) -> tuple[Array, Array]:
@@ -848,10 +848,10 @@ def _each_pass(fn, counts, carry, *, tiles: int, pass_slots: int):
 
 @functools.partial(jax.jit, static_argnames=_STATIC + ("pass_slots",))
 def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits,
-               pass_triangles, pass_slots=PASS_SLOTS):
+               window_triangles, pass_slots=PASS_SLOTS):
     tid, sigma, tri_depth = _visible_triangles(
         clip, faces, width=width, height=height, cull_back=cull_back, block=block,
-        slots=slots, subpixel_bits=subpixel_bits, pass_triangles=pass_triangles,
+        slots=slots, subpixel_bits=subpixel_bits, window_triangles=window_triangles,
         pass_slots=pass_slots)
     # facing from the coverage (snapped) orientation, as the rasterizer saw the triangle
     depth, front = _depth_and_facing(tri_depth, sigma, tid,
@@ -860,12 +860,12 @@ def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_
 
 
 def _visible_triangles(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits,
-                       pass_triangles, pass_slots=PASS_SLOTS):
+                       window_triangles, pass_slots=PASS_SLOTS):
     """Each pixel's triangle (H, W) (-1: background), each triangle's orientation sign
     (F,) in the window (the snapped corners' ``sign(det M)``: +1 counter-clockwise, i.e.
     front-facing) and the unsnapped corners (`_Corners`)."""
     kw = dict(width=width, height=height, block=block, slots=slots,
-              pass_triangles=pass_triangles)
+              window_triangles=window_triangles)
     tiles = (-(-width // block)) * (-(-height // block))
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
@@ -920,7 +920,7 @@ def _pixel_depth(tri_depth: _Corners, tid: Array, x: Array, y: Array) -> Array:
 
 @functools.partial(jax.jit, static_argnames=_STATIC + ("pass_slots",))
 def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits,
-              pass_triangles, pass_slots=PASS_SLOTS):
+              window_triangles, pass_slots=PASS_SLOTS):
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     tiles = (-(-width // block)) * (-(-height // block))
@@ -938,7 +938,7 @@ def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_b
         return jax.lax.while_loop(lambda c: c[0] * slots < total, round_,
                                   (jnp.int32(0), count))[1]
 
-    count = _each_pass(lambda n, count: _each_window(one_window, n, count, pass_triangles),
+    count = _each_pass(lambda n, count: _each_window(one_window, n, count, window_triangles),
                        setup[4], jnp.zeros((tiles, block, block), jnp.int32), tiles=tiles,
                        pass_slots=pass_slots)
     return _tiles_to_image(count, width, height)
@@ -1052,5 +1052,5 @@ def _prepare_args(clip, faces, width, height, cull_back, subpixel_bits, block, s
         slots = default_slots(faces.shape[0], width, height, block)
     kw = dict(width=width, height=height, cull_back=cull_back, block=block, slots=slots,
               subpixel_bits=subpixel_bits,
-              pass_triangles=default_pass_triangles(faces.shape[0]))
+              window_triangles=default_window_triangles(faces.shape[0]))
     return clip, faces, kw

@@ -397,9 +397,9 @@ def test_float64_clip_and_64_bit_callers_rasterize_alike(x64):
 
         kw = dict(width=40, height=40, cull_back=False, block=4, slots=64, subpixel_bits=8)
         for c, want in ((jnp.asarray(clip, dtype), tid), (jnp.asarray(clip), tid32)):
-            for pass_triangles in (len(faces), 5):  # and in windows of 5 triangles
+            for window_triangles in (len(faces), 5):  # and in windows of 5 triangles
                 passes = raster._rasterize(c, jnp.asarray(faces, jnp.int32), pass_slots=32,
-                                           pass_triangles=pass_triangles, **kw)
+                                           window_triangles=window_triangles, **kw)
                 assert np.array_equal(np.asarray(passes[0]), want)
     assert (tid >= 0).mean() > 0.2
     assert np.array_equal(tid[~amb], ref["triangle_id"][~amb])
@@ -435,7 +435,7 @@ def test_triangle_ids_and_orientation_give_rasterize_and_compact():
 def test_many_rounds_passes_and_windows_give_the_same_image():
     """A tiny slot budget forces many rounds, a tiny pass size many passes (the int32
     overflow path of frames with over 2**30 slots), a tiny window of triangles with slots
-    many windows (`raster.PASS_TRIANGLES`), alone and within each pass: the result must not
+    many windows (`raster.WINDOW_TRIANGLES`), alone and within each pass: the result must not
     change."""
     pos, faces = icosphere(2)
     clip = clip_of(pos, perspective_mvp((0.2, 0.5, 2.6))).astype(np.float32)
@@ -445,7 +445,7 @@ def test_many_rounds_passes_and_windows_give_the_same_image():
     from jaxnm import raster
 
     kw = dict(width=40, height=40, cull_back=False, block=4, slots=64, subpixel_bits=8,
-              pass_triangles=len(faces))
+              window_triangles=len(faces))
     reference = np.asarray(raster.overdraw(clip, faces, width=40, height=40))
     c_tid, c_depth, c_front = raster._rasterize(
         jnp.asarray(clip), jnp.asarray(faces, jnp.int32), pass_slots=32, **kw)
@@ -455,7 +455,7 @@ def test_many_rounds_passes_and_windows_give_the_same_image():
                               **kw)
     assert np.array_equal(np.asarray(counts), reference)
     # windows of 13 triangles with slots: alone (one pass), and within many passes
-    windowed = dict(kw, pass_triangles=13)
+    windowed = dict(kw, window_triangles=13)
     tid, _, front = raster._rasterize(jnp.asarray(clip), jnp.asarray(faces, jnp.int32),
                                       **windowed)
     assert np.array_equal(np.asarray(a.triangle_id), np.asarray(tid))
@@ -482,14 +482,14 @@ def test_many_rounds_passes_and_windows_give_the_same_image():
 
 
 def test_windows_of_triangles_by_backend():
-    """The CPU takes triangles with slots 2^16 at a time (`raster.PASS_TRIANGLES`), never
+    """The CPU takes triangles with slots 2^16 at a time (`raster.WINDOW_TRIANGLES`), never
     more than the mesh has; a GPU all of them at once (no host wait per window)."""
     from jaxnm import raster
 
-    assert raster.default_pass_triangles(200_000, "cpu") == 1 << 16
-    assert raster.default_pass_triangles(20_480, "cpu") == 20_480
-    assert raster.default_pass_triangles(200_000, "gpu") == 200_000
-    assert raster.default_pass_triangles(0, "cpu") == 1
+    assert raster.default_window_triangles(200_000, "cpu") == 1 << 16
+    assert raster.default_window_triangles(20_480, "cpu") == 20_480
+    assert raster.default_window_triangles(200_000, "gpu") == 200_000
+    assert raster.default_window_triangles(0, "cpu") == 1
 
 
 def test_round_size_by_backend_does_not_change_the_image():
