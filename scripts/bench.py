@@ -225,7 +225,7 @@ def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool,
 
 def _forward_rows(cells, timed, echo: bool = True) -> list[dict]:
     """`bench_forward`'s rows of ``cells`` from each cell's runs ``timed`` ((ms, faults) per
-    run): medians over the runs."""
+    run): medians over the runs (page faults per call: the runs' most)."""
     rows = []
     for (name, q, first_forward_s, mi, first), t in zip(cells, timed):
         def med(k, t=t):
