@@ -219,24 +219,31 @@ def ranked_nonzero(mask: ArrayLike) -> tuple[Array, Callable[[ArrayLike, int, in
     ends = cumsum(counts)
     starts = ends - counts
     total = ends[-1]
-    # the words with a true entry, in order, with their first and past-last ranks (past
-    # the busy words: above every rank)
+    # the words with a true entry, in order
     busy = _nonzero_by_scatter(counts > 0, n_words, 0)
-    some = jnp.arange(n_words) < jnp.sum(counts > 0)
-    big = np.iinfo(np.int32).max
-    busy_starts = jnp.where(some, starts[busy], big)
-    busy_ends = jnp.where(some, ends[busy], big)
 
     def window(first, size: int, fill_value: int) -> Array:
-        first = jnp.asarray(first, jnp.int32)
-        s = first + jnp.arange(size, dtype=jnp.int32)
-        # the busy words ending at or before `first` are passed; the running count of the
-        # busy words starting after it, up to slot s, is the rank of the one holding s
-        passed = jnp.searchsorted(busy_ends, first, side="right").astype(jnp.int32)
-        after = busy_starts - first
-        marks = jnp.zeros((size,), jnp.int32).at[
-            jnp.where((after > 0) & (after < size), after, size)].add(1, mode="drop")
-        w = busy[jnp.clip(passed + cumsum(marks), 0, n_words - 1)]
+        if isinstance(first, int) and first == 0:
+            # from the first entry (`flat_nonzero`): each busy word's first slot marked,
+            # the running count of marks up to slot s is the rank of the word holding s
+            s = jnp.arange(size, dtype=jnp.int32)
+            marks = jnp.zeros((size,), jnp.int32).at[jnp.where(counts > 0, starts, size)].add(
+                1, mode="drop")
+            w = busy[jnp.clip(cumsum(marks) - 1, 0, n_words - 1)]
+        else:
+            first = jnp.asarray(first, jnp.int32)
+            s = first + jnp.arange(size, dtype=jnp.int32)
+            # the busy words ending at or before `first` are passed; the running count of
+            # the busy words starting after it, up to slot s, is the rank of the one
+            # holding s (past the busy words: above every rank)
+            some = jnp.arange(n_words) < jnp.sum(counts > 0)
+            big = np.iinfo(np.int32).max
+            passed = jnp.searchsorted(jnp.where(some, ends[busy], big), first,
+                                      side="right").astype(jnp.int32)
+            after = jnp.where(some, starts[busy], big) - first
+            marks = jnp.zeros((size,), jnp.int32).at[
+                jnp.where((after > 0) & (after < size), after, size)].add(1, mode="drop")
+            w = busy[jnp.clip(passed + cumsum(marks), 0, n_words - 1)]
         word, j = words[w], s - starts[w]  # the j-th set bit of `word` (0-based)
         # which byte: the first whose end has more than j set bits below it
         below = [jax.lax.population_count(word & jnp.uint32((1 << (8 * k)) - 1)).astype(
