@@ -13,11 +13,57 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 import time
 from pathlib import Path
 
 __all__ = ["main"]
+
+#: The XLA flag that makes GPU scatter-adds and reductions run in a fixed order, so that two
+#: identical runs give bit-identical results (the CPU's already do). The command line sets it
+#: unless ``--nondeterministic``; from Python, put it in ``XLA_FLAGS`` before importing JAX.
+DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
+
+#: Environment variable naming the command line's compilation cache folder (``off``: none).
+CACHE_ENV = "JAXNM_COMPILATION_CACHE"
+
+
+def _add_xla_flag(flag: str) -> None:
+    """Add ``flag`` to ``XLA_FLAGS`` (read when JAX first starts a backend)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if flag not in flags.split():
+        os.environ["XLA_FLAGS"] = f"{flags} {flag}".strip()
+
+
+def compilation_cache_dir() -> Path | None:
+    """Where the command line keeps compiled programs: ``$JAXNM_COMPILATION_CACHE`` if set
+    (``off`` or empty: nowhere), else ``$XDG_CACHE_HOME/jaxnm/xla`` (``~/.cache/jaxnm/xla``)."""
+    env = os.environ.get(CACHE_ENV)
+    if env is not None:
+        return None if env.strip().lower() in ("", "off", "0", "false", "no") else Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "jaxnm" / "xla"
+
+
+def _use_compilation_cache() -> Path | None:
+    """Turn on JAX's persistent compilation cache in `compilation_cache_dir`, so that a second
+    run loads its compiled programs from disk; leaves a cache configured elsewhere alone."""
+    import jax
+
+    if jax.config.jax_compilation_cache_dir:
+        return Path(jax.config.jax_compilation_cache_dir)
+    path = compilation_cache_dir()
+    if path is None:
+        return None
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None  # a read-only home: run without the cache
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.05)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
 
 
 def _add_render(sub) -> None:
@@ -155,7 +201,6 @@ def _fit(args) -> int:
     from .fit import fit_normal_map, fit_outputs, prepare, prepare_held_out
     from .procedural import default_fit_job
     from .render import release_frame_programs
-    from .runtime import release_memory
 
     say = (lambda msg: None) if args.no_progress else (  # noqa: E731
         lambda msg: print(msg, file=sys.stderr, flush=True))
@@ -180,18 +225,15 @@ def _fit(args) -> int:
             raise ValueError(f"command line: {str(e).removeprefix('FitOptions: ')}") from None
     if args.time_limit is not None:
         job = dataclasses.replace(job, time_limit=args.time_limit)
-    release_memory()
     say(f"preparing {len(job.problem.targets)} targets (rasterizing each view once) ...")
     t0 = time.perf_counter()
     prep = prepare(job.problem)
     t_prep = time.perf_counter() - t0
     held_out = prepare_held_out(job)  # with the same compiled G-buffer program
-    release_memory()
     say("fitting (the first step includes compilation) ...")
     result = fit_normal_map(job.problem, job.options, ground_truth=job.ground_truth,
                             progress=not args.no_progress, prepared=prep,
                             time_limit=job.time_limit)
-    release_memory(drop_compiled=True)  # the solver's programs are done with
     say("writing outputs ...")
     outputs = fit_outputs(job, prep, result, prepare_seconds=t_prep, held_out=held_out)
     written = io.write_fit_outputs(args.output, outputs)
@@ -223,21 +265,10 @@ def main(argv=None) -> int:
                        help="allow run-to-run differences on a GPU (faster scatter-adds); "
                        "by default results are reproducible on every backend")
     args = parser.parse_args(argv)
-    from .runtime import (
-        keep_freed_memory_unless_disabled,
-        pin_worker_threads,
-        use_compilation_cache,
-        use_deterministic_ops,
-        use_wide_vectors,
-    )
-
-    keep_freed_memory_unless_disabled()  # before JAX initialises a backend
-    use_wide_vectors()  # likewise
     if not args.nondeterministic:
-        use_deterministic_ops()  # before JAX initialises a backend
+        _add_xla_flag(DETERMINISTIC_FLAG)  # before JAX starts a backend
     if not args.no_compile_cache:
-        use_compilation_cache()
-    pin_worker_threads()  # starts the backends: after the flags above
+        _use_compilation_cache()
     try:
         return _render(args) if args.command == "render" else _fit(args)
     except (ValueError, FileNotFoundError, ImportError) as e:

@@ -49,7 +49,6 @@ from .raster import Fragments, compact, expand, rasterize, triangle_ids
 from .scene import Scene, validate_scene
 from .shading import Lights, Material, check_shading_model, shade
 from .textures import NormalMapOptions
-from .traced import cached_jit
 
 __all__ = ["OUTPUTS", "PACK_MIN_PIXELS", "GBuffer", "RenderOptions", "build_gbuffer",
            "covered_gbuffer", "gbuffer_from_fragments", "shade_gbuffer", "render",
@@ -229,7 +228,7 @@ def covered_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *,
     return gb, index, count
 
 
-@cached_jit(static_argnames=("opts", "capacity"))
+@functools.partial(jax.jit, static_argnames=("opts", "capacity"))
 def _covered(mesh: Mesh, camera: Camera, albedo, triangle_id, clip, orientation, *, opts,
              capacity):
     packed, index = _compact(mesh, camera, triangle_id, capacity, clip, orientation)
@@ -753,7 +752,7 @@ def _capacity(count: int, pixels: int) -> int:
     return capacity
 
 
-@cached_jit(static_argnames=("width", "height", "cull_back"))
+@functools.partial(jax.jit, static_argnames=("width", "height", "cull_back"))
 def _visible(mesh: Mesh, camera: Camera, shift=None, *, width: int, height: int,
              cull_back: bool):
     """Each pixel's triangle (-1: background), how many pixels are covered, the (shifted)
@@ -829,7 +828,7 @@ def _over_chunks(fn, frags: Fragments, chunk: int):
     return jax.tree_util.tree_map(lambda y: y.reshape((k * size,) + y.shape[2:])[:n], out)
 
 
-@cached_jit(static_argnames=("opts", "capacity", "traced_slots"))
+@functools.partial(jax.jit, static_argnames=("opts", "capacity", "traced_slots"))
 def _render(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, origin,
             shift=None, triangle_id: Array | None = None, clip: Array | None = None,
             orientation: Array | None = None, *, opts: RenderOptions,

@@ -60,11 +60,6 @@ import numpy as np  # noqa: E402
 import jaxnm  # noqa: E402
 from jaxnm import fit as F  # noqa: E402
 from jaxnm import procedural  # noqa: E402
-from jaxnm.runtime import (  # noqa: E402
-    keep_freed_memory_unless_disabled,
-    pin_worker_threads,
-    use_wide_vectors,
-)
 from jaxnm.textures import encode_normal_map  # noqa: E402
 
 GOALS = {
@@ -210,8 +205,7 @@ def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool,
                 first, ms, faults = _interleaved_ms(calls, repeats, seed=r, first_calls=r == 0)
                 if r == 0:  # what the rows keep of the cell: its first calls
                     mi = None if mi is None else {
-                        k: mi[k] for k in ("first_s", "kernel_cache_files_at_start",
-                                           "pinned_worker_threads")}
+                        k: mi[k] for k in ("first_s", "kernel_cache_files_at_start")}
                     cells[name, size] = (name, q, jc["first_forward_s"], mi, first)
                 timed.setdefault((name, size), []).append((ms, faults))
                 del calls, jc, mi
@@ -246,7 +240,6 @@ def _forward_rows(cells, timed, echo: bool = True) -> list[dict]:
                 "first_forward_s": mi["first_s"]["forward"],
                 "first_backward_s": mi["first_s"]["forward_backward"],
                 "kernel_cache_files_at_start": mi["kernel_cache_files_at_start"],
-                "pinned_worker_threads": mi["pinned_worker_threads"],
                 "page_faults_per_call": {k: max(f[f"mitsuba {k}"] for _, f in t)
                                          for k in MITSUBA_CALLS}}
 
@@ -317,9 +310,9 @@ def _jaxnm_fit_once(p: B.BenchProblem, targets, well, budget: float, solver: str
 
 def fit_worker(args) -> None:
     """In a fresh process: the jaxnm fit (then again, steady), JSON on stdout."""
-    from jaxnm.runtime import use_compilation_cache
-
-    use_compilation_cache(args.cache)
+    jax.config.update("jax_compilation_cache_dir", args.cache)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.05)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     p = _problem(args.quick)
     seen, well = B.texel_masks(p)
     targets = B.jaxnm_fit_problem(p).targets
@@ -399,9 +392,9 @@ def _status_mb(key: str) -> float | None:
 def _reset_peak() -> float | None:
     """Hand freed memory back, reset this process's peak RSS to its current RSS (Linux's
     /proc/self/clear_refs) and return that RSS in MB (None where it cannot)."""
-    from jaxnm.runtime import release_memory
+    import gc
 
-    release_memory()
+    gc.collect()
     try:
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")
@@ -582,14 +575,8 @@ def _r(x, nd: int = 2):
 
 
 def markdown(res: dict) -> str:
-    kept = ("jaxnm.runtime.keep_freed_memory() on" if res.get("keep_freed_memory")
-            else "keep_freed_memory off")
-    kept += (f"; {res['pinned_worker_threads']} XLA worker threads pinned"
-             if res.get("pinned_worker_threads") else "; worker threads not pinned")
-    kept += ("; XLA's CPU vectors 512-bit (`use_wide_vectors`)" if res.get("wide_vectors")
-             else "; XLA's default CPU vector width")
-    lines = [f"Machine: {res['machine']}; JAX {res['jax']}; {res['mitsuba']}; {res['date']}; "
-             f"{kept}.", ""]
+    lines = [f"Machine: {res['machine']}; JAX {res['jax']}; {res['mitsuba']}; {res['date']}.",
+             ""]
     lines += ["| frame | size | jaxnm forward ms | Mitsuba forward ms | ratio | jaxnm fwd+bwd ms "
               "(pack=True) | Mitsuba fwd+bwd ms | ratio (pack=True) | jaxnm first call s "
               "(compile): forward, fwd+bwd (pack=True) | mesh moved: jaxnm / Mitsuba forward "
@@ -681,15 +668,6 @@ def main(argv=None) -> None:
     ap.add_argument("--texel-sums", dest="texel_sums", default="auto", choices=F.TEXEL_SUMS,
                     help="the fit benchmark's FitOptions.texel_sums (default auto)")
     args = ap.parse_args(argv)
-    # as the command line does, before any JAX computation (`JAXNM_KEEP_FREED_MEMORY=off`
-    # to measure without): XLA's freed buffers kept for the next call, not faulted in again
-    kept = keep_freed_memory_unless_disabled()
-    # XLA's CPU code in 512-bit vectors where the CPU has them, as the command line does
-    # (`JAXNM_WIDE_VECTORS=off` to measure without)
-    wide = use_wide_vectors()
-    # XLA's CPU worker threads each on a core of its own (`JAXNM_PIN_THREADS=off` to
-    # measure without), and Mitsuba's too (`bench_mitsuba.forward_calls`)
-    pinned = pin_worker_threads()
     if args.fit_worker:
         return fit_worker(args)
     if args.views_worker:
@@ -706,8 +684,7 @@ def main(argv=None) -> None:
             print(f"Mitsuba 3 unavailable, its columns are empty: {why}", file=sys.stderr)
     res = {"machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.system()}",
            "jax": jax.__version__, "jaxnm": jaxnm.__version__, "mitsuba": why,
-           "date": time.strftime("%Y-%m-%d"), "keep_freed_memory": kept,
-           "pinned_worker_threads": pinned, "wide_vectors": wide}
+           "date": time.strftime("%Y-%m-%d")}
     parts = set(args.parts.split(","))
     p = _problem(args.quick)
     sizes = (256,) if args.quick else (512, 1024)

@@ -73,7 +73,6 @@ import types
 import numpy as np
 from bench_problem import MOVED_OFFSET
 
-from jaxnm.runtime import pin_worker_threads
 
 MITSUBA_VERSION = "3.9.1"
 DRJIT_VERSION = "1.5.0"
@@ -360,15 +359,11 @@ def forward_calls(problem) -> dict:
     t = time.perf_counter()
     forward_moved()
     first_moved = time.perf_counter() - t
-    # Dr.Jit's worker threads each on a core of its own, as bench.py pins XLA's (neutral
-    # for Mitsuba on the 2-core VM: 4k sphere 3.6-4.2 ms either way; nothing where
-    # $JAXNM_PIN_THREADS is off)
-    pinned = pin_worker_threads("llvm-worker")
     return {"forward": forward, "forward_backward": forward_backward,
             "forward_moved": forward_moved,
             "first_s": {"forward": first_forward, "forward_backward": first_backward,
                         "forward_moved": first_moved},
-            "kernel_cache_files_at_start": cache_files, "pinned_worker_threads": pinned}
+            "kernel_cache_files_at_start": cache_files}
 
 
 def forward_times(problem, *, repeats: int = 10) -> dict:

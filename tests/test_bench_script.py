@@ -92,7 +92,7 @@ def test_forward_rows_take_the_median_of_the_runs():
         runs.append((ms, {k: 1 for k in calls}))
     q = SimpleNamespace(faces=np.zeros((7, 3)), width=64, height=64)
     mi = {"first_s": {"forward": 0.1, "forward_backward": 0.2},
-          "kernel_cache_files_at_start": 0, "pinned_worker_threads": 2}
+          "kernel_cache_files_at_start": 0}
     first = {"jaxnm forward_backward": 3.0, "jaxnm forward_backward_packed": 4.0}
     (row,) = bench._forward_rows([("mesh", q, 2.0, mi, first)], [runs], echo=False)
     assert row["jaxnm"]["forward_ms"] == 5.0 and row["mitsuba"]["forward_ms"] == 5.0

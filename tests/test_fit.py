@@ -102,27 +102,6 @@ def test_render_with_map_reproduces_targets(small):
         np.testing.assert_allclose(np.asarray(imgs), prep.target_images(v), rtol=3e-3, atol=2e-3)
 
 
-def test_prepare_hands_back_each_copied_view_and_prepares_the_same(small, monkeypatch):
-    """`prepare` returns the memory of the views it has stacked as it goes (a trim each time
-    `TRIM_BYTES` are freed); trimming after every view changes nothing prepared."""
-    import importlib
-
-    P = importlib.import_module("jaxnm.fit.prepare")
-    problem, _, _, prep, _ = small
-    trims = []
-    default = P.TRIM_BYTES
-    monkeypatch.setattr(P, "release_memory", lambda **kw: trims.append(kw))
-    monkeypatch.setattr(P, "TRIM_BYTES", 1)
-    again = F.prepare(problem)
-    assert len(trims) == prep.num_views  # one per view copied into its batch
-    for x, y in zip(jax.tree_util.tree_leaves(prep), jax.tree_util.tree_leaves(again)):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-    trims.clear()
-    monkeypatch.setattr(P, "TRIM_BYTES", default)
-    F.prepare(problem)
-    assert trims == []  # a small problem never trims
-
-
 def test_prepared_keeps_only_covered_pixels_and_needed_taps(small):
     """The compact step model: covered pixels only, views stacked for one vmap, 4-tap gathers
     where one mip level is read, and padding that weighs nothing."""

@@ -20,7 +20,6 @@ from jax import Array
 
 from .. import textures as _tex
 from ..render import GBuffer, RenderOptions, build_gbuffer, check_mesh, covered_gbuffer
-from ..runtime import release_memory
 from ..shading import Lights, Material
 from .problem import FitProblem, FitTarget, validate_problem
 
@@ -310,7 +309,6 @@ def _assemble(views: list[View], options: tuple[RenderOptions, ...],
                 batch = [v]
         groups.append(batch)
     batches = []
-    freed = _Trim()
     for members in groups:
         eight = views[members[0]].gbuffer.plan.num_taps == 8
         parts = []  # per view: (indices of its one-level pixels, of the others)
@@ -326,7 +324,6 @@ def _assemble(views: list[View], options: tuple[RenderOptions, ...],
         stacked = None  # filled view by view, each view released once copied
         for i, (v, (a, b)) in enumerate(zip(members, parts)):
             view, views[v] = views[v], None
-            view_bytes = _nbytes(view)
             fill = int(a[0] if len(a) else b[0])  # a real pixel, copied into the padding
             order = np.concatenate([a, np.full(ka - len(a), fill), b, np.full(kb - len(b), fill)])
             real = np.concatenate([np.ones(len(a), bool), np.zeros(ka - len(a), bool),
@@ -345,7 +342,6 @@ def _assemble(views: list[View], options: tuple[RenderOptions, ...],
                     lambda x: np.empty((len(members),) + x.shape, x.dtype), row)
             jax.tree_util.tree_map(lambda out, x: out.__setitem__(i, x), stacked, row)
             del row
-            freed.add(view_bytes)
         # moved to the device one array at a time, each host copy dropped once moved: the
         # peak holds the batch about twice, not four times (views, rows, stack, device)
         leaves, tree = jax.tree_util.tree_flatten(stacked)
@@ -357,34 +353,6 @@ def _assemble(views: list[View], options: tuple[RenderOptions, ...],
         batches.append(ViewBatch(**stacked, views=tuple(members), targets=targets,
                                  split=ka if eight else 0, chunks=(na, nb)))
     return Prepared(tuple(batches), material, options, chunk)
-
-
-def _nbytes(view: View) -> int:
-    """The bytes of a view's arrays (read from their sizes: nothing is copied)."""
-    return sum(x.nbytes for x in jax.tree_util.tree_leaves(
-        (view.gbuffer, view.pixels, view.images, view.weights, view.lights)))
-
-
-class _Trim:
-    """Hands memory back to the system (`jaxnm.runtime.release_memory`) each time at least
-    `TRIM_BYTES` have been freed since the last time. `_assemble` frees each view once it
-    is copied into its batch; glibc would keep those bytes in its heap, and the batch's
-    arrays would grow beside them (64 views of 128^2, 174 MB prepared, on the 2-core VM:
-    `prepare`'s own peak 531 -> 383 MB, ~0.1 s more of its 3.3 s; the fit's steps, not
-    `prepare`, are now that job's peak). A small problem never asks for a trim."""
-
-    def __init__(self):
-        self.pending = 0
-
-    def add(self, nbytes: int) -> None:
-        self.pending += nbytes
-        if self.pending >= TRIM_BYTES:
-            release_memory(collect=False)
-            self.pending = 0
-
-
-#: See `_Trim`.
-TRIM_BYTES = 32 << 20
 
 
 def with_map_size(prep: Prepared, size) -> Prepared:

@@ -15,14 +15,14 @@ the compiled step. The loss reported per step is the solver's own evaluation
 so each level compiles once.
 
 **Driving the loop in Python** keeps what a user needs between steps: a
-progress bar, Ctrl-C (finish the current step, keep the best map), a time
-limit, and a history with the angular error against a ground truth.
+progress bar, Ctrl-C (return the best map so far), a time limit, and a history with
+the angular error against a ground truth.
 """
 
 from __future__ import annotations
 
 import math
-import signal
+import os
 import sys
 import time
 
@@ -33,8 +33,6 @@ import numpy as np
 import optimistix as optx
 from jax import Array
 
-from ..runtime import deterministic_ops, release_memory
-from ..traced import cached_filter_jit
 from .diagnostics import angular_error, check_identifiability, seen_texels, texel_influence
 from .model import ModelArgs, loss, residuals
 from .prepare import Prepared, prepare, shard_views, with_map_size
@@ -60,7 +58,7 @@ def make_solver(options: FitOptions):
 def texel_sums_for(prep: Prepared, options: FitOptions, backend: str | None = None,
                    deterministic: bool | None = None) -> str:
     """What ``options.texel_sums`` means for ``prep`` on ``backend`` (JAX's default if None)
-    with or without deterministic GPU ops (`jaxnm.runtime.deterministic_ops` if None):
+    with or without deterministic GPU ops (`deterministic_ops` if None):
     ``"tables"`` or ``"scatter"``.
 
     ``"auto"`` is tables on an accelerator with deterministic ops (as the command line
@@ -81,6 +79,12 @@ def texel_sums_for(prep: Prepared, options: FitOptions, backend: str | None = No
         deterministic = deterministic_ops() if deterministic is None else deterministic
         return "tables" if backend != "cpu" and deterministic else "scatter"
     return options.texel_sums
+
+
+def deterministic_ops() -> bool:
+    """Whether XLA was asked for deterministic GPU arithmetic (``--xla_gpu_deterministic_ops``
+    in ``XLA_FLAGS``, as the command line sets it unless ``--nondeterministic``)."""
+    return "--xla_gpu_deterministic_ops=true" in os.environ.get("XLA_FLAGS", "").split()
 
 
 def _residual_fn(z, args):
@@ -130,7 +134,7 @@ def _restore(solver, state):
                        is_leaf=lambda x: x is None)
 
 
-@cached_filter_jit(donate="all-except-first")
+@eqx.filter_jit(donate="all-except-first")
 def _step(kept, z, state):
     """One solver step; ``kept = (args, solver)``. Returns the accepted point, the state
     (`_shed`), whether to stop, the solver's result code, the loss at the accepted point
@@ -149,28 +153,6 @@ def _step(kept, z, state):
         done, result = solver.terminate(fn, z, args, {}, state, frozenset())
         state, loss_value = _shed(solver, state), state.f_info.as_min()
     return z, state, done, result, loss_value, z * args.scale
-
-
-#: What `_compile_ahead` has compiled in this process (see there).
-_COMPILED_AHEAD: set = set()
-
-
-def _compile_ahead(kept, z, state) -> None:
-    """Compile `_step` for these arguments before it first runs, and hand the memory the
-    compiler used back before it does (`release_memory`): the first step's execution then
-    no longer stacks on the compiler's leftovers (for the built-in problem, a peak of
-    1.12 GB becomes 0.89 GB). The program lands in `_step`'s own cache, which the steps
-    then call (and which recompiles, as ever, if a later state comes back with other
-    shardings, as it does for views spread over devices). Done once per solver and
-    argument shapes: lowering again would re-trace the step (~0.1 s)."""
-    leaves, tree = jax.tree_util.tree_flatten((kept[0], z))
-    key = (repr(kept[1]), tree, tuple((x.shape, x.dtype, x.sharding) if isinstance(x, jax.Array)
-                                      else repr(x) for x in leaves))
-    if key in _COMPILED_AHEAD:
-        return
-    _step.lower(kept, z, state).compile()
-    release_memory(collect=False)
-    _COMPILED_AHEAD.add(key)
 
 
 def _buffers(x) -> tuple:
@@ -260,28 +242,6 @@ def _upsample(slopes: Array, size: tuple[int, int]) -> Array:
     return jax.image.resize(slopes, size + (slopes.shape[-1],), "linear")
 
 
-class _Interrupt:
-    """Turns Ctrl-C into a flag checked between steps (in the main thread only)."""
-
-    def __init__(self):
-        self.flag = False
-        self.old = None
-
-    def __enter__(self):
-        try:
-            self.old = signal.signal(signal.SIGINT, self._handler)
-        except ValueError:  # not in the main thread
-            self.old = None
-        return self
-
-    def _handler(self, signum, frame):
-        self.flag = True
-
-    def __exit__(self, *exc):
-        if self.old is not None:
-            signal.signal(signal.SIGINT, self.old)
-
-
 class _Progress:
     """Per-step progress on stderr: a tqdm bar (loss, error, ETA), or a line per step where
     tqdm is not installed; nothing when disabled."""
@@ -335,8 +295,9 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     - `time_limit`: stop (keeping the best map) after this many seconds.
 
     Warns (`FitWarning`) when no view has three lights with non-coplanar
-    directions (`check_identifiability`; the report is in the result). Ctrl-C
-    stops cleanly after the current step and returns the best map so far.
+    directions (`check_identifiability`; the report is in the result). A
+    `KeyboardInterrupt` (Ctrl-C) during the fit ends it and returns the best map so far
+    (``stopped == "interrupted"``); no signal handler is installed.
     Deterministic for a given `options.seed`. History step 0 is the start; the
     loss of each record is that of the map the solver holds after the step.
     """
@@ -362,64 +323,61 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     stopped = "max_steps"
     best = (math.inf, slopes)
     bar = _Progress(options.max_steps * len(sizes), progress)
-    with _Interrupt() as interrupt:
-        try:
-            for level, size in enumerate(sizes):
-                if level > 0:
-                    slopes = _upsample(best[1], size)
-                    best = (math.inf, slopes)
-                lp = prep if size == (h, w) else _like(with_map_size(prep, size), prep)
-                scale_host = _host_preconditioner(lp)
-                scale = jax.device_put(scale_host)
-                # least squares on reduced residuals (same loss and Gauss-Newton steps,
-                # fewer numbers per pixel); L-BFGS only needs the loss and its gradient
-                sums = (texel_sum_tables(lp) if texel_sums_for(lp, options) == "tables"
-                        else None)
-                args = ModelArgs.create(lp, smoothness=options.smoothness, strength=strength,
-                                        scale=scale, reduce=options.solver != "lbfgs",
-                                        texel_sums=sums)
-                z = jax.device_put((np.asarray(slopes) / scale_host).astype(np.float32))
-                if isinstance(solver, TexelLM):  # made on the host, in buffers of its own
-                    state = solver.init(z, args)
-                else:
-                    # our own copy: the initial state can hold library-wide constant arrays
-                    # (optimistix's result codes), which donating it to `_step` would free
-                    state = jax.tree_util.tree_map(
-                        lambda x: _copy(x) if isinstance(x, jax.Array) else x,
-                        _shed(solver, _init(solver, z, args)))
-                _compile_ahead((args, solver), z, state)
-                # optimistix's first step evaluates the start and proposes the first move,
-                # so the start's loss arrives with it: record it as step 0
-                for k in range(options.max_steps + 1):
-                    z, state, done, result, loss_value, slopes = _step(
-                        (args, solver), z, _unaliased(state, (args, solver)))
-                    rec = {"level": level, "size": list(size), "step": k,
-                           "loss": float(loss_value), "seconds": time.perf_counter() - t_start}
-                    if np.isfinite(rec["loss"]) and rec["loss"] < best[0]:
-                        best = (rec["loss"], slopes)
-                    if gt is not None and size == (h, w):
-                        err = angular_error(_unit_normals(best[1]), gt)[seen]
-                        rec["mean_angular_error_deg"] = float(err.mean())
-                    history.append(rec)
-                    if k > 0:
-                        bar.update(rec)
-                    if interrupt.flag:
-                        stopped = "interrupted"
-                        break
-                    if time_limit is not None and rec["seconds"] > time_limit:
-                        stopped = "time_limit"
-                        break
-                    if k > 0 and bool(done):
-                        stopped = ("converged" if result == optx.RESULTS.successful
-                                   else str(result))
-                        break
-                    if _flat(history, level, options):
-                        stopped = "converged"
-                        break
-                if stopped in ("interrupted", "time_limit"):
+    try:
+        for level, size in enumerate(sizes):
+            if level > 0:
+                slopes = _upsample(best[1], size)
+                best = (math.inf, slopes)
+            lp = prep if size == (h, w) else _like(with_map_size(prep, size), prep)
+            scale_host = _host_preconditioner(lp)
+            scale = jax.device_put(scale_host)
+            # least squares on reduced residuals (same loss and Gauss-Newton steps,
+            # fewer numbers per pixel); L-BFGS only needs the loss and its gradient
+            sums = (texel_sum_tables(lp) if texel_sums_for(lp, options) == "tables"
+                    else None)
+            args = ModelArgs.create(lp, smoothness=options.smoothness, strength=strength,
+                                    scale=scale, reduce=options.solver != "lbfgs",
+                                    texel_sums=sums)
+            z = jax.device_put((np.asarray(slopes) / scale_host).astype(np.float32))
+            if isinstance(solver, TexelLM):  # made on the host, in buffers of its own
+                state = solver.init(z, args)
+            else:
+                # our own copy: the initial state can hold library-wide constant arrays
+                # (optimistix's result codes), which donating it to `_step` would free
+                state = jax.tree_util.tree_map(
+                    lambda x: _copy(x) if isinstance(x, jax.Array) else x,
+                    _shed(solver, _init(solver, z, args)))
+            # optimistix's first step evaluates the start and proposes the first move,
+            # so the start's loss arrives with it: record it as step 0
+            for k in range(options.max_steps + 1):
+                z, state, done, result, loss_value, slopes = _step(
+                    (args, solver), z, _unaliased(state, (args, solver)))
+                rec = {"level": level, "size": list(size), "step": k,
+                       "loss": float(loss_value), "seconds": time.perf_counter() - t_start}
+                if np.isfinite(rec["loss"]) and rec["loss"] < best[0]:
+                    best = (rec["loss"], slopes)
+                if gt is not None and size == (h, w):
+                    err = angular_error(_unit_normals(best[1]), gt)[seen]
+                    rec["mean_angular_error_deg"] = float(err.mean())
+                history.append(rec)
+                if k > 0:
+                    bar.update(rec)
+                if time_limit is not None and rec["seconds"] > time_limit:
+                    stopped = "time_limit"
                     break
-        finally:
-            bar.close()
+                if k > 0 and bool(done):
+                    stopped = ("converged" if result == optx.RESULTS.successful
+                               else str(result))
+                    break
+                if _flat(history, level, options):
+                    stopped = "converged"
+                    break
+            if stopped in ("interrupted", "time_limit"):
+                break
+    except KeyboardInterrupt:  # Ctrl-C (or a caller's `_thread.interrupt_main`)
+        stopped = "interrupted"
+    finally:
+        bar.close()
     final = best[1]
     if final.shape[:2] != (h, w):  # stopped during a coarse level
         final = _upsample(final, (h, w))
