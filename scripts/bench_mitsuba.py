@@ -73,7 +73,6 @@ import types
 import numpy as np
 from bench_problem import MOVED_OFFSET
 
-
 MITSUBA_VERSION = "3.9.1"
 DRJIT_VERSION = "1.5.0"
 VARIANT = "llvm_ad_rgb"
