@@ -27,10 +27,7 @@ def pytest_configure(config):
     OpenGL 4.5 context is an error instead of a skip."""
     if os.environ.get("JAXNM_REQUIRE_GL") != "1":
         return
-    import sys
-
-    sys.path.insert(0, os.path.dirname(__file__))
-    from glref import gl_available
+    from glref import gl_available  # tests/ is on sys.path: pytest put it there for conftest
 
     ok, why = gl_available()
     if not ok:

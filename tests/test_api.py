@@ -117,7 +117,7 @@ def _private_imports(path: Path) -> list[str]:
 
 
 def test_no_module_uses_another_modules_private_names():
-    files = sorted((ROOT / "jaxnm").rglob("*.py")) + sorted((ROOT / "scripts").glob("*.py"))
+    files = sorted((ROOT / "jaxnm").rglob("*.py")) + sorted((ROOT / "scripts").rglob("*.py"))
     bad = [b for f in files for b in _private_imports(f)]
     assert not bad, bad
 

@@ -1,27 +1,13 @@
-"""The side-by-side benchmark's problem (scripts/bench_problem.py) is the one its definition
-in shared/benchmarks/fit_vs_mitsuba.md describes."""
-
-import importlib.util
-from pathlib import Path
+"""The side-by-side benchmark's problem (scripts/benchmarks/bench_problem.py) is the one its
+docstring defines."""
 
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "bench_problem.py"
+from scripts.benchmarks import bench_problem as B
 
 
-@pytest.fixture(scope="module")
-def B():
-    import sys
-
-    spec = importlib.util.spec_from_file_location("bench_problem", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bench_problem"] = mod  # dataclasses look their module up there
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_problem_geometry_lights_and_map(B):
+def test_problem_geometry_lights_and_map():
     p = B.make_problem(render_size=64, map_size=32, major=128, minor=80)
     assert p.faces.shape == (20480, 3) and p.positions.shape == (129 * 81, 3)
     r = np.hypot(p.positions[:, 0], p.positions[:, 1])
@@ -38,7 +24,7 @@ def test_problem_geometry_lights_and_map(B):
     assert (p.gt_normals[..., 2] > 0).all()  # every texel faces out of the surface
 
 
-def test_texel_masks_and_metrics(B):
+def test_texel_masks_and_metrics():
     p = B.make_problem(render_size=64, map_size=16, major=32, minor=20)
     seen, well = B.texel_masks(p)
     assert well.sum() > 0 and (well <= seen).all() and seen.mean() < 1.0

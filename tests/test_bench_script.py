@@ -1,12 +1,12 @@
-"""scripts/bench.py: the views benchmark's cameras and its report (the timings themselves live
-in the script, never in tests)."""
+"""scripts/benchmarks/bench.py: the views benchmark's cameras and its report (the timings
+themselves live in the script, never in tests)."""
 
 import numpy as np
-from helpers import load_script
+
+from scripts.benchmarks import bench
 
 
 def test_ring_eyes_are_distinct_cameras_above_the_torus():
-    bench = load_script("bench")
     eyes = np.array(bench._ring_eyes(64, radius=3.0))
     assert eyes.shape == (64, 3)
     np.testing.assert_allclose(np.linalg.norm(eyes, axis=1), 3.0, rtol=1e-12)
@@ -18,7 +18,6 @@ def test_ring_eyes_are_distinct_cameras_above_the_torus():
 
 
 def test_markdown_reports_the_views_rows():
-    bench = load_script("bench")
     res = {"machine": "m", "jax": "j", "mitsuba": "none", "date": "d",
            "views": [{"views": 4, "size": 128, "chunk": "2097152", "pixels": 1000,
                       "prepared_mb": 1.5, "s_per_step": 0.1, "fit_s": 2.0, "peak_rss_mb": 500},
@@ -38,7 +37,6 @@ def test_child_peak_memory_is_the_childs_not_the_benchmarks():
     import os
     import sys
 
-    bench = load_script("bench")
     ballast = np.ones(200_000_000 // 8)  # the benchmark process, 200 MB larger
     ballast[::4096] = 2.0  # touched: resident
     child = bench._timed_child([sys.executable, "-c", "print('ok')"], dict(os.environ))
@@ -48,7 +46,6 @@ def test_child_peak_memory_is_the_childs_not_the_benchmarks():
 
 
 def test_markdown_reports_the_forward_rows_with_the_packed_gradient():
-    bench = load_script("bench")
     res = {"machine": "m", "jax": "j", "mitsuba": "mi", "date": "d",
            "forward": [{"mesh": "20k torus", "forward_ratio": 2.0,
                         "forward_backward_ratio": 2.5, "forward_backward_packed_ratio": 1.2,
@@ -66,7 +63,6 @@ def test_markdown_reports_the_forward_rows_with_the_packed_gradient():
 
 
 def test_markdown_forward_row_without_mitsuba_leaves_its_columns_empty():
-    bench = load_script("bench")
     res = {"machine": "m", "jax": "j", "mitsuba": "none", "date": "d",
            "forward": [{"mesh": "4k sphere",
                         "jaxnm": {"triangles": 3968, "size": "256x256", "forward_ms": 3.0,
@@ -83,7 +79,6 @@ def test_forward_rows_take_the_median_of_the_runs():
     median of the runs' side-by-side ratios, and the runs' forward ratios are listed."""
     from types import SimpleNamespace
 
-    bench = load_script("bench")
     calls = [f"jaxnm {k}" for k in bench.JAXNM_CALLS] + [f"mitsuba {k}"
                                                          for k in bench.MITSUBA_CALLS]
     runs = []

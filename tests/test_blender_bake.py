@@ -2,32 +2,19 @@
 `"vertex"` (MikkTSpace) frame: the decoded normal agrees with the high-poly surface's normal
 where the baker's ray hits to <= 0.2 deg mean and <= 1 deg p99, on plain, mirrored,
 stretched and sheared uvs, flat and curved low-poly meshes, hard edges and zero-area uv
-triangles (scripts/blender_bake_cases.py builds the cases and the analytic references).
+triangles (scripts/studies/blender_bake_cases.py builds the cases and the analytic
+references).
 
 Needs Blender in its own environment (see tests/blender_ref.py); skipped without it, except
 in CI (JAXNM_REQUIRE_BLENDER=1)."""
 
-import importlib.util
 import os
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from scripts.studies import blender_bake_cases as C
 
-
-def _cases_module():
-    spec = importlib.util.spec_from_file_location("blender_bake_cases",
-                                                  ROOT / "scripts" / "blender_bake_cases.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["blender_bake_cases"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-C = _cases_module()
 BLENDER = C.blender_python()
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(
     BLENDER is None and os.environ.get("JAXNM_REQUIRE_BLENDER") != "1",

@@ -293,14 +293,10 @@ def test_fit_file_and_cli(tmp_path, small, capsys):
 
 @pytest.mark.slow
 def test_example_fit_script_writes_the_built_in_problem(tmp_path, small):
-    """scripts/make_example_fit.py writes a fit file that loads back as the built-in problem."""
-    import importlib.util
-    from pathlib import Path
+    """scripts/examples/make_example_fit.py writes a fit file that loads back as the built-in
+    problem."""
+    from scripts.examples import make_example_fit as mod
 
-    script = Path(__file__).resolve().parents[1] / "scripts" / "make_example_fit.py"
-    spec = importlib.util.spec_from_file_location("make_example_fit", script)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
     problem, gt, _, _, _ = small
     path = mod.write_example(tmp_path, render_size=64, map_size=32)
     job = load_fit(path)

@@ -19,7 +19,8 @@ from jaxnm.render import render
 from jaxnm.scene import Scene, validate_scene
 from jaxnm.shading import DirectionalLight, Lights, Material, PointLight, stack_lights
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "scripts" / "scenes" / "torus" / "scene.json"
+EXAMPLE = (Path(__file__).resolve().parents[1] / "scripts" / "examples" / "scenes" / "torus"
+           / "scene.json")
 
 
 @pytest.fixture(scope="module")
@@ -334,26 +335,46 @@ def test_cli_uses_the_persistent_compilation_cache(tmp_path):
     assert deterministic == [True, True, True, True, False]
 
 
-def test_value_checks_run_once_per_jax_array_and_always_for_numpy(monkeypatch):
-    """A JAX mesh that passed the NaN/index checks is not rescanned on the next render (it
-    cannot change); a NumPy mesh is rescanned every time, so an in-place NaN is caught."""
+def test_value_checks_are_for_where_scenes_are_made():
+    """`validate_arrays` scans the values of concrete arrays, JAX's and NumPy's alike, every
+    time it is asked (``values=False``: shapes and dtypes only, what `render` checks on every
+    call); a NaN written into a NumPy mesh in place is found."""
     from jaxnm import geometry
 
-    calls = []
-    real = geometry._check_values
-    monkeypatch.setattr(geometry, "_check_values", lambda *a: (calls.append(1), real(*a)))
     mesh = procedural.plane(1.0, 2)
-    pos = jnp.asarray(mesh.positions)
-    for _ in range(3):
-        geometry.validate_arrays(pos, mesh.faces, mesh.uv, mesh.normals, source="m")
-    assert len(calls) == 1
-    geometry.validate_arrays(pos + 0.0, mesh.faces, mesh.uv, mesh.normals, source="m")
-    assert len(calls) == 2  # a new array is checked
     host = np.array(mesh.positions)
     geometry.validate_arrays(host, mesh.faces, mesh.uv, mesh.normals, source="m")
     host[1, 0] = np.nan
-    with pytest.raises(ValueError, match="m: 1 vertex positions are NaN"):
-        geometry.validate_arrays(host, mesh.faces, mesh.uv, mesh.normals, source="m")
+    for pos in (host, jnp.asarray(host)):
+        with pytest.raises(ValueError, match="m: 1 vertex positions are NaN"):
+            geometry.validate_arrays(pos, mesh.faces, mesh.uv, mesh.normals, source="m")
+        geometry.validate_arrays(pos, mesh.faces, mesh.uv, mesh.normals, source="m",
+                                 values=False)
+    with pytest.raises(ValueError, match=r"m: positions must have shape \(V, 3\)"):
+        geometry.validate_arrays(host[:, :2], mesh.faces, values=False, source="m")
+
+
+@pytest.mark.parametrize("jit", [False, True])
+def test_render_refuses_nan_vertices_and_bad_indices_at_run_time(plane_scene, jit):
+    """`render` does not scan values on the host; inside its program a non-finite vertex
+    position or a face index out of range raises (eagerly and under the caller's jit),
+    instead of rasterizing what the caller never meant."""
+    import jax
+
+    m = plane_scene.mesh
+    bad_pos = dataclasses.replace(m, positions=jnp.asarray(m.positions).at[2, 1].set(jnp.nan))
+    bad_faces = dataclasses.replace(m, faces=jnp.asarray(m.faces).at[0, 2].set(99))
+
+    def run(mesh):
+        fn = (jax.jit(lambda s: render(s)["color"]) if jit
+              else (lambda s: render(s)["color"]))
+        return np.asarray(fn(plane_scene.replace(mesh=mesh)))
+
+    assert run(m).max() > 0
+    with pytest.raises(Exception, match="NaN or infinite vertex positions"):
+        run(bad_pos)
+    with pytest.raises(Exception, match="face indices must be in"):
+        run(bad_faces)
 
 
 def test_near_plane_check_finds_the_one_vertex_in_front():
@@ -373,19 +394,37 @@ def test_near_plane_check_finds_the_one_vertex_in_front():
         validate_scene(Scene(mesh=mesh_behind, camera=cam, width=8, height=8))
 
 
+@pytest.fixture
+def strategy(monkeypatch):
+    """``run(packed, chunk, fn)``: ``fn()`` with `render`'s per-pixel stages on the whole
+    image (``packed`` False) or on packed covered pixels in chunks of ``chunk`` slots
+    (whatever the image size), its frame program compiled afresh; the cache is cleared
+    again afterwards."""
+    R = importlib.import_module("jaxnm.render")
+
+    def run(packed, chunk, fn):
+        monkeypatch.setattr(R, "PACK_MIN_PIXELS", 1 if packed else 1 << 40)
+        monkeypatch.setattr(R, "PIXEL_CHUNK", (chunk, chunk))
+        R._frame.clear_cache()
+        return fn()
+
+    yield run
+    R._frame.clear_cache()
+
+
 @pytest.mark.parametrize("frame,derivatives,precision,eye", [
     ("cotangent", "fine", "float32", (0.5, -4.5, 3.0)),
     ("exact", "coarse", "float16", (0.5, -4.5, 3.0)),
     ("vertex", "analytic", "float32", (0.5, -4.5, 3.0)),
-    ("cotangent", "fine", "float32", (0.0, -2.35, 1.75))])  # over half covered: all slots
+    ("cotangent", "fine", "float32", (0.0, -2.35, 1.75))])  # over a quarter: all slots
 def test_packed_pixels_render_what_the_whole_image_renders(frame, derivatives, precision, eye,
-                                                          small_pixel_chunks):
-    """`render` runs the per-pixel stages on the covered pixels only (packed, in chunks of
-    `PIXEL_CHUNK` slots) when they are at most half the image (or into all slots), and
-    without a host count on every pixel packed covered first, skipping the chunks past
-    them: every output must be what the per-pixel stages give on the image as it is (each
-    pixel sees its own triangle and its own window position, quad partners included):
-    coverage, ids and facing exactly, the rest to float32 rounding."""
+                                                          strategy):
+    """On the CPU `render` runs the per-pixel stages on the covered pixels only, packed into
+    a quarter of the image's slots when they fit and into all of them otherwise, in chunks
+    (those past the covered pixels skipped): every output must be what the per-pixel stages
+    give on the image as it is (each pixel sees its own triangle and its own window
+    position, quad partners included): coverage, ids and facing exactly, the rest to float32
+    rounding."""
     from jaxnm.camera import Camera, look_at, perspective
     from jaxnm.render import OUTPUTS
 
@@ -394,81 +433,49 @@ def test_packed_pixels_render_what_the_whole_image_renders(frame, derivatives, p
         look_at(eye, (0.3, 0.0, -0.1), (0.0, 0.0, 1.0)),
         perspective(45.0, 1.5, 0.1, 50.0)))
     kw = dict(outputs=OUTPUTS, frame=frame, derivatives=derivatives, precision=precision)
-    whole = small_pixel_chunks(None, lambda: render(sc, pack=False, **kw))  # image layout
+    whole = strategy(False, 256, lambda: render(sc, **kw))  # image layout
     covered = np.asarray(whole["mask"][..., 0]) > 0
     assert 0.05 < covered.mean() < 0.25 or covered.mean() > 0.5  # 1/4 of the slots, or all
-    for pack in (True, False):  # chunks of 256 slots: 6 (or 24), or 24 with some skipped
-        packed = small_pixel_chunks(256, lambda: render(sc, pack=pack, **kw))
-        for name in OUTPUTS:
-            if name in ("mask", "triangle_id", "front_facing"):
-                np.testing.assert_array_equal(packed[name], whole[name], err_msg=name)
-            else:  # the same arithmetic, fused differently by XLA: float32 ulps of the terms
-                scale = float(np.abs(np.asarray(whole[name])).max())
-                np.testing.assert_allclose(packed[name], whole[name], rtol=0,
-                                           atol=2e-6 * max(scale, 1e-3), err_msg=name)
-    assert np.abs(np.asarray(whole["duvdx"])[covered]).min() >= 0  # derivatives are there
-    assert np.abs(np.asarray(whole["duvdx"])[covered]).max() > 0
+    # chunks of 256 slots: 6 (or 24), some skipped
+    packed = strategy(True, 256, lambda: render(sc, **kw))
+    for name in OUTPUTS:
+        if name in ("mask", "triangle_id", "front_facing"):
+            np.testing.assert_array_equal(packed[name], whole[name], err_msg=name)
+        else:  # the same arithmetic, fused differently by XLA: float32 ulps of the terms
+            scale = float(np.abs(np.asarray(whole[name])).max())
+            np.testing.assert_allclose(packed[name], whole[name], rtol=0,
+                                       atol=2e-6 * max(scale, 1e-3), err_msg=name)
+    assert np.abs(np.asarray(whole["duvdx"])[covered]).max() > 0  # derivatives are there
 
 
-
-@pytest.fixture
-def small_pixel_chunks(monkeypatch):
-    """``run(chunk, fn)``: ``fn()`` with `render`'s per-pixel chunks set to ``chunk`` slots
-    on the CPU (a pair: the counted and the traced sizes; None: no chunks, and the image as
-    it is where the count is unknown), its programs compiled afresh; the cache is cleared
-    again afterwards."""
-    import importlib
-
-    R = importlib.import_module("jaxnm.render")
-
-    def run(chunk, fn):
-        sizes = chunk if isinstance(chunk, tuple) else (chunk, chunk)
-        monkeypatch.setattr(R, "PIXEL_CHUNK", {} if chunk is None else {"cpu": sizes})
-        R._render.clear_cache()
-        return fn()
-
-    yield run
-    R._render.clear_cache()
-
-
-def test_chunked_pixels_give_the_image_layouts_gradient(small_pixel_chunks):
-    """Forward and reverse mode through the chunks (a `lax.map`, with a `lax.cond` skipping
-    chunks without a covered pixel) give the gradient with respect to the map, the albedo
-    and the light of the per-pixel stages run on the image as it is, under the caller's
-    jit (the count traced: every pixel a slot) and with the count read on the host."""
+def test_chunked_pixels_give_the_image_layouts_gradient(strategy):
+    """Forward and reverse mode through the packed chunks (a `lax.cond` choosing the slot
+    count, a `lax.map` over chunks, a `lax.cond` skipping chunks without a covered pixel)
+    give the gradient with respect to the map, the albedo and the light of the per-pixel
+    stages run on the image as it is, eagerly and under the caller's jit."""
     import jax
 
     sc = default_scene(width=48, height=32)
     texels = jnp.asarray(sc.normal_map)
     target = render(sc)["color"] * 0.9
 
-    def loss(t, albedo, pack):
+    def loss(t, albedo):
         s = sc.replace(normal_map=t, albedo=albedo)
-        return jnp.sum((render(s, pack=pack)["color"] - target) ** 2)
+        return jnp.sum((render(s)["color"] - target) ** 2)
 
     args = (texels, jnp.asarray([0.7, 0.6, 0.5], jnp.float32))
-    ref = small_pixel_chunks(None, lambda: jax.jit(jax.value_and_grad(
-        loss, argnums=(0, 1)), static_argnums=2)(*args, False))
+    grad = jax.value_and_grad(loss, argnums=(0, 1))
+    ref = strategy(False, 256, lambda: jax.jit(grad)(*args))
     assert float(jnp.abs(ref[1][0]).max()) > 0 and float(jnp.abs(ref[1][1]).max()) > 0
     covered = int(jnp.count_nonzero(render(sc, outputs=("mask",))["mask"]))
-    assert covered <= 48 * 32 - 2 * 256  # of 6 chunks of 256 slots, the last 2 are skipped
-    for pack, jit in ((False, True), (None, False)):
-        grad = jax.value_and_grad(loss, argnums=(0, 1))
-        value, (g_map, g_albedo) = small_pixel_chunks(
-            256, lambda: (jax.jit(grad, static_argnums=2) if jit else grad)(*args, pack))
+    assert covered <= 48 * 32 // 4 - 128  # the quarter's 384 slots: 2 chunks, 1 skipped
+    for jit in (True, False):
+        value, (g_map, g_albedo) = strategy(True, 256, lambda: (jax.jit(grad) if jit
+                                                                else grad)(*args))
         np.testing.assert_allclose(value, ref[0], rtol=1e-5)
         np.testing.assert_allclose(g_map, ref[1][0], rtol=1e-4,
                                    atol=1e-5 * float(jnp.abs(ref[1][0]).max()))
         np.testing.assert_allclose(g_albedo, ref[1][1], rtol=1e-4)
-    # pack=True under the caller's jit (the count traced): the packed program in at most
-    # four chunks, here of image / 16 slots, between the two sizes (the all-pixel one too)
-    value, (g_map, g_albedo) = small_pixel_chunks(
-        (64, 4096), lambda: jax.jit(jax.value_and_grad(loss, argnums=(0, 1)),
-                                    static_argnums=2)(*args, True))
-    np.testing.assert_allclose(value, ref[0], rtol=1e-5)
-    np.testing.assert_allclose(g_map, ref[1][0], rtol=1e-4,
-                               atol=1e-5 * float(jnp.abs(ref[1][0]).max()))
-    np.testing.assert_allclose(g_albedo, ref[1][1], rtol=1e-4)
 
 
 def test_compact_and_expand_round_trip():
@@ -532,67 +539,58 @@ def test_compact_and_expand_round_trip():
                                rtol=1e-6, atol=1e-7)
 
 
-@pytest.mark.parametrize("backend, size, packs", [("cpu", 256, True), ("cpu", 128, False),
-                                                   ("gpu", 256, False)])
-def test_packing_is_the_default_only_for_large_images_on_the_cpu(monkeypatch, backend, size,
-                                                                  packs):
-    """`render(pack=None)` packs images of at least `PACK_MIN_PIXELS` pixels on the CPU only
-    (on an H100 the count's trip to the host and the second program cost more than they
-    save: README, GPU). The stages are stubbed: only the decision is under test."""
-    import importlib
-
-    import jax
-
-    R = importlib.import_module("jaxnm.render")  # the module (jaxnm.render is the function)
-    assert (size * size >= R.PACK_MIN_PIXELS) == (packs or backend != "cpu")
-    calls = []
-    monkeypatch.setattr(jax, "default_backend", lambda: backend)
-    monkeypatch.setattr(R, "_visible", lambda *a, **k: calls.append("visible")
-                        or (jnp.zeros((size, size), jnp.int32), 10, None, None))
-    monkeypatch.setattr(R, "_render", lambda *a, **k: calls.append(k.get("capacity")) or {})
-    render(default_scene(width=size, height=size))
-    assert calls == (["visible", R._capacity(10, size * size)] if packs else [None])
+@pytest.mark.parametrize("backend, size, derivatives, packs", [
+    ("cpu", 256, "fine", True), ("cpu", 128, "fine", False), ("gpu", 256, "fine", False),
+    ("cpu", 256, "gbuffer", False)])
+def test_packing_is_for_large_images_on_the_cpu(backend, size, derivatives, packs):
+    """`render` packs the covered pixels of images of at least `PACK_MIN_PIXELS` pixels on
+    the CPU only (a GPU shades every pixel at once), never for "gbuffer" derivatives (they
+    read stored neighbours)."""
+    R = importlib.import_module("jaxnm.render")
+    assert (size * size >= R.PACK_MIN_PIXELS) == (packs or backend != "cpu"
+                                                   or derivatives == "gbuffer")
+    opts = R.RenderOptions(width=size, height=size, derivatives=derivatives)
+    assert R._packs(opts, backend) == packs
 
 
-def test_packing_under_a_callers_jit_and_grad():
-    """Inside a caller's `jax.jit` the coverage count is traced: ``pack=True`` (or a slot
-    count) runs the packed program when the covered pixels fit and the all-pixel one when
-    they do not (`jax.lax.cond`), the default the whole image; under `jax.grad` with
-    respect to the map alone the count is concrete and it packs. Every way gives the eager
-    image, and the same gradient as the whole image's, with the scene closed over (mesh
-    concrete) or passed in (mesh traced)."""
+@pytest.mark.parametrize("eye", [(0.5, -4.5, 3.0), (0.0, -1.6, 1.2)])  # fits a quarter, not
+def test_render_under_a_callers_jit_and_grad(eye, strategy):
+    """Inside a caller's `jax.jit` (the scene closed over, or an argument) and under
+    `jax.grad`, `render` runs the same program as eagerly: the same image, and the same
+    gradient as the whole image's, whether the covered pixels fit in a quarter of the slots
+    or not."""
     import jax
 
     from jaxnm.camera import Camera, look_at, perspective
 
     sc = default_scene(width=48, height=32)
     sc = sc.replace(camera=Camera.from_matrices(
-        look_at((0.5, -4.5, 3.0), (0.3, 0.0, -0.1), (0.0, 0.0, 1.0)),
-        perspective(45.0, 1.5, 0.1, 50.0)))
+        look_at(eye, (0.3, 0.0, -0.1), (0.0, 0.0, 1.0)), perspective(45.0, 1.5, 0.1, 50.0)))
     texels = jnp.asarray(sc.normal_map)
-    eager = render(sc, pack=False)["color"]
-    covered = int(jnp.count_nonzero(eager.sum(-1) > 0))
-    assert 0 < covered <= 48 * 32 // 4  # pack=True's image / 4 slots hold them
-    jitted = jax.jit(lambda t: render(sc.replace(normal_map=t), pack=True)["color"])(texels)
-    # closed over, the scene is a compile-time constant XLA folds: float32 rounding,
-    # amplified by the specular power (1.1e-5 at one pixel on JAX 0.8.0)
-    np.testing.assert_allclose(jitted, eager, rtol=0, atol=1e-4)
 
-    def loss(s, t, pack):
-        return jnp.sum(render(s.replace(normal_map=t), pack=pack)["color"])
+    def loss(s, t):
+        return jnp.sum(render(s.replace(normal_map=t))["color"])
 
-    g_whole = jax.grad(loss, argnums=1)(sc, texels, False)
+    g_whole = strategy(False, 256, lambda: jax.grad(loss, argnums=1)(sc, texels))
     assert float(jnp.abs(g_whole).max()) > 0
     tol = dict(rtol=1e-4, atol=1e-5 * float(jnp.abs(g_whole).max()))
-    np.testing.assert_allclose(jax.grad(loss, argnums=1)(sc, texels, True), g_whole, **tol)
-    # the scene an argument of the caller's jit: packed (fits), all pixels (4 slots do not)
-    for pack in (True, 4):
-        step = jax.jit(jax.value_and_grad(loss, argnums=1), static_argnums=2)
-        value, g = step(sc, texels, pack)
+
+    def packed():
+        eager = render(sc)["color"]
+        covered = int(jnp.count_nonzero(eager.sum(-1) > 0))
+        jitted = jax.jit(lambda t: render(sc.replace(normal_map=t))["color"])(texels)
+        # closed over, the scene is a compile-time constant XLA folds: float32 rounding,
+        # amplified by the specular power
+        np.testing.assert_allclose(jitted, eager, rtol=0, atol=1e-4)
+        np.testing.assert_allclose(jax.grad(loss, argnums=1)(sc, texels), g_whole, **tol)
+        value, g = jax.jit(jax.value_and_grad(loss, argnums=1))(sc, texels)
         np.testing.assert_allclose(value, jnp.sum(eager), rtol=1e-5)
         np.testing.assert_allclose(g, g_whole, **tol)
-    with pytest.raises(ValueError, match="pack must be"):
-        render(sc, pack=48 * 32 + 1)
+        return covered
+
+    covered = strategy(True, 256, packed)
+    assert 0 < covered
+    assert (covered <= 48 * 32 // 4) == (eye[1] < -2)  # both of the program's branches run
 
 
 @pytest.mark.parametrize("derivatives", ["fine", "analytic"])
@@ -637,41 +635,6 @@ def test_covered_gbuffer_is_the_whole_images_at_the_covered_pixels(derivatives):
                         opts=RenderOptions.of(sc, derivatives="gbuffer"))
 
 
-def test_render_and_a_fits_prepare_share_one_visibility_program():
-    """`render` (a fit's targets) and `covered_gbuffer` (its `prepare`) run one compiled
-    visibility program per image size: the mesh's shift to the camera is an argument in both
-    (`render._NO_SHIFT` where there is none), so `covered_gbuffer`'s call compiles nothing
-    (a None there was a second program: 1.4 s of `jaxnm fit`)."""
-    import importlib
-
-    import jax
-
-    R = importlib.import_module("jaxnm.render")
-    compiles = []
-    counting = [False]
-
-    def listen(name, seconds, **kwargs):
-        if counting[0] and name == "/jax/core/compile/backend_compile_duration":
-            compiles.append(seconds)
-
-    jax.monitoring.register_event_duration_secs_listener(listen)  # (0.8.0: cannot unregister)
-    scene = default_scene(width=40, height=24)
-    R._visible.clear_cache()
-    img = render(scene, pack=True)["color"]
-    assert float(jnp.max(img)) > 0
-    counting[0] = True
-    try:
-        cull = R.back_faces_hidden(scene.mesh, scene.camera)  # as render and prepare decide
-        tid, count, _, _ = R._visible(scene.mesh, scene.camera, R._NO_SHIFT, width=40, height=24,
-                                      cull_back=cull)
-        assert compiles == []
-        R._visible(scene.mesh, scene.camera, None, width=40, height=24, cull_back=cull)
-        assert len(compiles) > 0  # the check can fail: a None is another program
-    finally:
-        counting[0] = False
-    assert int(count) > 0
-
-
 def test_closed_shape_knows_a_closed_outward_mesh():
     """`jaxnm.geometry.closed_shape`: the tori and the uv sphere (seams and poles welded) are
     closed with their front faces outside, and their boxes are the positions' bounds; a
@@ -692,28 +655,23 @@ def test_closed_shape_knows_a_closed_outward_mesh():
         assert closed_shape(torus.positions, jnp.asarray(f)) is None
     plane = procedural.plane()
     assert closed_shape(plane.positions, plane.faces) is None
-    # NumPy arrays can change in place: not examined (every frame would pay for it)
-    assert closed_shape(np.asarray(torus.positions), faces) is None
+    assert closed_shape(np.asarray(torus.positions), faces) is not None  # NumPy alike
 
 
-def test_back_faces_are_culled_only_where_none_can_be_seen(monkeypatch):
-    """`render` skips the back faces of a closed mesh wholly in front of the camera
-    (`back_faces_hidden`) and renders what it renders without culling: every output equal.
-    Not where the camera is inside the mesh's box, where the near plane cuts the mesh, where
-    the model mirrors it, or for an open mesh."""
-    import importlib
+def test_back_faces_are_culled_only_where_none_can_be_seen():
+    """A closed mesh wholly in front of the camera (`back_faces_hidden`, which the built-in
+    scene uses to set ``cull_back``) renders with its back faces culled what it renders
+    without: every output equal. Not hidden where the camera is inside the mesh's box,
+    where the near plane cuts the mesh, where the model mirrors it, or for an open mesh."""
+    from jaxnm.scene import back_faces_hidden as hidden
 
-    R = importlib.import_module("jaxnm.render")
     scene = default_scene(width=64, height=48)
-    assert R.back_faces_hidden(scene.mesh, scene.camera, scene.model)
+    assert scene.cull_back and hidden(scene.mesh, scene.camera, scene.model)
     outputs = ("color", "triangle_id", "front_facing", "perturbed_normal", "depth")
     culled = render(scene, outputs=outputs)
-    monkeypatch.setattr(R, "back_faces_hidden", lambda *a, **k: False)
-    plain = render(scene, outputs=outputs)
-    monkeypatch.undo()
+    plain = render(scene.replace(cull_back=False), outputs=outputs)
     for name in outputs:
         np.testing.assert_array_equal(np.asarray(culled[name]), np.asarray(plain[name]), name)
-    hidden = R.back_faces_hidden
     inside = jaxnm.Camera.look_at((0.0, 0.0, 0.2), (1.0, 0.0, 0.0), up=(0, 0, 1))
     assert not hidden(scene.mesh, inside)  # in the torus's hole: inside its box
     eye = np.asarray(scene.camera.eye, np.float64)
@@ -751,73 +709,35 @@ def test_to_clip_matches_float64_far_from_the_origin(offset):
         assert np.array_equal(np.asarray(jaxnm.to_clip(jnp.asarray(p), other), np.float64), got)
 
 
-def test_a_repeated_render_copies_nothing_to_the_device(plane_scene):
-    """The host-made camera-relative constants (view, eye, origin, shift, point lights) are
-    copied to the device once and reused: rendering the same scene again makes no implicit
-    host-to-device transfer (each was one per call: together 0.1-0.2 ms on an H100), and
-    a moved camera still renders its own view (the cache is keyed by the values)."""
-    import jax
-
-    lights = Lights(point=PointLight(position=jnp.array([[0.5, 0.5, 2.0]]),
-                                     color=jnp.ones((1, 3)), intensity=jnp.array([3.0])))
-    scene = plane_scene.replace(lights=lights)
-    for pack in (False, True):
-        first = render(scene, outputs=("color",), pack=pack)["color"]
-        with jax.transfer_guard_host_to_device("disallow"):
-            again = render(scene, outputs=("color",), pack=pack)["color"]
-        assert np.array_equal(np.asarray(first), np.asarray(again))
-    moved = scene.replace(camera=jaxnm.Camera.look_at((-0.3, 0.2, 2.4), (0.0, 0.0, 0.0),
-                                                       (0, 1, 0), fov_y_deg=30))
-    other = render(moved, outputs=("color",))["color"]
-    assert not np.array_equal(np.asarray(other), np.asarray(first))
-    assert np.array_equal(np.asarray(render(scene, outputs=("color",))["color"]),
-                          np.asarray(first))
-
-
-def test_a_scene_is_prepared_once_and_again_when_it_changes(plane_scene, monkeypatch):
-    """`render` remembers its host work for a scene (validation, the culling test, the
-    camera-relative copies) by the identities of its JAX arrays and the bytes of its small
-    NumPy ones: the same scene again is not validated again, nor one with a new normal map
-    of the same shape; an eye changed in place, other outputs or a NumPy mesh (which could
-    change in place) are prepared again, and each renders what a fresh preparation
-    renders (an eye moved behind the plane in place is refused)."""
-    R = importlib.import_module("jaxnm.render")
-    calls = []
-    real = R.validate_scene
-    monkeypatch.setattr(R, "validate_scene", lambda s: (calls.append(1), real(s))[1])
+def test_render_keeps_nothing_between_calls(plane_scene):
+    """`render` remembers nothing but its compiled programs: NumPy arrays changed in place
+    between two calls (an eye, a mesh) render what a fresh scene renders, and a moved point
+    light is seen."""
     eye = np.array([0.2, 0.1, 2.5])
     cam = dataclasses.replace(plane_scene.camera, eye=eye)
-    rng = np.random.default_rng(3)
-    maps = [jnp.asarray(rng.uniform(0.3, 0.7, (8, 8, 3)), jnp.float32) for _ in range(2)]
-    scene = dataclasses.replace(plane_scene, camera=cam, normal_map=maps[0])
+    m = procedural.plane(2.0, 8)
+    host = jaxnm.Mesh(*(np.array(a) for a in (m.positions, m.faces, m.uv, m.normals)))
+    lights = Lights(point=PointLight(position=np.array([[0.5, 0.5, 2.0]], np.float32),
+                                     color=jnp.ones((1, 3)), intensity=jnp.array([3.0])))
+    scene = dataclasses.replace(plane_scene, camera=cam, mesh=host, lights=lights)
 
-    def fresh(s, **kw):  # prepared from scratch
-        R._PREPARED.clear()
-        return np.asarray(render(s, **kw)["color"])
+    def fresh():
+        return np.asarray(render(jax_copy(scene))["color"])
 
-    R._PREPARED.clear()
     first = np.asarray(render(scene)["color"])
-    assert np.array_equal(np.asarray(render(scene)["color"]), first)
-    other_map = dataclasses.replace(scene, normal_map=maps[1])
-    got = np.asarray(render(other_map)["color"])
-    assert len(calls) == 1
-    assert not np.array_equal(got, first) and np.array_equal(got, fresh(other_map))
-    calls.clear()
-    render(scene)  # the entry `fresh` made for the other map serves: the map is not in it
-    assert calls == []
-    eye[0] = 0.6  # in place: the key holds the eye's bytes
-    moved = np.asarray(render(scene)["color"])
-    render(scene, outputs=("color", "uv"))
-    assert len(calls) == 2
-    assert not np.array_equal(moved, first) and np.array_equal(moved, fresh(scene))
-    eye[2] = -2.5
-    with pytest.raises(ValueError, match="near plane"):
-        render(scene)
-    eye[2] = 2.5
-    m = procedural.plane(2.0, 8)  # 81 vertices: more than a small array's 64 values
-    host = dataclasses.replace(scene, mesh=jaxnm.Mesh(*(np.asarray(a) for a in (
-        m.positions, m.faces, m.uv, m.normals))))
-    calls.clear()
-    render(host)
-    render(host)
-    assert len(calls) == 2
+    assert np.array_equal(first, fresh())
+    for change in (lambda: eye.__setitem__(0, 0.6),
+                   lambda: host.positions.__setitem__((slice(None), 2), 0.3),
+                   lambda: lights.point.position.__setitem__((0, 0), -0.5)):
+        change()
+        again = np.asarray(render(scene)["color"])
+        assert not np.array_equal(again, first) and np.array_equal(again, fresh())
+        first = again
+
+
+def jax_copy(scene):
+    """``scene`` with every NumPy array copied (nothing shared with the caller's arrays)."""
+    import jax
+
+    return jax.tree_util.tree_map(lambda x: np.array(x) if isinstance(x, np.ndarray) else x,
+                                  scene)

@@ -12,14 +12,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import load_script
 
 import jaxnm
 from jaxnm.camera import Camera, look_at, perspective
 from jaxnm.interpolate import Attribute, at_precision
 from jaxnm.procedural import default_scene
-
-H = load_script("hard_cases")
+from scripts.studies import hard_cases as H
 
 
 def _angle(a, b):

@@ -1,14 +1,12 @@
-"""scripts/speed_vs_error.py measures what it says: its errors against the float64 truth
+"""scripts/studies/speed_vs_error.py measures what it says: its errors against the float64 truth
 order the configurations the way the frame study and the precision tests establish, its
 image error is zero where the normal is exact, and its Pareto front is the set of
 non-dominated configurations."""
 
 import jax
 import pytest
-from helpers import load_script
 
-load_script("study_frames")
-V = load_script("speed_vs_error")
+from scripts.studies import speed_vs_error as V
 
 
 @pytest.fixture(scope="module")

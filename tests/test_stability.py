@@ -10,11 +10,11 @@ import dataclasses
 
 import numpy as np
 import pytest
-from helpers import load_script
 
 import jaxnm
 from jaxnm.camera import Camera, look_at, perspective
 from jaxnm.procedural import default_scene
+from scripts.studies import hard_cases as H
 
 
 def _angle(a, b):
@@ -92,7 +92,6 @@ def test_a_rotating_mirroring_model_far_out(at_origin):
     assert _angle(out["perturbed_normal"], ref["perturbed_normal"])[m].max() < 0.01
 
 
-H = load_script("hard_cases")
 HARD = {c.name: c for c in H.cases(48)}
 
 

@@ -1,4 +1,4 @@
-"""jaxnm.bake and scripts/study_baking.py: the study's high-poly normals are right, a bake
+"""jaxnm.bake and scripts/studies/study_baking.py: the study's high-poly normals are right, a bake
 decodes back to the target normals at texel centres in its own frame, and only there
 (projection bakes; the fitter's bakes run in the script, at sizes too large for the
 suite)."""
@@ -6,9 +6,8 @@ suite)."""
 import jax
 import numpy as np
 import pytest
-from helpers import load_script
 
-B = load_script("study_baking")
+from scripts.studies import study_baking as B
 
 
 def test_high_poly_normal_is_the_torus_normal_without_displacement(monkeypatch):

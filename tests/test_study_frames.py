@@ -1,4 +1,4 @@
-"""The frame study's truths (scripts/study_frames.py) are right, and its measurement runs.
+"""The frame study's truths (scripts/studies/study_frames.py) are right, and its measurement runs.
 
 The smooth surfaces' analytic frames are checked against the mesh itself: each triangle's
 own float64 uv-gradient frame (from its three vertices, nothing shared with the study's
@@ -8,9 +8,8 @@ error falls with the square of the edge length).
 
 import numpy as np
 import pytest
-from helpers import load_script
 
-S = load_script("study_frames")
+from scripts.studies import study_frames as S
 
 
 def _face_gradient_frames(surf):

@@ -6,10 +6,8 @@ turns a missing Blender into a failure)."""
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,20 +15,12 @@ import pytest
 
 from jaxnm import procedural
 from jaxnm.tangents import mikktspace_tangents
+from scripts.studies import blender_bake_cases
 
 HERE = Path(__file__).resolve().parent
 
 
-def _cases_module():
-    spec = importlib.util.spec_from_file_location(
-        "blender_bake_cases", HERE.parent / "scripts" / "blender_bake_cases.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["blender_bake_cases"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-BLENDER = _cases_module().blender_python()  # $JAXNM_BLENDER_PYTHON or .venv-blender
+BLENDER = blender_bake_cases.blender_python()  # $JAXNM_BLENDER_PYTHON or .venv-blender
 needs_blender = pytest.mark.skipif(
     BLENDER is None and os.environ.get("JAXNM_REQUIRE_BLENDER") != "1",
     reason="no Blender Python (set JAXNM_BLENDER_PYTHON or make .venv-blender with bpy)")

@@ -1,6 +1,8 @@
-"""Regenerate the example scene in scripts/scenes/torus/ (an OBJ, a normal-map PNG, scene.json).
+"""Regenerate the example scene in scripts/examples/scenes/torus/ (an OBJ, a normal-map PNG,
+scene.json).
 
-    python scripts/make_example_scene.py
+    python -m scripts.examples.make_example_scene
+    jaxnm render scripts/examples/scenes/torus/scene.json -o torus.png
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ HERE = Path(__file__).resolve().parent / "scenes" / "torus"
 def write_obj(path: Path, mesh) -> None:
     pos, uv, nrm = (np.asarray(a, np.float64) for a in (mesh.positions, mesh.uv, mesh.normals))
     faces = np.asarray(mesh.faces) + 1
-    lines = ["# torus with angle uvs, written by scripts/make_example_scene.py"]
+    lines = ["# torus with angle uvs, written by scripts/examples/make_example_scene.py"]
     lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in pos]
     lines += [f"vt {u:.6f} {v:.6f}" for u, v in uv]
     lines += [f"vn {x:.6f} {y:.6f} {z:.6f}" for x, y, z in nrm]

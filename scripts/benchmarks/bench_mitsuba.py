@@ -1,4 +1,7 @@
-"""The Mitsuba 3 side of the side-by-side benchmark (``shared/benchmarks/fit_vs_mitsuba.md``).
+"""The Mitsuba 3 side of the side-by-side benchmark (the problem is defined in
+`scripts.benchmarks.bench_problem`'s docstring).
+
+    python -m scripts.benchmarks.bench_mitsuba   # is Mitsuba usable here? a small render and fit
 
 Plain functions, NumPy in and out, on the `bench_problem.BenchProblem` that jaxnm's side
 uses too. Mitsuba is imported lazily, so this module imports without it:
@@ -69,9 +72,12 @@ import subprocess
 import sys
 import time
 import types
+from pathlib import Path
 
 import numpy as np
-from bench_problem import MOVED_OFFSET
+
+from scripts.benchmarks import timing
+from scripts.benchmarks.bench_problem import MOVED_OFFSET
 
 MITSUBA_VERSION = "3.9.1"
 DRJIT_VERSION = "1.5.0"
@@ -182,11 +188,11 @@ def available() -> tuple[bool, str]:
     elif path is None:
         res = (False, f"no libLLVM >= 15 found and DRJIT_LIBLLVM_PATH unset: {INSTALL_HINT}")
     else:
-        here = os.path.dirname(os.path.abspath(__file__))
-        code = f"import sys; sys.path.insert(0, {here!r}); import bench_mitsuba as b; b._probe()"
+        code = "from scripts.benchmarks import bench_mitsuba as b; b._probe()"
         try:
             r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                               timeout=300, env=dict(os.environ, DRJIT_LIBLLVM_PATH=path))
+                               timeout=300, cwd=Path(__file__).resolve().parents[2],
+                               env=dict(os.environ, DRJIT_LIBLLVM_PATH=path))
             ok, out = r.returncode == 0, (r.stdout + r.stderr).strip()
         except subprocess.TimeoutExpired:
             ok, out = False, "timed out"
@@ -367,16 +373,11 @@ def forward_calls(problem) -> dict:
 
 def forward_times(problem, *, repeats: int = 10) -> dict:
     """Median wall ms of `forward_calls`' two calls (``repeats`` each, one after the
-    other), and their first calls in s."""
+    other, `timing.time_call`), and their first calls in s."""
     calls = forward_calls(problem)
     out = {}
     for name in ("forward", "forward_backward"):
-        times = []
-        for _ in range(repeats):
-            t = time.perf_counter()
-            calls[name]()
-            times.append(time.perf_counter() - t)
-        out[f"{name}_ms"] = 1e3 * statistics.median(times)
+        out[f"{name}_ms"] = timing.time_call(calls[name], repeats=repeats, first=False).median_ms
         out[f"first_{'backward' if name != 'forward' else 'forward'}_s"] = calls["first_s"][name]
     return {**out, "triangles": int(len(problem.faces)),
             "size": f"{problem.width}x{problem.height}",
@@ -463,8 +464,7 @@ def _main() -> None:
     if not ok:
         print(json.dumps(out, indent=1))
         return
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    import bench_problem as bp
+    from scripts.benchmarks import bench_problem as bp
 
     p = bp.make_problem(render_size=128, map_size=64, major=64, minor=40)
     t = time.perf_counter()

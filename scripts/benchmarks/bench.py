@@ -1,14 +1,17 @@
 """jaxnm beside Mitsuba 3 on the CPU, in one run: forward frames, gradients, the fit benchmark.
 
-    python scripts/bench.py [--out bench_out] [--quick] [--no-mitsuba] [--budget 30]
-                            [--repeats 10] [--no-cli] [--parts forward,fit,cli,views]
-                            [--devices N]
+    python -m scripts.benchmarks.bench [--out bench_out] [--quick] [--no-mitsuba] [--budget 30]
+        [--repeats 10] [--runs 1] [--no-cli] [--parts forward,fit,cli,views,raster,compiles]
+        [--solver lm-texel] [--texel-sums auto] [--devices N]
 
-The problem is ``shared/benchmarks/fit_vs_mitsuba.md`` (`bench_problem.py`); Mitsuba's side
-is `bench_mitsuba.py` (``pip install 'jaxnm[bench]'`` and a system libLLVM; without them
-its columns say why). Every figure is a median of ``--repeats`` runs on this machine, and
-jaxnm's and Mitsuba's are measured in the same process run, so their ratios hold on a noisy
-machine. Compilation is reported separately *and* included:
+(from the repository root). The problem is `scripts.benchmarks.bench_problem` (its docstring
+defines it in full); Mitsuba's side is `scripts.benchmarks.bench_mitsuba` (``pip install
+'jaxnm[bench]'`` and a system libLLVM; without them its columns say why). jaxnm is measured
+as a user calls it: `jaxnm.render` and `jaxnm.fit` with JAX's defaults, no thread, allocator
+or XLA setting changed by the benchmark. Every figure is a median of ``--repeats`` runs on
+this machine (`scripts.benchmarks.timing`), and jaxnm's and Mitsuba's are measured in the
+same process run, so their ratios hold on a noisy machine. Compilation is reported
+separately *and* included:
 
 - ``forward``: one frame (512 x 512 and 1024 x 1024; the 4k sphere, the 20k torus and a
   200k torus; one directional light, the 256 x 256 normal map, Lambert): `jaxnm.render`
@@ -16,21 +19,30 @@ machine. Compilation is reported separately *and* included:
   frame after the mesh moved (its positions taking turns between two arrays), where
   Mitsuba rebuilds its acceleration structure.
 - ``fit``: each renderer fits the map to its own four renders of the true map, from the
-  flat map. jaxnm runs Levenberg-Marquardt in fresh processes: with an empty persistent
+  flat map. jaxnm runs ``--solver`` in fresh processes: with an empty persistent
   compilation cache (``cold``), again with the cache it filled (``warm``), and a second
   fit in the warm process (``steady``: nothing left to compile). The clock starts when the
   fit starts, the one-off G-buffer preparation included. Reported: time until the mean
   error over the well-observed texels falls below 1 degree, the final errors over the
-  seen and the well-observed texels, and the held-out-light PSNR.
+  seen and the well-observed texels, the held-out-light PSNR and XLA's compile time.
+  Run it once per ``--solver`` (``lm-texel``, ``lm``, ``gn``, ``lbfgs``) to compare the
+  solvers, and with ``--texel-sums scatter`` or ``tables`` to compare how a step sums into
+  the texels.
 - ``cli``: ``jaxnm fit`` (no arguments) as a user runs it: wall time and peak RSS, with an
   empty and with a warm compilation cache.
 - ``views``: peak RSS and LM step time of fits from 4, 16 and 64 cameras (two lights
   each, 128 x 128 renders), each in a fresh process: memory against the number of views.
+- ``raster``: the rasterizer alone on the forward frames' meshes, sizes and camera:
+  `jaxnm.rasterize`'s triangle ids (visibility), with back-face culling, and the G-buffer
+  a user composes from it (`jaxnm.interpolate` of position, uv and normal with fine
+  derivatives, over the whole image); first call and steady median each.
+- ``compiles``: in a fresh process with no persistent cache, every program the first
+  `jaxnm.render` of the fit problem's scene and the cold fit (3 steps) compile, in order,
+  with JAX's tracing, lowering and XLA compile times: where a first call's time goes.
 - ``--devices N``: the built-in 2-view problem's steady LM step with its views on one and
   on N devices (`jaxnm.fit.shard_views`; on a CPU-only machine, N forced host devices).
 
-Writes ``bench.json`` and ``bench.md`` (the README's tables) into ``--out`` and prints the
-JSON.
+Writes ``bench.json`` and ``bench.md`` (the tables) into ``--out`` and prints the JSON.
 """
 
 from __future__ import annotations
@@ -41,7 +53,6 @@ import functools
 import json
 import os
 import platform
-import resource
 import statistics
 import subprocess
 import sys
@@ -49,18 +60,21 @@ import tempfile
 import time
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
+import jax
+import jax.numpy as jnp
+import numpy as np
 
-import bench_problem as B  # noqa: E402
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
+import jaxnm
+from jaxnm import fit as F
+from jaxnm import procedural
+from jaxnm.textures import encode_normal_map
+from scripts.benchmarks import bench_problem as B
+from scripts.benchmarks import timing
 
-import jaxnm  # noqa: E402
-from jaxnm import fit as F  # noqa: E402
-from jaxnm import procedural  # noqa: E402
-from jaxnm.textures import encode_normal_map  # noqa: E402
+#: The repository root: the benchmark's own worker processes run ``python -m
+#: scripts.benchmarks.bench`` from there.
+ROOT = Path(__file__).resolve().parents[2]
+MODULE = "scripts.benchmarks.bench"
 
 GOALS = {
     "time_to_1deg_cold_s": 5.0, "time_to_1deg_warm_s": 2.0, "cli_wall_s": 30.0,
@@ -133,45 +147,6 @@ def jaxnm_calls(p: B.BenchProblem) -> dict:
             "first_forward_s": first_forward}
 
 
-def _interleaved_ms(calls: dict, repeats: int, block: int = 5, warm: int = 5,
-                    seed: int = 0, first_calls: bool = True) -> tuple[dict, dict, dict]:
-    """(first call s, median ms of the next ``repeats``, the process's minor page faults per
-    timed call: a call that faults in its buffers afresh each time shows here) of each
-    call. The calls take turns in blocks of ``block`` timed runs, each block after ``warm``
-    untimed ones: a slow phase of the machine falls on all of them alike, and each is
-    timed in its own steady state, as a user who renders frame after frame sees it. Run
-    right after another renderer's calls, a call is slower for a while: on the 2-core VM,
-    with the worker threads pinned, jaxnm's 4k frame at 512^2 took 5-12 ms for its first
-    frame after Mitsuba's gradient, 4-5 ms for the next four, then 3.5-3.9 ms (six
-    alternations: the first three frames' median 4.5-5.1 ms, the next seven's 3.4-3.7),
-    while Mitsuba's took ~4.5 ms for its first and then 3.6-3.9 ms (unpinned, jaxnm's
-    stayed at 5-8 ms for a dozen frames or more in some phases:
-    `jaxnm.runtime.pin_worker_threads`). The order of the turns is shuffled in every
-    cycle, so that no call always follows the same one (in a fixed order jaxnm's first
-    call, always after Mitsuba's gradient, read 4.8-6.8 ms for the 4k sphere at 512^2
-    where the same frame of a moved mesh, after jaxnm's own calls, read 4.2-5.2)."""
-    first, times, faults = {}, {k: [] for k in calls}, {k: 0 for k in calls}
-    for k, fn in (calls.items() if first_calls else ()):
-        t = time.perf_counter()
-        fn()
-        first[k] = time.perf_counter() - t
-    order = list(calls)
-    rng = np.random.default_rng(seed)
-    for _ in range(-(-repeats // block)):
-        for k in rng.permutation(order):
-            fn = calls[k]
-            for _ in range(warm):
-                fn()
-            for _ in range(block):
-                f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-                t = time.perf_counter()
-                fn()
-                times[k].append(time.perf_counter() - t)
-                faults[k] += resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0
-    return (first, {k: 1e3 * statistics.median(v) for k, v in times.items()},
-            {k: round(n / len(times[k])) for k, n in faults.items()})
-
-
 #: The timed calls of `bench_forward`: jaxnm's (`jaxnm_calls`) and Mitsuba's
 #: (`bench_mitsuba.forward_calls`).
 JAXNM_CALLS = ("forward", "forward_moved", "forward_backward", "forward_backward_packed")
@@ -181,7 +156,7 @@ MITSUBA_CALLS = ("forward", "forward_moved", "forward_backward")
 def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool,
                   runs: int = 1) -> list[dict]:
     """Per mesh and size: jaxnm's and Mitsuba's forward and forward+backward calls, taking
-    turns in blocks (`_interleaved_ms`: the ratios compare the same phases of a noisy
+    turns in blocks (`timing.side_by_side`: the ratios compare the same phases of a noisy
     machine), one cell after the other; ``runs`` times over, where each figure is the
     median of the runs' (and each ratio the median of the runs' ratios, each side by side
     in its run), and the runs' forward ratios are listed (``"forward_ratio_runs"``). A slow
@@ -202,7 +177,8 @@ def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool,
                 if mitsuba is not None:
                     mi = mitsuba.forward_calls(q)
                     calls.update({f"mitsuba {k}": mi[k] for k in MITSUBA_CALLS})
-                first, ms, faults = _interleaved_ms(calls, repeats, seed=r, first_calls=r == 0)
+                first, ms, faults = timing.side_by_side(calls, repeats, seed=r,
+                                                          first_calls=r == 0)
                 if r == 0:  # what the rows keep of the cell: its first calls
                     mi = None if mi is None else {
                         k: mi[k] for k in ("first_s", "kernel_cache_files_at_start")}
@@ -234,11 +210,11 @@ def _forward_rows(cells, timed, echo: bool = True) -> list[dict]:
         row = {"mesh": name, "jaxnm": j}
         if mi is not None:
             row["mitsuba"] = {
-                "forward_ms": med("mitsuba forward"),
-                "forward_moved_ms": med("mitsuba forward_moved"),
-                "forward_backward_ms": med("mitsuba forward_backward"),
-                "first_forward_s": mi["first_s"]["forward"],
-                "first_backward_s": mi["first_s"]["forward_backward"],
+                "forward_ms": round(med("mitsuba forward"), 2),
+                "forward_moved_ms": round(med("mitsuba forward_moved"), 2),
+                "forward_backward_ms": round(med("mitsuba forward_backward"), 2),
+                "first_forward_s": round(mi["first_s"]["forward"], 2),
+                "first_backward_s": round(mi["first_s"]["forward_backward"], 2),
                 "kernel_cache_files_at_start": mi["kernel_cache_files_at_start"],
                 "page_faults_per_call": {k: max(f[f"mitsuba {k}"] for _, f in t)
                                          for k in MITSUBA_CALLS}}
@@ -263,6 +239,53 @@ def _forward_rows(cells, timed, echo: bool = True) -> list[dict]:
 
 
 # --------------------------------------------------------------------------------------
+# the rasterizer alone
+# --------------------------------------------------------------------------------------
+
+
+def bench_raster(p: B.BenchProblem, sizes, repeats: int, quick: bool) -> list[dict]:
+    """Per mesh and size of the forward frames (the problem's camera): `jaxnm.rasterize`'s
+    triangle ids (visibility), the same with back-face culling, and the G-buffer a user
+    composes from them (`jaxnm.interpolate` of position, uv and normal with fine
+    derivatives, over the whole image); each under one jit, the mesh an argument, its first
+    call (compilation included) and the median of ``repeats`` steady calls."""
+    rows = []
+    for name, mesh in _meshes(quick).items():
+        for size in sizes:
+            q = _with_mesh(p, mesh, size)
+            m = B.jaxnm_scene(q, q.light_dirs[0]).mesh
+            clip = jax.block_until_ready(jaxnm.to_clip(m.positions, B.jaxnm_camera(q)))
+            attrs = {"p": m.positions, "uv": m.uv, "n": m.normals}
+
+            @functools.partial(jax.jit, static_argnames="cull_back")
+            def visibility(clip, faces, cull_back=False, size=size):
+                return jaxnm.rasterize(clip, faces, width=size, height=size,
+                                       cull_back=cull_back).triangle_id
+
+            @jax.jit
+            def gbuffer(clip, faces, attrs, size=size):
+                frags = jaxnm.rasterize(clip, faces, width=size, height=size)
+                return jaxnm.interpolate(attrs, frags, derivatives="fine")
+
+            t = {"visibility": timing.time_call(lambda: visibility(clip, m.faces),
+                                                repeats=repeats),
+                 "visibility_cull_back": timing.time_call(
+                     lambda: visibility(clip, m.faces, cull_back=True), repeats=repeats),
+                 "gbuffer": timing.time_call(lambda: gbuffer(clip, m.faces, attrs),
+                                             repeats=repeats)}
+            covered = jnp.mean(jaxnm.rasterize(clip, m.faces, width=size, height=size).mask)
+            row = {"mesh": name, "triangles": int(m.faces.shape[0]), "size": f"{size}x{size}",
+                   "covered_fraction": round(float(covered), 3)}
+            for k, tk in t.items():
+                row[f"{k}_ms"] = round(tk.median_ms, 2)
+                row[f"{k}_first_s"] = round(tk.first_s, 2)
+            row["visibility_mpix_per_s"] = round(size * size / t["visibility"].median_ms / 1e3, 1)
+            rows.append(row)
+            print(json.dumps(row), file=sys.stderr, flush=True)
+    return rows
+
+
+# --------------------------------------------------------------------------------------
 # the fit benchmark
 # --------------------------------------------------------------------------------------
 
@@ -282,21 +305,15 @@ def _error_summary(normals, p: B.BenchProblem, seen, well) -> dict:
 def _jaxnm_fit_once(p: B.BenchProblem, targets, well, budget: float, solver: str,
                     texel_sums: str = "auto") -> dict:
     """One LM fit; the clock includes `prepare` (the G-buffer) and every compilation."""
-    compiles = []
-
-    def on(name, secs, **kw):
-        if name == "/jax/core/compile/backend_compile_duration":
-            compiles.append(secs)
-
-    jax.monitoring.register_event_duration_secs_listener(on)
     problem = B.jaxnm_fit_problem(p, targets)
-    t0 = time.perf_counter()
-    prep = F.prepare(problem)
-    t_prep = time.perf_counter() - t0
-    opts = F.FitOptions(solver=solver, max_steps=40, lsmr_steps=10, texel_sums=texel_sums)
-    res = F.fit_normal_map(problem, opts,
-                           ground_truth=p.gt_normals, prepared=prep, progress=False,
-                           time_limit=budget, error_texels=well)
+    with timing.CompileLog() as log:
+        t0 = time.perf_counter()
+        prep = F.prepare(problem)
+        t_prep = time.perf_counter() - t0
+        opts = F.FitOptions(solver=solver, max_steps=40, lsmr_steps=10, texel_sums=texel_sums)
+        res = F.fit_normal_map(problem, opts,
+                               ground_truth=p.gt_normals, prepared=prep, progress=False,
+                               time_limit=budget, error_texels=well)
     below = [t_prep + h["seconds"] for h in res.history if h["mean_angular_error_deg"] < 1.0]
     steps = [b - a for a, b in zip([h["seconds"] for h in res.history][1:-1],
                                    [h["seconds"] for h in res.history][2:])]
@@ -304,7 +321,7 @@ def _jaxnm_fit_once(p: B.BenchProblem, targets, well, budget: float, solver: str
             "prepare_s": round(t_prep, 2),
             "first_loss_s": round(t_prep + res.history[0]["seconds"], 2),
             "s_per_step": round(statistics.median(steps), 3) if steps else None,
-            "steps": len(res.history) - 1, "backend_compile_s": round(sum(compiles), 2),
+            "steps": len(res.history) - 1, "backend_compile_s": round(log.compile_s, 2),
             "normals": res.normals}
 
 
@@ -355,15 +372,51 @@ def bench_devices(args) -> dict:
     machine the devices are forced host devices sharing the same cores)."""
     out = {}
     for n in sorted({1, args.devices}):
-        env = dict(os.environ, JAXNM_COMPILATION_CACHE="off")
+        env = _worker_env()
         if jax.devices()[0].platform == "cpu":
             env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "")
                                 + f" --xla_force_host_platform_device_count={n}").strip()
-        cmd = [sys.executable, str(Path(__file__).resolve()), "--devices-worker"]
-        cmd += ["--quick"] if args.quick else []
-        text = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True).stdout
-        out[str(n)] = json.loads(text.split("RESULT ", 1)[1])
+        out[str(n)] = _run_worker(["--devices-worker"] + (["--quick"] if args.quick else []),
+                                  env)
     return out
+
+
+def compiles_worker(args) -> None:
+    """In a fresh process (no persistent compilation cache): the programs that the first
+    `jaxnm.render` of the fit problem's scene (light 0) compiles, then those of the cold fit
+    as the ``fit`` part times it (its targets rendered, every compiled program dropped, then
+    `prepare` and 3 steps of ``--solver``); JSON rows on stdout (`timing.CompileLog`)."""
+    p = _problem(args.quick)
+    scene = B.jaxnm_scene(p, p.light_dirs[0])
+    with timing.CompileLog() as log:
+        t = time.perf_counter()
+        jax.block_until_ready(jaxnm.render(scene)["color"])
+        wall = time.perf_counter() - t
+    rows = [{"phase": "render", "wall_s": round(wall, 3), **log.summary()}]
+    problem = B.jaxnm_fit_problem(p)
+    jax.clear_caches()
+    opts = F.FitOptions(solver=args.solver, max_steps=3, lsmr_steps=10, ftol=0.0,
+                        texel_sums=args.texel_sums)
+    with timing.CompileLog() as log:
+        t = time.perf_counter()
+        prep = F.prepare(problem)
+        t_prep = time.perf_counter() - t
+        res = F.fit_normal_map(problem, opts, prepared=prep, progress=False)
+        wall = time.perf_counter() - t
+    rows.append({"phase": f"fit ({args.solver}, {len(res.history) - 1} steps)",
+                 "wall_s": round(wall, 3), "prepare_s": round(t_prep, 3), **log.summary()})
+    for r in rows:
+        r["backend"] = jax.default_backend()
+    print("RESULT " + json.dumps(rows))
+
+
+def bench_compiles(args) -> list[dict]:
+    """`compiles_worker`'s rows."""
+    rows = _run_worker(["--compiles-worker", "--solver", args.solver, "--texel-sums",
+                        args.texel_sums] + (["--quick"] if args.quick else []))
+    for r in rows:
+        print(json.dumps(r), file=sys.stderr, flush=True)
+    return rows
 
 
 def _ring_eyes(n: int, radius: float = 3.0) -> list[tuple[float, float, float]]:
@@ -469,10 +522,9 @@ def bench_views(args) -> list[dict]:
     runs = [run + (solver,) for solver in ("lm", "lm-texel") for run in runs]
     for n, size, chunk, solver in runs:
         chunk = str(F.CHUNK) if chunk == "default" else chunk
-        cmd = [sys.executable, str(Path(__file__).resolve()), "--views-worker", "--views",
-               str(n), "--view-size", str(size), "--chunk", chunk, "--solver", solver]
-        env = dict(os.environ, JAXNM_COMPILATION_CACHE="off")
-        child = _timed_child(cmd, env, keep_output=True)
+        cmd = _worker_cmd("--views-worker", "--views", str(n), "--view-size", str(size),
+                          "--chunk", chunk, "--solver", solver)
+        child = _timed_child(cmd, _worker_env(), keep_output=True)
         row = json.loads(child["output"].split("RESULT ", 1)[1])
         row.update(wall_s=child["wall_s"], peak_rss_mb=child["peak_rss_mb"])
         rows.append(row)
@@ -480,22 +532,34 @@ def bench_views(args) -> list[dict]:
     return rows
 
 
-def _run_worker(cache: str | None, args) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--fit-worker", "--budget",
-           str(args.budget), "--solver", args.solver, "--texel-sums", args.texel_sums] + (
-               ["--quick"] if args.quick else [])
-    env = dict(os.environ, JAXNM_COMPILATION_CACHE=cache or "off")
-    if cache:
-        cmd += ["--cache", cache]
-    out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True).stdout
+def _worker_cmd(*args: str) -> list[str]:
+    """The command of one of this benchmark's worker processes (run from `ROOT`)."""
+    return [sys.executable, "-m", MODULE, *args]
+
+
+def _worker_env() -> dict:
+    """A worker's environment: this process's, without ``JAX_COMPILATION_CACHE_DIR`` (a
+    worker measures its own compilation; the fit worker turns the cache on itself)."""
+    return {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+
+
+def _run_worker(args: list[str], env: dict | None = None) -> dict:
+    """Run a worker (`_worker_cmd`) and return the JSON it printed after ``RESULT``."""
+    out = subprocess.run(_worker_cmd(*args), env=_worker_env() if env is None else env,
+                         cwd=ROOT, capture_output=True, text=True, check=True).stdout
     return json.loads(out.split("RESULT ", 1)[1])
+
+
+def _fit_worker_args(cache: str, args) -> list[str]:
+    return ["--fit-worker", "--cache", cache, "--budget", str(args.budget), "--solver",
+            args.solver, "--texel-sums", args.texel_sums] + (["--quick"] if args.quick else [])
 
 
 def bench_fit(args, mitsuba) -> dict:
     result = {}
     with tempfile.TemporaryDirectory() as cache:
-        cold = _run_worker(cache, args)
-        warm = _run_worker(cache, args)
+        cold = _run_worker(_fit_worker_args(cache, args))
+        warm = _run_worker(_fit_worker_args(cache, args))
     result["jaxnm"] = {"cold": cold["first"], "warm": warm["first"], "steady": warm["steady"],
                        "solver": args.solver, "texel_sums": args.texel_sums}
     if mitsuba is not None:
@@ -541,7 +605,7 @@ def _timed_child(cmd, env, keep_output: bool = False) -> dict:
     with tempfile.TemporaryFile() as out, tempfile.NamedTemporaryFile("r") as stat:
         t = time.perf_counter()
         subprocess.run([sys.executable, "-c", _RUNNER, stat.name, *cmd], env=env, stdout=out,
-                       check=True)
+                       cwd=ROOT, check=True)
         wall = time.perf_counter() - t
         code, maxrss_kib = (int(v) for v in stat.read().split())
         out.seek(0)
@@ -558,7 +622,7 @@ def _timed_child(cmd, env, keep_output: bool = False) -> dict:
 def bench_cli(args) -> dict:
     jaxnm_bin = str(Path(sys.executable).parent / "jaxnm")
     with tempfile.TemporaryDirectory() as tmp:
-        env = dict(os.environ, JAXNM_COMPILATION_CACHE=str(Path(tmp) / "cache"))
+        env = dict(_worker_env(), JAXNM_COMPILATION_CACHE=str(Path(tmp) / "cache"))
         cmd = [jaxnm_bin, "fit", "-o", str(Path(tmp) / "out"), "--no-progress"]
         if args.quick:
             cmd.append("--quick")
@@ -577,11 +641,12 @@ def _r(x, nd: int = 2):
 def markdown(res: dict) -> str:
     lines = [f"Machine: {res['machine']}; JAX {res['jax']}; {res['mitsuba']}; {res['date']}.",
              ""]
-    lines += ["| frame | size | jaxnm forward ms | Mitsuba forward ms | ratio | jaxnm fwd+bwd ms "
-              "(pack=True) | Mitsuba fwd+bwd ms | ratio (pack=True) | jaxnm first call s "
-              "(compile): forward, fwd+bwd (pack=True) | mesh moved: jaxnm / Mitsuba forward "
-              "ms (ratio) |",
-              "|---|---|---|---|---|---|---|---|---|---|"]
+    if res.get("forward"):
+        lines += ["| frame | size | jaxnm forward ms | Mitsuba forward ms | ratio | jaxnm fwd+bwd "
+                  "ms (pack=True) | Mitsuba fwd+bwd ms | ratio (pack=True) | jaxnm first call s "
+                  "(compile): forward, fwd+bwd (pack=True) | mesh moved: jaxnm / Mitsuba forward "
+                  "ms (ratio) |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
     for r in res.get("forward", []):
         j, m = r["jaxnm"], r.get("mitsuba", {})
         lines.append(f"| {r['mesh']} ({j['triangles']} tris) | {j['size']} | {j['forward_ms']} | "
@@ -600,7 +665,8 @@ def markdown(res: dict) -> str:
                   "held-out PSNR (dB) |", "|---|---|---|---|---|---|---|---|"]
         for k in ("cold", "warm", "steady"):
             j = f["jaxnm"][k]
-            lines.append(f"| jaxnm LM, {k} | {_r(j['time_to_1deg_s'])} | {j['first_loss_s']} | "
+            lines.append(f"| jaxnm {f['jaxnm'].get('solver', 'LM')}, {k} | "
+                         f"{_r(j['time_to_1deg_s'])} | {j['first_loss_s']} | "
                          f"{j['s_per_step']} | {j['backend_compile_s']} | {j['steps']} | "
                          f"{j['seen_mean_deg']} / {j['well_mean_deg']} | "
                          f"{j['held_out_psnr_db']} |")
@@ -629,6 +695,29 @@ def markdown(res: dict) -> str:
                          f"{r['fit_s']} | {r['peak_rss_mb']} | "
                          f"{r.get('prepare_working_mb', '-')} | {r.get('fit_working_mb', '-')} / "
                          f"{r.get('steps_working_mb', '-')} |")
+    ra = res.get("raster")
+    if ra:
+        lines += ["", "| rasterizer | size | covered | visibility ms | with back-face culling ms | "
+                  "G-buffer ms (p, uv, N + fine derivatives) | visibility Mpix/s | "
+                  "first call s (compile): visibility, G-buffer |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for r in ra:
+            lines.append(f"| {r['mesh']} ({r['triangles']} tris) | {r['size']} | "
+                         f"{r['covered_fraction']} | {r['visibility_ms']} | "
+                         f"{r['visibility_cull_back_ms']} | {r['gbuffer_ms']} | "
+                         f"{r['visibility_mpix_per_s']} | {r['visibility_first_s']}, "
+                         f"{r['gbuffer_first_s']} |")
+    co = res.get("compiles")
+    if co:
+        lines += ["", "| first call | program | tracing s | lowering s | XLA compile s |",
+                  "|---|---|---|---|---|"]
+        for r in co:
+            lines.append(f"| {r['phase']}: {r['wall_s']} s in all, {r['programs_compiled']} "
+                         f"programs | (all) | {r['total_trace_s']} | {r['total_lower_s']} | "
+                         f"{r['total_compile_s']} |")
+            for g in r["programs"]:
+                lines.append(f"| | {g['program']} | {g['trace_s']} | {g['lower_s']} | "
+                             f"{g['compile_s']} |")
     d = res.get("devices")
     if d:
         lines += ["", "| devices | platform | views per device | LM s / step |",
@@ -647,7 +736,8 @@ def main(argv=None) -> None:
     ap.add_argument("--no-mitsuba", action="store_true")
     ap.add_argument("--no-cli", action="store_true")
     ap.add_argument("--parts", default="forward,fit,cli",
-                    help="comma-separated parts to run (default: %(default)s)")
+                    help="comma-separated parts to run, of forward, fit, cli, views, raster, "
+                         "compiles (default: %(default)s)")
     ap.add_argument("--budget", type=float, default=30.0, help="seconds per fit")
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--runs", type=int, default=1,
@@ -657,6 +747,7 @@ def main(argv=None) -> None:
                     help="also time LM steps with the views over this many devices")
     ap.add_argument("--fit-worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--devices-worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--compiles-worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--cache", help=argparse.SUPPRESS)
     ap.add_argument("--views-worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--views", type=int, default=4, help=argparse.SUPPRESS)
@@ -674,9 +765,11 @@ def main(argv=None) -> None:
         return views_worker(args)
     if args.devices_worker:
         return devices_worker(args)
+    if args.compiles_worker:
+        return compiles_worker(args)
     mitsuba, why = None, "Mitsuba not run (--no-mitsuba)"
     if not args.no_mitsuba:
-        import bench_mitsuba
+        from scripts.benchmarks import bench_mitsuba
 
         ok, why = bench_mitsuba.available()
         mitsuba = bench_mitsuba if ok else None
@@ -697,6 +790,10 @@ def main(argv=None) -> None:
         res["cli"] = bench_cli(args)
     if "views" in parts:
         res["views"] = bench_views(args)
+    if "raster" in parts:
+        res["raster"] = bench_raster(p, sizes, args.repeats, args.quick)
+    if "compiles" in parts:
+        res["compiles"] = bench_compiles(args)
     if args.devices > 1:
         res["devices"] = bench_devices(args)
     out = Path(args.out)

@@ -1,6 +1,6 @@
 """Write an example fit folder for `jaxnm fit FIT.json`: the built-in problem as files.
 
-    python scripts/make_example_fit.py [OUTDIR] [--render 256] [--map 128] [--noise 0]
+    python -m scripts.examples.make_example_fit [OUTDIR] [--render 256] [--map 128] [--noise 0]
     jaxnm fit OUTDIR/fit.json -o OUTDIR/out
 
 OUTDIR (default ``example_fit``) receives ``scene.json`` (the built-in torus and

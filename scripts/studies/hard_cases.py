@@ -1,6 +1,6 @@
 """Hard cases: worst-pixel error against an exact reference, and finite gradients.
 
-    python scripts/hard_cases.py [--out hard_cases_out] [--size 64]
+    python -m scripts.studies.hard_cases [--out hard_cases_out] [--size 64]
 
 Every case renders a plane (or a closed mesh) whose uv mapping is affine, with a constant,
 clearly tilted normal map value ``m``. On a plane the per-pixel cotangent frame is exact

@@ -1,19 +1,66 @@
-"""The side-by-side benchmark problem of ``shared/benchmarks/fit_vs_mitsuba.md``, as arrays.
+"""The benchmark problem that jaxnm and Mitsuba 3 both solve, as arrays: fitting a normal map
+by differentiable rendering on the CPU (`scripts.benchmarks.bench` runs it).
 
-Both renderers (jaxnm here, Mitsuba 3 in ``bench_mitsuba.py``) build their scenes from the
-same `BenchProblem`: a 20,480-triangle torus (a 129 x 81 vertex grid over the major and
-minor angles, seam vertices duplicated, u = major angle / 2 pi, v = minor angle / 2 pi), a
-512 x 512 pinhole camera, four directional lights around the view axis (elevation 45 deg,
-azimuths 0, 90, 180, 270 deg) and a held-out light, Lambert with albedo 0.8 and radiance
-``0.8 max(0, n' . l)`` (irradiance pi), a bilinear repeat-wrapped 256 x 256 tangent-space
-map (+x along +u, +y along +v, row 0 at v = 1): the ground truth is a 512 x 512 procedural
-map (round bumps on an 8 x 8 grid of uv cells and a shallow diagonal groove) box-filtered
-2 x 2 in its encoded values. The fit starts from the flat map (0.5, 0.5, 1).
+This docstring is the problem's definition; both renderers build their scenes from the same
+`BenchProblem` (`make_problem`; jaxnm's side here, Mitsuba's in
+`scripts.benchmarks.bench_mitsuba`), and both run in one process run, so that their ratios
+hold on a noisy machine.
 
-The error metric (same for both renderers) is the angle between the fitted and the true
-unit normals over the *seen* texels (the gradient of ``sum(render_k)`` w.r.t. the texel is
-non-zero at the true map for at least one light) and the *well-observed* ones (seen by at
-least two lights, with the bilinear weights of the pixel hits summing to at least 1).
+**Mesh.** A torus of major radius 1 and minor radius 0.4 in the xy-plane: a (128 + 1) x
+(80 + 1) vertex grid over (major angle, minor angle), seam vertices duplicated, two
+triangles per cell (20,480 triangles); per-vertex normals; u = major angle / 2 pi,
+v = minor angle / 2 pi.
+
+**Camera.** A pinhole at eye (0, -4.614418608, 3.231050694) looking at the origin, up +z,
+vertical field of view 45 deg, 512 x 512 pixels.
+
+**Map.** A 256 x 256 tangent-space normal map, +x along +u, +y along +v, image row 0 at
+v = 1; sampled bilinearly with repeat wrapping. The ground truth is a 512 x 512 procedural
+map box-filtered 2 x 2 in its encoded values (the mean of the four texels' ``0.5 n + 0.5``).
+Its heights (`procedural_height`, at texel centres) are round bumps on an 8 x 8 grid of uv
+cells, ``(1 - r^2)^2`` where ``r^2 = |(8u, 8v) mod 1 - 0.5|^2 / 0.35^2 < 1``, plus a
+shallow diagonal groove every quarter of the uv square, ``-0.3 exp(-(d / 0.02)^2)`` with
+``d = (u - v) mod 0.25 - 0.125``; `jaxnm.maps.height_to_normal_map` turns them into
+normals with scale 6 (any similar procedural map will do). The fit starts from the flat
+map (0.5, 0.5, 1) everywhere.
+
+**Lights.** Four renders, one directional light each, irradiance pi: radiance
+``0.8 max(0, n' . l)`` with ``n'`` the perturbed normal (Lambert, albedo 0.8). The
+direction towards light k is ``d = sin(el) (-f) + cos(el) (cos(az) r + sin(az) u)``, with
+``f`` the camera's forward axis, ``r = normalize(f x up)``, ``u = r x f``, elevation
+``el = 45 deg`` and azimuths ``az = 0, 90, 180, 270 deg``. A fifth, held-out light,
+towards ``normalize(0.4, -0.6, 0.7)``, is used only to judge the fitted map.
+
+**Mitsuba's side.** Variant ``llvm_ad_rgb``; the ``direct`` integrator with 1 emitter
+sample and 0 BSDF samples; 1 sample per pixel at the pixel centre (``stratified`` sampler,
+``sample_count`` 1, no jitter); a ``normalmap`` BSDF (raw bitmap, bilinear) over
+``diffuse``. Loss: the sum over the four renders of the mean squared error to the
+targets; Adam with learning rate 0.01; after each step the texels are clipped to [0, 1]
+and renormalised (``c <- 0.5 normalize(2c - 1) + 0.5``). A trap in Mitsuba 3.9 /
+Dr.Jit 1.5: with ``direct``, one ``dr.backward`` on a loss summed over several
+``mi.render`` calls delivers only the last render's gradient; take one backward per
+render on a fresh leaf copy of the map and sum the gradients (or use the ``prb``
+integrator, correct and slower). Mitsuba's LLVM backend needs the system's LLVM shared
+library (Debian: ``libllvm19``; ``DRJIT_LIBLLVM_PATH``).
+
+**jaxnm's side.** The same scene (`jaxnm_scene`, Lambert shading, the bilinear repeat-wrapped
+map) fitted with `jaxnm.fit.fit_normal_map` (`jaxnm_fit_problem`).
+
+**Metric.** The angle between the fitted and the true unit normals (`angle_deg`), averaged
+over two sets of texels (`texel_masks`):
+
+- *seen*: the gradient of ``sum(render_k)`` with respect to the texel is non-zero, at the
+  true map, for at least one light k;
+- *well-observed*: seen by at least two lights, with the bilinear weights of the pixel
+  hits summing to at least 1;
+
+and the held-out light's PSNR (`psnr`: peak 1, the full linear image) of the render with
+the fitted map against the render with the true map.
+
+**Clock.** Wall time from the start of the fit, each renderer fitting its own renders of
+the true map (target rendering excluded); compilation is reported separately *and*
+included. The headline figure is the time until the mean error over the well-observed
+texels falls below 1 degree.
 """
 
 from __future__ import annotations

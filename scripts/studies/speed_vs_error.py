@@ -1,12 +1,16 @@
 """Speed against error: every frame method, derivative mode, shader precision, resolution and
 texture filter, timed and measured in one run.
 
+    python -m scripts.studies.speed_vs_error [--out speed_vs_error_out] [--reps 5] [--quick]
+                                             [--full]
+
 The scene is the built-in one (its camera, lights, material and 256x256 rivet map) with an
 analytic torus (R = 1, r = 0.4, 64 x 128 segments, 16k triangles), so every pixel has a
 float64 truth. Per configuration:
 
 - ``compile_s``: the first `jaxnm.render` call (tracing and XLA compilation) minus one
-  steady call; ``forward_ms``: the median of steady calls (image and AOVs);
+  steady call; ``forward_ms``: the median of steady calls (image and AOVs), both by
+  `scripts.benchmarks.timing.time_call`;
 - ``grad_compile_s``, ``grad_ms``: the same for forward + backward of an image loss with
   respect to the normal-map texels (what a fit step runs, without the fit's reductions);
 - ``normal_mean`` / ``normal_p95`` (degrees): the perturbed normal against the float64
@@ -32,7 +36,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -46,9 +49,8 @@ from jaxnm.interpolate import DERIVATIVE_MODES
 from jaxnm.procedural import default_scene
 from jaxnm.shading import shade
 from jaxnm.textures import NormalMapOptions, decode_normal_map, sample
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from study_frames import GRADIENT_METHODS, Torus, angle, truth_frames  # noqa: E402
+from scripts.benchmarks import timing
+from scripts.studies.study_frames import GRADIENT_METHODS, Torus, angle, truth_frames
 
 METHODS = [f for f in FRAMES if f != "none"]
 BASE = dict(frame="cotangent", derivatives="fine", precision="float32", size=256,
@@ -79,15 +81,6 @@ def configurations(quick: bool = False, full: bool = False) -> list[dict]:
     return out
 
 
-def _median_time(fn, reps: int) -> float:
-    ts = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        jax.block_until_ready(fn())
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts))
-
-
 def run_one(cfg: dict, surf: Torus, reps: int, *, grad: bool = True) -> dict:
     """Time and measure one configuration (``float64`` runs with 64-bit JAX enabled);
     ``grad=False`` leaves out the forward + backward timing (``grad_compile_s`` and
@@ -113,10 +106,8 @@ def _run_one(cfg: dict, surf: Torus, reps: int, with_grad: bool) -> dict:
     def forward():
         return jaxnm.render(scene, outputs=outputs)
 
-    t = time.perf_counter()
-    out = jax.block_until_ready(forward())
-    first = time.perf_counter() - t
-    fwd = _median_time(forward, reps)
+    fwd = timing.time_call(forward, repeats=reps)
+    out = forward()  # the outputs measured below
     weights = jnp.linspace(0.5, 1.5, 3)
 
     def loss(texels):
@@ -124,13 +115,10 @@ def _run_one(cfg: dict, surf: Torus, reps: int, with_grad: bool) -> dict:
         return jnp.sum(color * weights[None, None])
 
     texels = jnp.asarray(scene.normal_map)
-    gfirst = gms = None
+    g = None
     if with_grad:
         grad = jax.jit(jax.grad(loss))
-        t = time.perf_counter()
-        jax.block_until_ready(grad(texels))
-        gfirst = time.perf_counter() - t
-        gms = _median_time(lambda: grad(texels), max(2, reps // 2))
+        g = timing.time_call(lambda: grad(texels), repeats=max(2, reps // 2))
 
     m = (np.asarray(out["mask"])[..., 0] > 0) & (np.asarray(out["front_facing"])[..., 0] > 0)
     p = np.asarray(out["position"], np.float64)[m]
@@ -150,9 +138,10 @@ def _run_one(cfg: dict, surf: Torus, reps: int, with_grad: bool) -> dict:
                    scene.lights, scene.material,
                    albedo=jnp.broadcast_to(jnp.asarray(scene.albedo, jnp.float32), p.shape))
     diff = np.asarray(out["color"], np.float64)[m] - np.asarray(c_true, np.float64)
-    return {**cfg, "pixels": int(m.sum()), "compile_s": first - fwd, "forward_ms": 1e3 * fwd,
-            "grad_compile_s": None if gms is None else gfirst - gms,
-            "grad_ms": None if gms is None else 1e3 * gms,
+    return {**cfg, "pixels": int(m.sum()), "compile_s": fwd.compile_s,
+            "forward_ms": fwd.median_ms,
+            "grad_compile_s": None if g is None else g.compile_s,
+            "grad_ms": None if g is None else g.median_ms,
             "normal_mean": float(err.mean()), "normal_p95": float(np.percentile(err, 95)),
             "normal_max": float(err.max()), "image_rmse": float(np.sqrt(np.mean(diff ** 2))),
             "finite": bool(np.isfinite(err).all())}

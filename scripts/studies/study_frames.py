@@ -1,6 +1,6 @@
 """The frame study: how far each tangent frame is from the truth, and what it depends on.
 
-    python scripts/study_frames.py --out frames_out [--size 96] [--quick]
+    python -m scripts.studies.study_frames --out frames_out [--size 96] [--quick]
 
 For every frame method and derivative mode, the per-pixel angle between the perturbed
 normal (a fixed, clearly tilted map value) and the float64 truth, and the angles of T and

@@ -1,6 +1,6 @@
 """Maps baked by Blender, decoded by jaxnm: which frame a real baker's map needs, in degrees.
 
-    python scripts/blender_bake_cases.py [--out DIR] [--size 128]
+    python -m scripts.studies.blender_bake_cases [--out DIR] [--size 128]
 
 Blender (``bpy``, Cycles, "selected to active", tangent space) bakes a normal map from an
 analytically displaced high-poly surface onto a low-poly one (`tests/blender_ref.py`, run in
@@ -35,7 +35,7 @@ from jaxnm.frames import FRAMES
 from jaxnm.scene import Scene
 from jaxnm.textures import NormalMapOptions
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]  # the repository
 AMPLITUDE = 0.04
 MAP_SIZE = 512
 

@@ -1,6 +1,9 @@
 """Baking study: a map must be decoded in the frame it was baked in. By how much is it off
 otherwise?
 
+    python -m scripts.studies.study_baking [--out baking_out] [--segments 12] [--map 128]
+                                           [--size 128] [--fit-views 3] [--no-fit]
+
 A high-poly surface (a torus displaced along its normal by a smooth bump pattern, whose
 normal is known analytically in float64) is baked onto a low-poly torus (smooth normals)
 into a tangent-space map, once per frame convention, two ways:

@@ -1,0 +1,3 @@
+"""Examples: ``python -m scripts.examples.make_example_scene`` (the torus scene in
+``scripts/examples/scenes/torus/``) and ``python -m scripts.examples.make_example_fit OUTDIR``
+(the built-in fit problem as files for ``jaxnm fit``)."""
