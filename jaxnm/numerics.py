@@ -117,8 +117,7 @@ def cumsum(x: ArrayLike, block: int = 8) -> Array:
     lowers to a tree of reduce-windows and a gather-like combine: 0.9-1.0 ms for 2^18
     int32 values on a 2-core VM. Here: running sums within blocks of ``block`` by
     ``log2(block)`` shifted adds, the blocks' totals summed the same way, one level
-    down (until a level fits in one block), then added back: 0.2-0.3 ms
-    (``scripts/bench_raster.py --scans``).
+    down (until a level fits in one block), then added back: 0.2-0.3 ms.
     """
     x = jnp.asarray(x)
     if x.ndim != 1 or not jnp.issubdtype(x.dtype, jnp.integer):
@@ -142,12 +141,12 @@ def flat_nonzero(mask: ArrayLike, size: int, fill_value: int) -> Array:
     first ``size`` of them, then ``fill_value``: ``jnp.nonzero(mask, size=size,
     fill_value=fill_value)[0]``.
 
-    Two ways, by the work each costs on XLA's CPU (a 2-core VM, ``scripts/bench_raster.py
-    --scans``). A mask of 2^16 entries or more (an image's pixels, a large mesh's
-    triangles) is packed into 32-bit words, and each *output* slot finds its entry: which
-    word by a running count of the words' set bits, which bit from the word's bytes and a
-    table; the mask is read once, and the running sum is over a 32nd of it (2^20 pixels
-    into 2^18 slots: 3.2 -> 0.7 ms; 200k triangles into as many slots: 0.60 -> 0.47 ms).
+    Two ways, by the work each costs on XLA's CPU (a 2-core VM). A mask of 2^16 entries or
+    more (an image's pixels, a large mesh's triangles) is packed into 32-bit words, and each
+    *output* slot finds its entry: which word by a running count of the words' set bits,
+    which bit from the word's bytes and a table; the mask is read once, and the running sum
+    is over a 32nd of it (2^20 pixels into 2^18 slots: 3.2 -> 0.7 ms; 200k triangles into
+    as many slots: 0.60 -> 0.47 ms).
     A smaller one takes one running sum (`cumsum`) and one scatter (20k entries: 0.04
     ms, against 0.10 by words)."""
     mask = jnp.asarray(mask)
