@@ -160,7 +160,7 @@ def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool,
     machine), one cell after the other; ``runs`` times over, where each figure is the
     median of the runs' (and each ratio the median of the runs' ratios, each side by side
     in its run), and the runs' forward ratios are listed (``"forward_ratio_runs"``). A slow
-    stretch of the machine (seconds to half a minute on the 2-core VM) that catches one
+    stretch of a shared machine (seconds to half a minute on a small one) that catches one
     cell in one run then decides none of its figures.
 
     Each run sets every cell up again (the first run's first calls are the compile times)
@@ -639,13 +639,12 @@ def _r(x, nd: int = 2):
 
 
 def markdown(res: dict) -> str:
-    lines = [f"Machine: {res['machine']}; JAX {res['jax']}; {res['mitsuba']}; {res['date']}.",
-             ""]
+    lines = [f"Machine: {res['machine']}; JAX {res['jax']}; {res['mitsuba']}; {res['date']}."]
     if res.get("forward"):
-        lines += ["| frame | size | jaxnm forward ms | Mitsuba forward ms | ratio | jaxnm fwd+bwd "
-                  "ms (pack=True) | Mitsuba fwd+bwd ms | ratio (pack=True) | jaxnm first call s "
-                  "(compile): forward, fwd+bwd (pack=True) | mesh moved: jaxnm / Mitsuba forward "
-                  "ms (ratio) |",
+        lines += ["", "| frame | size | jaxnm forward ms | Mitsuba forward ms | ratio | jaxnm "
+                  "fwd+bwd ms (pack=True) | Mitsuba fwd+bwd ms | ratio (pack=True) | jaxnm first "
+                  "call s (compile): forward, fwd+bwd (pack=True) | mesh moved: jaxnm / Mitsuba "
+                  "forward ms (ratio) |",
                   "|---|---|---|---|---|---|---|---|---|---|"]
     for r in res.get("forward", []):
         j, m = r["jaxnm"], r.get("mitsuba", {})
