@@ -200,7 +200,6 @@ def _fit(args) -> int:
     from .config import load_fit
     from .fit import fit_normal_map, fit_outputs, prepare, prepare_held_out
     from .procedural import default_fit_job
-    from .render import release_frame_programs
 
     say = (lambda msg: None) if args.no_progress else (  # noqa: E731
         lambda msg: print(msg, file=sys.stderr, flush=True))
@@ -217,7 +216,6 @@ def _fit(args) -> int:
     else:
         say("rendering the built-in problem's targets ...")
         job = default_fit_job(quick=args.quick)
-        release_frame_programs()  # done with (the visibility program serves `prepare` too)
     if overrides:
         try:
             job = dataclasses.replace(job, options=dataclasses.replace(job.options, **overrides))

@@ -25,7 +25,7 @@ A **scene file**::
                   "falloff": "inverse_square"}],
       "material": {"model": "blinn_phong", "diffuse": [1,1,1], "specular": [0.4,0.4,0.4],
                    "shininess": 48, "ambient": [0.03,0.03,0.03]},
-      "frame": "cotangent", "derivatives": "fine", "double_sided": true, "cull_back": false,
+      "frame": "cotangent", "derivatives": "fine", "double_sided": true, "cull_back": "auto",
       "precision": "float32", // the shader's arithmetic: "float16" models GLSL mediump
       "ddy": "up",            // "down": emulate HLSL's ddy (y down) in the screen-space frames
       "tangents": "auto"      // frame "vertex": the file's glTF TANGENT, else MikkTSpace;
@@ -75,7 +75,13 @@ from .camera import Camera, look_at, perspective
 from .fit import FitJob, FitOptions, FitTarget, problem_from_scene
 from .maps import height_to_derivative_map
 from .procedural import builtin_mesh, default_normal_map_texels
-from .scene import Scene, check_scene_options, default_material, validate_scene
+from .scene import (
+    Scene,
+    back_faces_hidden,
+    check_scene_options,
+    default_material,
+    validate_scene,
+)
 from .shading import DirectionalLight, Lights, Material, PointLight, stack_lights
 from .textures import NormalMapOptions, decode_normal_map, srgb_to_linear
 
@@ -345,8 +351,10 @@ def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scen
                    derivatives=_field(data, "derivatives", str, "fine", where),
                    precision=_field(data, "precision", str, "float32", where),
                    double_sided=_field(data, "double_sided", bool, True, where),
-                   cull_back=_field(data, "cull_back", bool, False, where),
                    ddy=_field(data, "ddy", str, "up", where))
+    cull = data.get("cull_back", "auto")  # auto: where no back face can be seen
+    if cull != "auto" and not isinstance(cull, bool):
+        raise ValueError(f"{where}'cull_back' must be true, false or \"auto\", got {cull!r}")
     camera = parse_camera(data.get("camera"), aspect=width / height, where=where)
     lights = parse_lights(data["lights"], where=where) if "lights" in data else None
     material, shading = parse_material(data.get("material", {}), where=where)
@@ -389,11 +397,13 @@ def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scen
     if data.get("height_map") is not None:
         nm, nm_opts = load_height_map(data["height_map"], base_dir=base, where=where)
     albedo = _albedo(data.get("albedo", [0.8, 0.8, 0.8]), base, where)
+    if cull == "auto":
+        cull = back_faces_hidden(mesh, camera, model)
     # the model stays a float64 matrix: render composes it with the camera in float64
     return validate_scene(Scene(
         mesh=mesh, camera=camera, width=width, height=height, normal_map=nm,
         normal_map_options=nm_opts, albedo=albedo, lights=lights, material=material,
-        model=model, shading=shading, source=source, **options))
+        model=model, shading=shading, source=source, cull_back=cull, **options))
 
 
 # --------------------------------------------------------------------------------------

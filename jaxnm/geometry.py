@@ -10,7 +10,6 @@ are separate vertices that share a position.
 from __future__ import annotations
 
 import dataclasses
-import weakref
 
 import jax
 import jax.numpy as jnp
@@ -142,12 +141,14 @@ def vertex_normals(positions: Array, faces: Array, *, weighting: str = "angle") 
     return safe_normalize(acc)
 
 
-def validate_arrays(positions, faces, uv=None, normals=None, *, source: str = "mesh") -> None:
+def validate_arrays(positions, faces, uv=None, normals=None, *, source: str = "mesh",
+                    values: bool = True) -> None:
     """Raise ``ValueError`` naming ``source`` if the mesh arrays are unusable.
 
-    Checks shapes and dtypes (always), and, for concrete (not traced) arrays,
-    non-empty faces, finite values and face indices in range. Degenerate
-    (zero-area) triangles are allowed: they cover no pixel.
+    Checks shapes and dtypes (always), and, with ``values``, for concrete (not traced)
+    arrays, finite values and face indices in range (a pass over the arrays on the host:
+    12 ms for 200k triangles). Degenerate (zero-area) triangles are allowed: they cover no
+    pixel.
     """
     shape = jnp.shape(positions)
     fshape = jnp.shape(faces)
@@ -166,10 +167,8 @@ def validate_arrays(positions, faces, uv=None, normals=None, *, source: str = "m
         if arr is not None and jnp.shape(arr) != (shape[0], c):
             raise ValueError(f"{source}: {name} must have shape ({shape[0]}, {c}), "
                              f"got {jnp.shape(arr)}")
-    arrays = (positions, faces, uv, normals)
-    if _recall(_CHECKED, arrays) is _MISS:
-        _check_values(*arrays, shape[0], source)
-        _remember(_CHECKED, arrays, True)
+    if values:
+        _check_values(positions, faces, uv, normals, shape[0], source)
 
 
 def _check_values(positions, faces, uv, normals, num_vertices: int, source: str) -> None:
@@ -190,67 +189,23 @@ def _check_values(positions, faces, uv, normals, num_vertices: int, source: str)
             raise ValueError(f"{source}: {name} contain NaN or infinite values")
 
 
-# Results about immutable JAX arrays, keyed by the arrays' identities (weakly held: an entry
-# dies with its arrays): rendering the same mesh again skips the host-side work (the value
-# checks: 12 ms a frame for 200k triangles). NumPy arrays can change in place: never kept.
-_CHECKED: dict[tuple[int, ...], tuple] = {}  # `validate_arrays`: passed (True)
-_SHAPES: dict[tuple[int, ...], tuple] = {}  # `closed_shape`: its answer
-_MEMO_MAX = 256
-_MISS = object()
-
-
-def _key(arrays) -> tuple[int, ...] | None:
-    """The identities of ``arrays`` if all are concrete JAX arrays (or None), else None."""
-    if not all(x is None or (isinstance(x, jax.Array) and _is_concrete(x)) for x in arrays):
-        return None
-    return tuple(id(x) for x in arrays)
-
-
-def _recall(memo: dict, arrays):
-    """What `_remember` kept in ``memo`` for these exact arrays, or `_MISS`."""
-    key = _key(arrays)
-    hit = None if key is None else memo.get(key)
-    if hit is None or not all((r is None and x is None) or (r is not None and r() is x)
-                              for r, x in zip(hit[0], arrays)):
-        return _MISS
-    return hit[1]
-
-
-def _remember(memo: dict, arrays, value) -> None:
-    """Keep ``value`` in ``memo`` for these arrays (no-op unless `_key` has them)."""
-    key = _key(arrays)
-    if key is None:
-        return
-    if len(memo) >= _MEMO_MAX:
-        memo.pop(next(iter(memo)))
-    memo[key] = (tuple(None if x is None else weakref.ref(x) for x in arrays), value)
-
-
 def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
 def closed_shape(positions, faces) -> np.ndarray | None:
     """The bounding box (2, 3) float64 (min, max) of a mesh that encloses a volume with its
-    counter-clockwise (front) faces outside, else None: such a mesh, seen from outside,
-    shows only front faces (`jaxnm.render` then skips the back faces' rasterization).
+    counter-clockwise (front) faces outside, else None (also for traced arrays): such a
+    mesh, seen from outside, shows only front faces (`jaxnm.scene.back_faces_hidden`).
 
     Enclosing: after welding vertices at equal positions (to 1e-6 of the mesh's extent: a uv
-    seam's copies), every edge
-    is used by exactly two faces, once in each direction (closed, manifold, consistently
-    oriented; faces with two welded corners equal are dropped); outside: the enclosed
-    volume (the sum of the faces' signed tetrahedra) is positive. On the host, in
-    float64/int64, once per mesh (about 0.1 s for 200k triangles): remembered by the
-    arrays' identities, so only for concrete JAX arrays; None for NumPy arrays (which can
-    change in place, and would be examined again every frame) and traced ones."""
-    arrays = (positions, faces)
-    if _key(arrays) is None or positions is None or faces is None:
+    seam's copies), every edge is used by exactly two faces, once in each direction (closed,
+    manifold, consistently oriented; faces with two welded corners equal are dropped);
+    outside: the enclosed volume (the sum of the faces' signed tetrahedra) is positive. On
+    the host, in float64/int64 (about 0.1 s for 200k triangles)."""
+    if not (_is_concrete(positions) and _is_concrete(faces)):
         return None
-    box = _recall(_SHAPES, arrays)
-    if box is _MISS:
-        box = _closed_shape(np.asarray(positions, np.float64), np.asarray(faces, np.int64))
-        _remember(_SHAPES, arrays, box)
-    return box
+    return _closed_shape(np.asarray(positions, np.float64), np.asarray(faces, np.int64))
 
 
 def _closed_shape(p: np.ndarray, f: np.ndarray) -> np.ndarray | None:

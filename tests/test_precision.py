@@ -120,17 +120,21 @@ def test_the_check_sees_an_order_dependent_scatter():
     assert _order_dependent_scatters(jax.make_jaxpr(good)(x).jaxpr) == []
 
 
-@pytest.mark.parametrize("pack", [None, True])
-def test_render_forward_has_no_order_dependent_scatter(pack):
+@pytest.mark.parametrize("packed", [False, True])
+def test_render_forward_has_no_order_dependent_scatter(packed, monkeypatch):
     """Visibility (depth test, slot bookkeeping, compaction) and the per-pixel stages, as
-    `render` runs them under a caller's jit, with and without packing, and as a fit's
+    `render` runs them under a caller's jit, on the whole image and packed, and as a fit's
     `prepare` runs them; the backward's float scatter-adds (a gather's transpose) are the
-    fit's, measured in the README (GPUs)."""
+    fit's (GPUs: deterministic ops)."""
+    import importlib
+
+    monkeypatch.setattr(importlib.import_module("jaxnm.render"), "PACK_MIN_PIXELS",
+                        1 if packed else 1 << 40)
     scene = default_scene(width=16, height=16)
 
     def f(scene):
         return jaxnm.render(scene, outputs=("color", "perturbed_normal", "dpdx"),
-                            derivatives="fine", pack=pack)
+                            derivatives="fine")
 
     assert _order_dependent_scatters(jax.make_jaxpr(f)(scene).jaxpr) == []
     clip = jaxnm.to_clip(scene.mesh.positions, scene.camera)

@@ -21,7 +21,7 @@ from jax.flatten_util import ravel_pytree
 import jaxnm
 from jaxnm import procedural
 from jaxnm.render import render
-from jaxnm.scene import Scene
+from jaxnm.scene import Scene, validate_scene
 from jaxnm.shading import DirectionalLight, Lights, Material, PointLight, stack_lights
 
 SIZE = 32
@@ -158,4 +158,5 @@ def test_validation_never_converts_a_tracer(scene):
     bad = np.array(scene.mesh.positions)
     bad[0, 0] = np.nan
     with pytest.raises(ValueError, match="NaN"):
-        scene.replace(mesh=dataclasses.replace(scene.mesh, positions=jnp.asarray(bad)))
+        validate_scene(scene.replace(mesh=dataclasses.replace(scene.mesh,
+                                                              positions=jnp.asarray(bad))))

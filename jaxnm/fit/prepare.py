@@ -19,7 +19,9 @@ import numpy as np
 from jax import Array
 
 from .. import textures as _tex
+from ..geometry import closed_shape
 from ..render import GBuffer, RenderOptions, build_gbuffer, check_mesh, covered_gbuffer
+from ..scene import box_in_front
 from ..shading import Lights, Material
 from .problem import FitProblem, FitTarget, validate_problem
 
@@ -198,12 +200,16 @@ def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
         groups.setdefault(view_key(t), []).append(t)
     views, opts_all = [], []
     nm = dataclasses.replace(problem.sampling, encoding="signed", channels=3)
+    # a closed mesh seen from outside shows no back face: those views skip them
+    box = closed_shape(problem.mesh.positions, problem.mesh.faces)
     for ts in groups.values():
         t0 = ts[0]
         opts = RenderOptions(width=t0.width, height=t0.height, derivatives=problem.derivatives,
                              precision=problem.precision,
                              frame=problem.frame, shading=problem.shading,
-                             double_sided=problem.double_sided, normal_map=nm,
+                             double_sided=problem.double_sided,
+                             cull_back=box is not None and box_in_front(box, t0.camera),
+                             normal_map=nm,
                              normal_map_shape=tuple(problem.map_size),
                              albedo_shape=(tuple(jnp.shape(problem.albedo)[:2])
                                            if jnp.ndim(problem.albedo) == 3 else None),

@@ -15,7 +15,7 @@ import numpy as np
 from ..camera import Camera, eye_to_world, look_at, perspective
 from ..fit import FitJob, FitOptions, FitProblem, FitTarget, problem_from_scene
 from ..render import render
-from ..scene import Scene, default_material, validate_scene
+from ..scene import Scene, back_faces_hidden, default_material, validate_scene
 from ..shading import (
     DirectionalLight,
     Lights,
@@ -48,10 +48,12 @@ def default_scene(*, width: int = 512, height: int = 512) -> Scene:
         point=stack_lights([PointLight(jnp.array([1.8, -1.6, 1.4]), jnp.array([0.5, 0.7, 1.0]),
                                        jnp.asarray(4.0))]),
     )
+    mesh = default_torus()
     return validate_scene(Scene(
-        mesh=default_torus(), camera=cam, width=width, height=height,
+        mesh=mesh, camera=cam, width=width, height=height,
         normal_map=default_normal_map_texels(256), albedo=np.array([0.85, 0.6, 0.38], np.float32),
-        lights=lights, material=default_material(), source="<built-in default scene>"))
+        lights=lights, material=default_material(), cull_back=back_faces_hidden(mesh, cam),
+        source="<built-in default scene>"))
 
 
 def default_light_directions(n: int = 6, elevation_deg: float = 50.0, seed: int = 0) -> np.ndarray:
@@ -100,7 +102,8 @@ def default_problem(*, render_size: int = 512, map_size: int = 256, n_lights: in
         cam = _fit_camera(eye)
         for li, d in enumerate(default_light_directions(n_lights, seed=seed)):
             lights = directional_light(eye_to_world(cam, d))
-            img = np.asarray(render(scene.replace(camera=cam, lights=lights))["color"])
+            img = np.asarray(render(scene.replace(
+                camera=cam, lights=lights, cull_back=back_faces_hidden(scene.mesh, cam)))["color"])
             if noise > 0:
                 img = img + rng.normal(0.0, noise * img.max(), img.shape).astype(np.float32)
             targets.append(FitTarget(cam, render_size, render_size, lights, img,
@@ -118,7 +121,8 @@ def default_fit_job(*, quick: bool = False) -> FitJob:
     problem, gt, scene = default_problem(render_size=size, map_size=msize, n_lights=6, views=2)
     cam = problem.targets[0].camera
     lights = directional_light(eye_to_world(cam, HELD_OUT_LIGHT))
-    img = np.asarray(render(scene.replace(camera=cam, lights=lights))["color"])
+    img = np.asarray(render(scene.replace(
+        camera=cam, lights=lights, cull_back=back_faces_hidden(scene.mesh, cam)))["color"])
     held = (FitTarget(cam, size, size, lights, img, name="held-out light"),)
     # Levenberg-Marquardt in texel space (the default solver), 20 conjugate-gradient
     # iterations a step: a step's pass over the pixels (shading 12 targets and forming their
