@@ -151,7 +151,8 @@ class Fragments:
 
 def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
             subpixel_bits: int | None = SUBPIXEL_BITS,
-            orientation: Array | None = None) -> tuple[Fragments, Array]:
+            orientation: Array | None = None, index: Array | None = None
+            ) -> tuple[Fragments, Array]:
     """The covered pixels of a whole image, packed into ``capacity`` slots as `Fragments`.
 
     Every per-pixel stage evaluates a pixel from its own triangle and its window position
@@ -166,6 +167,9 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
       of covered pixels. Unused slots are background (triangle -1, depth 1).
     - `orientation`: each triangle's orientation sign (F,) as `triangle_ids` gives it, if
       known; else the facing is computed from each fragment's corners again.
+    - `index`: the (capacity,) flat image indices of the pixels to pack, if chosen by the
+      caller (``H * W`` for unused slots; e.g. a later window of the covered pixels from
+      `jaxnm.numerics.ranked_nonzero`); by default the first ``capacity`` covered pixels.
 
     **Returns:** the packed `Fragments` (per-pixel fields of shape (capacity,); depth and
     facing as `rasterize` computes them) and the (capacity,) flat image index of each
@@ -174,7 +178,8 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
     height, width = triangle_id.shape
     n = height * width
     ids = triangle_id.reshape(-1)
-    index = flat_nonzero(ids >= 0, capacity, n)
+    if index is None:
+        index = flat_nonzero(ids >= 0, capacity, n)
     used = index < n
     at = jnp.minimum(index, n - 1)
     row = _div(at, width)

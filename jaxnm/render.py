@@ -41,8 +41,8 @@ from .interpolate import (
     require_x64,
     triangle_corners,
 )
-from .numerics import materialize, safe_normalize
-from .raster import Fragments, compact, expand, rasterize, triangle_ids
+from .numerics import materialize, ranked_nonzero, safe_normalize
+from .raster import Fragments, compact, rasterize, triangle_ids
 from .scene import Scene, check_scene_shapes, default_lights, default_material
 from .shading import Lights, Material, check_shading_model, shade
 from .textures import NormalMapOptions
@@ -395,18 +395,19 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     background; ``dpdx``/``dpdy`` are derivatives of the world position per
     pixel step in window x (right) and y (**up**).
 
-    **How a frame runs.** One compiled program per scene shape and options. The scene is
-    first made camera-relative (`camera_relative`: in float64 on the host where the camera
-    and model are concrete). The rasterizer then finds each pixel's triangle
-    (`jaxnm.raster`), and the per-pixel stages (interpolation, derivatives, frame,
-    texture, shading) run either on the whole image (on a GPU, for images under
-    `PACK_MIN_PIXELS` and for "gbuffer" derivatives, which read stored neighbours) or, on
-    the CPU, on the covered pixels only: packed (`jaxnm.raster.compact`) into a quarter of
-    the image's slots when they fit and all of them otherwise (a `jax.lax.cond` inside the
-    program, so it is the same under the caller's `jax.jit` or `jax.grad`), in chunks of
-    `PIXEL_CHUNK` slots that stay in the caches, the chunks past the covered pixels
-    skipped. Both give the same image: coverage, ids and facing exactly, the rest to
-    float32 rounding. Nothing is remembered between calls but the compiled programs.
+    **How a frame runs.** The scene is made camera-relative (`camera_relative`: in float64
+    on the host where the camera and model are concrete), the rasterizer finds each
+    pixel's triangle (`jaxnm.raster`), and the per-pixel stages (interpolation,
+    derivatives, frame, texture, shading) run either on the whole image, in one compiled
+    program (on a GPU, for images under `PACK_MIN_PIXELS` and for "gbuffer" derivatives,
+    which read stored neighbours), or, on the CPU, in a second program on the covered
+    pixels only: packed (`jaxnm.raster.compact`) a quarter of the image's pixels at a time
+    (one pass where at most a quarter is covered), in chunks of `PIXEL_CHUNK` slots that
+    stay in the caches, the chunks and passes past the covered pixels skipped. Nothing
+    waits for the host between the two, and the same runs under the caller's `jax.jit`
+    or `jax.grad`. Both ways give the same image: coverage, ids and facing exactly, the
+    rest to float32 rounding. Nothing is remembered between calls but the compiled
+    programs.
 
     **Checks.** Options and array shapes are checked here (a `ValueError` naming
     ``scene.source``); array values where scenes are made (`validate_scene`, which
@@ -429,8 +430,12 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
         except ValueError as e:
             raise ValueError(f"{scene.source}: {e}") from None
     camera, lights, origin, placement, affine = _relative_inputs(scene)
-    return _frame(scene.mesh, camera, scene.normal_map, scene.albedo, lights, scene.material,
-                  origin, placement, opts=opts, packed=_packs(opts), affine=affine)
+    args = (scene.mesh, camera, scene.normal_map, scene.albedo, lights, scene.material, origin,
+            placement)
+    if not _packs(opts):
+        return _frame(*args, opts=opts, affine=affine)
+    seen = _visible_placed(scene.mesh, camera, placement, opts=opts, affine=affine)
+    return _packed_frame(*args, *seen, opts=opts, affine=affine)
 
 
 #: On the CPU, `render` packs the covered pixels of images of at least this many pixels
@@ -501,19 +506,56 @@ def _over_chunks(fn, frags: Fragments, chunk: int):
     return jax.tree_util.tree_map(lambda y: y.reshape((k * size,) + y.shape[2:])[:n], out)
 
 
-@functools.partial(jax.jit, static_argnames=("opts", "packed", "affine"))
+@functools.partial(jax.jit, static_argnames=("opts", "affine"))
 def _frame(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, origin,
-           placement, *, opts: RenderOptions, packed: bool, affine: bool) -> dict[str, Array]:
-    """`render` as one XLA program: ``mesh`` is placed by ``placement`` (`_place`) relative
-    to ``camera`` (at the origin), ``origin`` is the camera's world position."""
+           placement, *, opts: RenderOptions, affine: bool) -> dict[str, Array]:
+    """`render` on the whole image, as one XLA program: ``mesh`` is placed by ``placement``
+    (`_place`) relative to ``camera`` (at the origin), ``origin`` is the camera's world
+    position."""
     mesh = _checked(_place(mesh, placement, affine))
+    clip = materialize(to_clip(mesh.positions, camera))
+    frags = rasterize(clip, mesh.faces.astype(jnp.int32), width=opts.width, height=opts.height,
+                      cull_back=opts.cull_back)
+    result = {"mask": frags.mask, "triangle_id": frags.triangle_id, "depth": frags.depth,
+              "front_facing": frags.front_facing}
+    result.update(_per_pixel(mesh, camera, normal_map, albedo, lights, material, origin,
+                             opts)(frags))
+    return _image_layout(result, opts)
+
+
+@functools.partial(jax.jit, static_argnames=("opts", "affine"))
+def _visible_placed(mesh: Mesh, camera: Camera, placement, *, opts: RenderOptions,
+                    affine: bool):
+    """`_packed_frame`'s first program: each pixel's triangle (-1: background), the mesh's
+    clip-space vertices and its triangles' orientations (`triangle_ids`). Two programs, not
+    one: each keeps its own temporary buffers, which for a 200k-triangle mesh together
+    passed glibc's 32 MiB threshold (`_packed_passes`)."""
+    mesh = _checked(_place(mesh, placement, affine))
+    clip = materialize(to_clip(mesh.positions, camera))
+    tid, orientation = triangle_ids(clip, mesh.faces.astype(jnp.int32), width=opts.width,
+                                    height=opts.height, cull_back=opts.cull_back)
+    return tid, clip, orientation
+
+
+@functools.partial(jax.jit, static_argnames=("opts", "affine"))
+def _packed_frame(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, origin,
+                  placement, tid, clip, orientation, *, opts: RenderOptions,
+                  affine: bool) -> dict[str, Array]:
+    """`render`'s per-pixel stages on the covered pixels of `_visible_placed`'s ``tid``
+    (`_packed_passes`)."""
+    mesh = _place(mesh, placement, affine)
+    per_pixel = _per_pixel(mesh, camera, normal_map, albedo, lights, material, origin, opts)
+    return _image_layout(_packed_passes(per_pixel, tid, clip, mesh.faces.astype(jnp.int32),
+                                        orientation, opts=opts), opts)
+
+
+def _per_pixel(mesh, camera, normal_map, albedo, lights, material, origin, opts):
+    """The per-pixel stages of ``opts.outputs`` but the visibility ones, as a function of
+    fragments (an image's or packed ones)."""
     if lights is None:
         lights = default_lights(camera)
     if material is None:
         material = default_material()
-    height, width = opts.height, opts.width
-    clip = materialize(to_clip(mesh.positions, camera))
-    faces = mesh.faces.astype(jnp.int32)
     wanted = [n for n in opts.outputs if n not in _GEOMETRY_OUTPUTS]
 
     def per_pixel(frags):
@@ -534,32 +576,59 @@ def _frame(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, ori
         }
         return {n: res[n] if n in res else values[n]() for n in wanted}
 
-    if packed:
-        tid, orientation = triangle_ids(clip, faces, width=width, height=height,
-                                        cull_back=opts.cull_back)
-        pixels = height * width
-        quarter = pixels // 4
+    return per_pixel
 
-        def on_slots(capacity):
-            def run(tid):
-                frags, index = compact(tid, clip, faces, capacity, orientation=orientation)
-                out = {"mask": tid >= 0, "triangle_id": tid,
-                       "depth": expand(frags.depth, index, height, width, 1.0),
-                       "front_facing": expand(frags.front_facing, index, height, width)}
-                values = _over_chunks(per_pixel, frags, _chunk(quarter))
-                out.update({n: expand(v, index, height, width) for n, v in values.items()})
-                return {n: out[n] for n in opts.outputs}
-            return run
 
-        result = jax.lax.cond(jnp.count_nonzero(tid >= 0) <= quarter, on_slots(quarter),
-                              on_slots(pixels), tid)
-    else:
-        frags = rasterize(clip, faces, width=width, height=height, cull_back=opts.cull_back)
-        result = {"mask": frags.mask, "triangle_id": frags.triangle_id, "depth": frags.depth,
-                  "front_facing": frags.front_facing}
-        result.update(per_pixel(frags))
+def _image_layout(result: dict, opts: RenderOptions) -> dict[str, Array]:
+    """``opts.outputs`` of ``result`` as float32 (H, W, C) arrays."""
     return {n: (result[n][..., None] if result[n].ndim == 2 else result[n]).astype(jnp.float32)
             for n in opts.outputs}
+
+
+def _packed_passes(per_pixel, tid: Array, clip: Array, faces: Array, orientation: Array, *,
+                   opts: RenderOptions) -> dict[str, Array]:
+    """``opts.outputs`` of the image whose triangle ids are ``tid``, with ``per_pixel`` run on
+    its covered pixels only: in passes of a quarter of the image's pixels (the covered
+    pixels ranked ``p * Q`` to ``(p + 1) * Q - 1`` in pass ``p``, `ranked_nonzero`), each
+    packed (`compact`) and evaluated in chunks (`_over_chunks`), its results written into
+    the images; the passes past the covered pixels are skipped. A frame with at most a
+    quarter of the image covered runs one pass, and every pass's buffers are a quarter of
+    the image's: on the CPU, XLA's temporary buffers of a 1024^2 frame then stay under
+    glibc's largest threshold for reusing freed memory (32 MiB), where larger ones are
+    mapped and page-faulted in again on every call (6,000 faults a frame, 1.6x the time)."""
+    height, width = opts.height, opts.width
+    pixels = height * width
+    slots = -(-pixels // 4)
+    total, window = ranked_nonzero(tid.reshape(-1) >= 0)
+    names = [n for n in opts.outputs if n not in ("mask", "triangle_id")]
+    shapes = jax.eval_shape(
+        lambda: per_pixel(compact(tid, clip, faces, slots, orientation=orientation)[0]))
+    fill = {"depth": 1.0}
+
+    def one_pass(p, images):
+        index = window(p * slots, slots, pixels)
+        frags, index = compact(tid, clip, faces, slots, orientation=orientation, index=index)
+        values = _over_chunks(per_pixel, frags, _chunk(slots))
+        values.update(depth=frags.depth, front_facing=frags.front_facing)
+        # each covered pixel is written once (the unused slots' indices distinct, past the
+        # end: dropped), as XLA is told
+        at = jnp.where(index < pixels, index, pixels + jnp.arange(slots, dtype=index.dtype))
+        return {n: images[n].at[at].set(values[n].astype(images[n].dtype), mode="drop",
+                                        unique_indices=True) for n in names}
+
+    def step(p, images):
+        return jax.lax.cond(p * slots < total, one_pass, lambda p, images: images, p, images)
+
+    def blank(n):
+        if n in ("depth", "front_facing"):
+            return jnp.full((pixels,), fill.get(n, False), jnp.float32 if n == "depth" else bool)
+        s = shapes[n]
+        return jnp.zeros((pixels,) + s.shape[1:], s.dtype)
+
+    images = jax.lax.fori_loop(0, 4, step, {n: blank(n) for n in names})
+    out = {"mask": tid >= 0, "triangle_id": tid}
+    out.update({n: v.reshape((height, width) + v.shape[1:]) for n, v in images.items()})
+    return {n: out[n] for n in opts.outputs}
 
 
 def _checked(mesh: Mesh) -> Mesh:

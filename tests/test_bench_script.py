@@ -45,21 +45,19 @@ def test_child_peak_memory_is_the_childs_not_the_benchmarks():
     del ballast
 
 
-def test_markdown_reports_the_forward_rows_with_the_packed_gradient():
+def test_markdown_reports_the_forward_rows():
     res = {"machine": "m", "jax": "j", "mitsuba": "mi", "date": "d",
            "forward": [{"mesh": "20k torus", "forward_ratio": 2.0,
-                        "forward_backward_ratio": 2.5, "forward_backward_packed_ratio": 1.2,
+                        "forward_backward_ratio": 2.5,
                         "jaxnm": {"triangles": 20480, "size": "512x512", "forward_ms": 14.0,
-                                  "forward_backward_ms": 55.0,
-                                  "forward_backward_packed_ms": 26.0, "first_forward_s": 2.2,
-                                  "first_backward_s": 2.1, "first_backward_packed_s": 3.0,
-                                  "forward_moved_ms": 14.5},
+                                  "forward_backward_ms": 55.0, "first_forward_s": 2.2,
+                                  "first_backward_s": 2.1, "forward_moved_ms": 14.5},
                         "forward_moved_ratio": 0.85,
                         "mitsuba": {"forward_ms": 7.0, "forward_backward_ms": 22.0,
                                     "forward_moved_ms": 17.0}}]}
     md = bench.markdown(res)
-    assert ("| 20k torus (20480 tris) | 512x512 | 14.0 | 7.0 | 2.0 | 55.0 (26.0) | 22.0 | "
-            "2.5 (1.2) | 2.2, 2.1 (3.0) | 14.5 / 17.0 (0.85) |") in md
+    assert ("| 20k torus (20480 tris) | 512x512 | 14.0 | 7.0 | 2.0 | 55.0 | 22.0 | "
+            "2.5 | 2.2, 2.1 | 14.5 / 17.0 (0.85) |") in md
 
 
 def test_markdown_forward_row_without_mitsuba_leaves_its_columns_empty():
@@ -67,11 +65,10 @@ def test_markdown_forward_row_without_mitsuba_leaves_its_columns_empty():
            "forward": [{"mesh": "4k sphere",
                         "jaxnm": {"triangles": 3968, "size": "256x256", "forward_ms": 3.0,
                                   "forward_moved_ms": 3.1, "forward_backward_ms": 5.0,
-                                  "forward_backward_packed_ms": 4.0, "first_forward_s": 2.0,
-                                  "first_backward_s": 2.5, "first_backward_packed_s": 3.5}}]}
+                                  "first_forward_s": 2.0, "first_backward_s": 2.5}}]}
     md = bench.markdown(res)
-    assert ("| 4k sphere (3968 tris) | 256x256 | 3.0 | - | - | 5.0 (4.0) | - | - (-) | "
-            "2.0, 2.5 (3.5) | 3.1 / - (-) |") in md
+    assert ("| 4k sphere (3968 tris) | 256x256 | 3.0 | - | - | 5.0 | - | - | "
+            "2.0, 2.5 | 3.1 / - (-) |") in md
 
 
 def test_forward_rows_take_the_median_of_the_runs():
@@ -88,7 +85,7 @@ def test_forward_rows_take_the_median_of_the_runs():
     q = SimpleNamespace(faces=np.zeros((7, 3)), width=64, height=64)
     mi = {"first_s": {"forward": 0.1, "forward_backward": 0.2},
           "kernel_cache_files_at_start": 0}
-    first = {"jaxnm forward_backward": 3.0, "jaxnm forward_backward_packed": 4.0}
+    first = {"jaxnm forward_backward": 3.0}
     (row,) = bench._forward_rows([("mesh", q, 2.0, mi, first)], [runs], echo=False)
     assert row["jaxnm"]["forward_ms"] == 5.0 and row["mitsuba"]["forward_ms"] == 5.0
     assert row["forward_ratio_runs"] == [0.8, 2.25, 0.83]

@@ -402,14 +402,18 @@ def strategy(monkeypatch):
     again afterwards."""
     R = importlib.import_module("jaxnm.render")
 
+    def clear():
+        for program in (R._frame, R._visible_placed, R._packed_frame):
+            program.clear_cache()
+
     def run(packed, chunk, fn):
         monkeypatch.setattr(R, "PACK_MIN_PIXELS", 1 if packed else 1 << 40)
         monkeypatch.setattr(R, "PIXEL_CHUNK", (chunk, chunk))
-        R._frame.clear_cache()
+        clear()
         return fn()
 
     yield run
-    R._frame.clear_cache()
+    clear()
 
 
 @pytest.mark.parametrize("frame,derivatives,precision,eye", [

@@ -106,9 +106,9 @@ def _with_mesh(p: B.BenchProblem, mesh, size: int) -> B.BenchProblem:
 def jaxnm_calls(p: B.BenchProblem) -> dict:
     """jaxnm's timed calls, each forced to completion: ``"forward"`` (`render`),
     ``"forward_moved"`` (`render` of the mesh taking turns between two positions), and the
-    loss's value and gradient w.r.t. the map under one jit, by default and with
-    ``pack=True`` (``"forward_backward"``, ``"forward_backward_packed"``); and the first
-    render's time in s (``"first_forward_s"``, compilation included: it made the target)."""
+    loss's value and gradient w.r.t. the map under one jit (``"forward_backward"``); and the
+    first render's time in s (``"first_forward_s"``, compilation included: it made the
+    target)."""
     scene = B.jaxnm_scene(p, p.light_dirs[0])
     t = time.perf_counter()
     target = jax.block_until_ready(jaxnm.render(scene)["color"])
@@ -116,13 +116,10 @@ def jaxnm_calls(p: B.BenchProblem) -> dict:
 
     # the scene is an argument, not a closure: closed-over arrays are compile-time constants,
     # and XLA would constant-fold the rasterizer over them (47 s compiles at 200k triangles)
-    # pack=True: `render` packs the covered pixels under this jit too (a cond on the traced
-    # count: both programs compiled), the way to write a jitted gradient loop
-    @functools.partial(jax.jit, static_argnames="pack")
-    def loss_and_grad(scene, texels, target, pack=None):
+    @jax.jit
+    def loss_and_grad(scene, texels, target):
         def loss(t):
-            return jnp.mean((jaxnm.render(scene.replace(normal_map=t), pack=pack)["color"]
-                             - target) ** 2)
+            return jnp.mean((jaxnm.render(scene.replace(normal_map=t))["color"] - target) ** 2)
         return jax.value_and_grad(loss)(texels)
 
     # the same frame with the mesh taking turns between two positions, as Mitsuba's
@@ -142,14 +139,12 @@ def jaxnm_calls(p: B.BenchProblem) -> dict:
             "forward_moved": forward_moved,
             "forward_backward": lambda: jax.block_until_ready(
                 loss_and_grad(scene, flat, target)),
-            "forward_backward_packed": lambda: jax.block_until_ready(
-                loss_and_grad(scene, flat, target, pack=True)),
             "first_forward_s": first_forward}
 
 
 #: The timed calls of `bench_forward`: jaxnm's (`jaxnm_calls`) and Mitsuba's
 #: (`bench_mitsuba.forward_calls`).
-JAXNM_CALLS = ("forward", "forward_moved", "forward_backward", "forward_backward_packed")
+JAXNM_CALLS = ("forward", "forward_moved", "forward_backward")
 MITSUBA_CALLS = ("forward", "forward_moved", "forward_backward")
 
 
@@ -205,7 +200,6 @@ def _forward_rows(cells, timed, echo: bool = True) -> list[dict]:
         j["page_faults_per_call"] = {k: max(f[f"jaxnm {k}"] for _, f in t) for k in JAXNM_CALLS}
         j.update({"first_forward_s": round(first_forward_s, 2),
                   "first_backward_s": round(first["jaxnm forward_backward"], 2),
-                  "first_backward_packed_s": round(first["jaxnm forward_backward_packed"], 2),
                   "triangles": int(q.faces.shape[0]), "size": f"{q.width}x{q.height}"})
         row = {"mesh": name, "jaxnm": j}
         if mi is not None:
@@ -225,8 +219,7 @@ def _forward_rows(cells, timed, echo: bool = True) -> list[dict]:
 
             row["forward_ratio"] = ratio("forward", "forward")
             row["forward_moved_ratio"] = ratio("forward_moved", "forward_moved")
-            for key in ("forward_backward", "forward_backward_packed"):
-                row[f"{key}_ratio"] = ratio(key, "forward_backward")
+            row["forward_backward_ratio"] = ratio("forward_backward", "forward_backward")
             if len(t) > 1:
                 row["forward_ratio_runs"] = [
                     round(ms["jaxnm forward"] / ms["mitsuba forward"], 2) for ms, _ in t]
@@ -642,19 +635,16 @@ def markdown(res: dict) -> str:
     lines = [f"Machine: {res['machine']}; JAX {res['jax']}; {res['mitsuba']}; {res['date']}."]
     if res.get("forward"):
         lines += ["", "| frame | size | jaxnm forward ms | Mitsuba forward ms | ratio | jaxnm "
-                  "fwd+bwd ms (pack=True) | Mitsuba fwd+bwd ms | ratio (pack=True) | jaxnm first "
-                  "call s (compile): forward, fwd+bwd (pack=True) | mesh moved: jaxnm / Mitsuba "
-                  "forward ms (ratio) |",
+                  "fwd+bwd ms | Mitsuba fwd+bwd ms | ratio | jaxnm first call s (compile): "
+                  "forward, fwd+bwd | mesh moved: jaxnm / Mitsuba forward ms (ratio) |",
                   "|---|---|---|---|---|---|---|---|---|---|"]
     for r in res.get("forward", []):
         j, m = r["jaxnm"], r.get("mitsuba", {})
         lines.append(f"| {r['mesh']} ({j['triangles']} tris) | {j['size']} | {j['forward_ms']} | "
                      f"{_r(m.get('forward_ms'))} | {r.get('forward_ratio', '-')} | "
-                     f"{j['forward_backward_ms']} ({j['forward_backward_packed_ms']}) | "
-                     f"{_r(m.get('forward_backward_ms'))} | "
-                     f"{r.get('forward_backward_ratio', '-')} "
-                     f"({r.get('forward_backward_packed_ratio', '-')}) | {j['first_forward_s']}, "
-                     f"{j['first_backward_s']} ({j['first_backward_packed_s']}) | "
+                     f"{j['forward_backward_ms']} | {_r(m.get('forward_backward_ms'))} | "
+                     f"{r.get('forward_backward_ratio', '-')} | {j['first_forward_s']}, "
+                     f"{j['first_backward_s']} | "
                      f"{_r(j.get('forward_moved_ms'))} / {_r(m.get('forward_moved_ms'))} "
                      f"({r.get('forward_moved_ratio', '-')}) |")
     f = res.get("fit", {})

@@ -76,7 +76,7 @@ import jaxnm
 from jaxnm import fit as F
 from jaxnm import procedural
 from jaxnm.maps import height_to_normal_map
-from jaxnm.scene import Scene
+from jaxnm.scene import Scene, back_faces_hidden
 from jaxnm.shading import Material, directional_light
 from jaxnm.textures import NormalMapOptions, encode_normal_map
 
@@ -181,13 +181,16 @@ def jaxnm_scene(p: BenchProblem, light_dir, texels=None) -> Scene:
     """The problem as a jaxnm scene under one light, with ``texels`` (default: the truth)."""
     mesh = jaxnm.Mesh(jnp.asarray(p.positions, jnp.float32), jnp.asarray(p.faces, jnp.int32),
                       jnp.asarray(p.uv, jnp.float32), jnp.asarray(p.normals, jnp.float32))
-    return Scene(mesh=mesh, camera=jaxnm_camera(p), width=p.width, height=p.height,
+    camera = jaxnm_camera(p)
+    # a closed mesh seen from outside: its back faces are skipped (the same image)
+    return Scene(mesh=mesh, camera=camera, width=p.width, height=p.height,
+                 cull_back=back_faces_hidden(mesh, camera),
                  normal_map=jnp.asarray(p.gt_texels if texels is None else texels),
                  normal_map_options=NormalMapOptions(filter="bilinear", wrap="repeat"),
                  albedo=np.full(3, p.albedo, np.float32),
                  lights=directional_light(np.asarray(light_dir, np.float32)),
                  material=Material(jnp.ones(3), jnp.zeros(3), jnp.asarray(1.0), jnp.zeros(3)),
-                 shading="lambert", source="<benchmark problem>").replace()
+                 shading="lambert", source="<benchmark problem>")
 
 
 def jaxnm_fit_problem(p: BenchProblem, targets=None) -> F.FitProblem:

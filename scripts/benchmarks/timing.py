@@ -75,19 +75,23 @@ def time_call(fn: Callable[[], object], *, repeats: int = 10, warmup: int = 0,
 
 
 def side_by_side(calls: dict[str, Callable[[], object]], repeats: int, *, block: int = 5,
-                 warm: int = 5, seed: int = 0,
+                 warm: int = 5, warm_s: float = 0.25, seed: int = 0,
                  first_calls: bool = True) -> tuple[dict, dict, dict]:
     """(first call s, median ms of the next ``repeats``, the process's minor page faults per
     timed call: a call that faults its buffers in afresh each time shows here) of each of
     ``calls``.
 
     With ``first_calls``, each call is first run once, timed apart (its compilation). Then
-    the calls take turns in blocks of ``block`` timed runs, each block after ``warm``
-    untimed ones: a slow phase of the machine falls on all of them alike, and each is timed
-    in its own steady state, as a user who renders frame after frame sees it (right after
-    another renderer's calls a call can be slower for a few frames, while its buffers and
-    caches come back). The order of the turns is shuffled in every cycle (``seed``), so
-    that no call always follows the same one."""
+    the calls take turns in blocks of ``block`` timed runs, each block after at least
+    ``warm`` untimed ones and at least ``warm_s`` seconds of them: a slow phase of the
+    machine falls on all of them alike, and each is timed in its own steady state, as a
+    user who renders frame after frame sees it. A call that follows another's is slower
+    for a while: on a 2-core x86-64 machine, jaxnm's 4k sphere at 512^2 (3.4 ms a frame
+    back to back) took 4.3-6.8 ms a frame for its first 60-80 ms of frames after 0.2-1 s
+    without XLA work, whoever ran meanwhile (a frame is a hundred-odd small kernels, each
+    split over XLA's worker threads, which the system wakes and places slowly after an
+    idle spell); Mitsuba's frames changed little. The order of the turns is shuffled in
+    every cycle (``seed``), so that no call always follows the same one."""
     first, times, faults = {}, {k: [] for k in calls}, {k: 0 for k in calls}
     for k, fn in (calls.items() if first_calls else ()):
         t = time.perf_counter()
@@ -97,8 +101,11 @@ def side_by_side(calls: dict[str, Callable[[], object]], repeats: int, *, block:
     for _ in range(-(-repeats // block)):
         for k in rng.permutation(list(calls)):
             fn = calls[k]
-            for _ in range(warm):
+            t_warm = time.perf_counter()
+            n = 0
+            while n < warm or time.perf_counter() - t_warm < warm_s:
                 finish(fn())
+                n += 1
             for _ in range(block):
                 f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
                 t = time.perf_counter()
