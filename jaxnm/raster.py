@@ -380,9 +380,14 @@ def _triangle_setup(tri: _Corners, width: int, height: int, block: int, cull_bac
     q = h[:, :2] * 256.0
     on_grid = jnp.all(q == jnp.round(q))
     kw = dict(width=width, height=height, block=block, cull_back=cull_back)
-    return jax.lax.cond(snapped, functools.partial(_snapped_setup, **kw),
-                        lambda h, faces, _: _general_setup(h, faces, **kw), h, tri.faces,
-                        on_grid)
+    sigma, tx0, ty0, nbx, count = jax.lax.cond(
+        snapped, functools.partial(_snapped_setup, **kw),
+        lambda h, faces, _: _general_setup(h, faces, **kw), h, tri.faces, on_grid)
+    # a face index out of range stands for no vertex: the triangle covers nothing (a
+    # non-finite corner, the general set-up's test, likewise), as a GPU drops it
+    faces = tri.faces
+    in_range = jnp.all((faces >= 0) & (faces < h.shape[0]), axis=1)
+    return sigma, tx0, ty0, nbx, jnp.where(in_range, count, 0)
 
 
 def _snapped_setup(h: Array, faces: Array, on_grid: Array, *, width, height, block,

@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -411,8 +410,9 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
 
     **Checks.** Options and array shapes are checked here (a `ValueError` naming
     ``scene.source``); array values where scenes are made (`validate_scene`, which
-    `jaxnm.config.load_scene` and the built-in scenes run), and inside the program, where
-    non-finite vertex positions or face indices out of range raise an error at run time.
+    `jaxnm.config.load_scene` and the built-in scenes run: NaN or infinite values, face
+    indices out of range, a camera that sees nothing). Rendered unchecked, a triangle with
+    a non-finite corner or a face index out of range covers nothing, as on a GPU.
 
     Differentiable: the scene's arrays (normal map, albedo, vertex positions,
     camera, lights, material) may be traced, e.g. ``jax.grad`` of a loss of
@@ -512,7 +512,7 @@ def _frame(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, ori
     """`render` on the whole image, as one XLA program: ``mesh`` is placed by ``placement``
     (`_place`) relative to ``camera`` (at the origin), ``origin`` is the camera's world
     position."""
-    mesh = _checked(_place(mesh, placement, affine))
+    mesh = _place(mesh, placement, affine)
     clip = materialize(to_clip(mesh.positions, camera))
     frags = rasterize(clip, mesh.faces.astype(jnp.int32), width=opts.width, height=opts.height,
                       cull_back=opts.cull_back)
@@ -530,7 +530,7 @@ def _visible_placed(mesh: Mesh, camera: Camera, placement, *, opts: RenderOption
     clip-space vertices and its triangles' orientations (`triangle_ids`). Two programs, not
     one: each keeps its own temporary buffers, which for a 200k-triangle mesh together
     passed glibc's 32 MiB threshold (`_packed_passes`)."""
-    mesh = _checked(_place(mesh, placement, affine))
+    mesh = _place(mesh, placement, affine)
     clip = materialize(to_clip(mesh.positions, camera))
     tid, orientation = triangle_ids(clip, mesh.faces.astype(jnp.int32), width=opts.width,
                                     height=opts.height, cull_back=opts.cull_back)
@@ -629,18 +629,6 @@ def _packed_passes(per_pixel, tid: Array, clip: Array, faces: Array, orientation
     out = {"mask": tid >= 0, "triangle_id": tid}
     out.update({n: v.reshape((height, width) + v.shape[1:]) for n, v in images.items()})
     return {n: out[n] for n in opts.outputs}
-
-
-def _checked(mesh: Mesh) -> Mesh:
-    """``mesh`` with a run-time check (`equinox.error_if`) that its vertex positions are
-    finite and its face indices in range: rasterized, such triangles would stand for
-    nothing the caller meant."""
-    positions = eqx.error_if(mesh.positions, ~jnp.all(jnp.isfinite(mesh.positions)),
-                             "render: the mesh has NaN or infinite vertex positions")
-    faces = mesh.faces
-    faces = eqx.error_if(faces, jnp.any((faces < 0) | (faces >= positions.shape[0])),
-                         f"render: face indices must be in [0, {positions.shape[0] - 1}]")
-    return dataclasses.replace(mesh, positions=positions, faces=faces)
 
 
 def _relative_inputs(scene: Scene):
