@@ -35,7 +35,10 @@ sign: coverage is watertight (no cracks, no double coverage) in float32.
 pixel tiles; a *slot* is one (triangle, tile) pair, for every tile a triangle's
 clipped screen bounding box touches. Slots are processed ``slots`` at a time
 (a fixed buffer); the number of rounds adapts at run time, so nothing is ever
-dropped, and memory stays bounded. The depth buffer is stored tile by tile, so
+dropped, and memory stays bounded. How the work is split (the tile size, the
+slots per round and the passes) is a `RasterStrategy`, chosen per backend by
+`default_strategy`; it changes the time, never the image. The depth buffer is
+stored tile by tile, so
 each slot's depth test is a scatter of one whole tile: a scatter-min of 64-bit
 keys, the depth's bits above the triangle index, which keeps the nearest
 fragment and on equal depth the lowest index (``GL_LESS`` with draw order =
@@ -52,10 +55,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .numerics import cumsum, dot, flat_nonzero, materialize, ranked_nonzero, roll_last, xyw
+from .numerics import cumsum, dot, flat_nonzero, materialize, roll_last, xyw
 
-__all__ = ["Fragments", "rasterize", "triangle_ids", "window_homogeneous", "pixel_centers",
-           "compact", "expand", "TIE_RULE"]
+__all__ = ["Fragments", "RasterStrategy", "default_strategy", "rasterize", "triangle_ids",
+           "overdraw", "window_homogeneous", "pixel_centers", "compact", "expand", "TIE_RULE"]
 
 #: A pixel centre exactly on an edge belongs to the triangle whose inward edge
 #: normal ``n`` (window coordinates, y up) has ``n.x > 0``, or ``n.x == 0`` and
@@ -66,6 +69,59 @@ TIE_RULE = "left_bottom_yup"
 
 #: Vertices are snapped to a 1/2**8 pixel grid for the coverage test, as GPUs do.
 SUBPIXEL_BITS = 8
+
+
+@dataclasses.dataclass(frozen=True)
+class RasterStrategy:
+    """How the rasterizer spends its work: the time and memory of a frame, never its result
+    (every strategy gives the same triangle ids, depth and facing). Static (a `jax.jit`
+    argument); `default_strategy` chooses one per backend and scene size.
+
+    **Fields:**
+    - `block`: the side of the square pixel tiles. A *slot* is one (triangle, tile) pair,
+      for every tile a triangle's clipped bounding box touches; the depth buffer is stored
+      tile by tile, and each slot's depth test is one scatter of a whole tile.
+    - `slots`: the slots depth-tested together, a round (a fixed buffer); rounds repeat
+      until every slot is done. A CPU wants rounds whose buffers stay in its caches, a GPU
+      few large ones (its loop waits on the host for every round's condition).
+    - `pass_slots`: a frame's slots are counted in int32; a frame that could have more
+      than this many is depth-tested in passes over its triangles, each counting at most
+      this many (a power of two; only huge images with tens of thousands of large
+      triangles need more than one).
+    """
+
+    block: int = 4
+    slots: int = 1 << 15
+    pass_slots: int = 1 << 30
+
+    def __post_init__(self):
+        for name in ("block", "slots", "pass_slots"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"RasterStrategy: `{name}` must be a positive int, got {v!r}")
+        if self.pass_slots & (self.pass_slots - 1):
+            raise ValueError(f"RasterStrategy: `pass_slots` must be a power of two, got "
+                             f"{self.pass_slots}")
+
+
+#: The most slots per round, by backend (others: `MAX_SLOTS_ACCELERATOR`). On the CPU a
+#: round's buffers should stay in its caches (2^14 and 2^17 slots were 1.1-1.4x and 1.3-3x
+#: slower than 2^15 on a 2-core x86-64 CPU). A GPU's while loop waits on the host for its
+#: condition every round, so it wants few large rounds (on an H100, visibility of the 200k
+#: torus at 1024^2 took 5.2 ms at 2^15, 2.5 at 2^17, 1.6 at 2^19 and 3.5 at 2^21).
+MAX_SLOTS = {"cpu": 1 << 15}
+MAX_SLOTS_ACCELERATOR = 1 << 19
+
+def default_strategy(num_faces: int, width: int, height: int, *, block: int = 4,
+                     backend: str | None = None) -> RasterStrategy:
+    """The `RasterStrategy` for ``num_faces`` triangles in a ``width`` x ``height`` image on
+    ``backend`` (JAX's default if None): about one round for small scenes, at most
+    `MAX_SLOTS` slots a round."""
+    backend = jax.default_backend() if backend is None else backend
+    cap = MAX_SLOTS.get(backend, MAX_SLOTS_ACCELERATOR)
+    tiles = (-(-width // block)) * (-(-height // block))
+    want = max(4 * num_faces, tiles, 256)
+    return RasterStrategy(block=block, slots=int(min(cap, 1 << (want - 1).bit_length())))
 
 _NO_TRIANGLE = np.iinfo(np.int32).max
 _ANY_TRIANGLE = np.iinfo(np.int32).min  # below every id: a no-op in a max
@@ -623,51 +679,20 @@ def _window_corners(clip, faces, *, width, height, subpixel_bits):
     return _Corners(materialize(h), faces), _Corners(h_unsnapped, faces)
 
 
-def _triangle_windows(counts: Array, window_triangles: int):
-    """The triangles with slots (``counts > 0``, (F,)) in windows of at most
-    ``window_triangles``, in order: ``(n_windows, window)``, ``window(w)`` giving window
-    ``w``'s triangles ``order`` and their slot counts, each (``window_triangles``,) (padded
-    with triangle 0 and no slots); ``n_windows`` is static (1) where ``window_triangles >=
-    F``. A dense mesh has far fewer triangles with slots than triangles (the 200k torus at
-    512^2: 44,163): packed into a list of 2^16 rather than of 200k, the list and its running
-    sums cost a third (`WINDOW_TRIANGLES`)."""
+def _with_slots(counts: Array) -> tuple[Array, Array]:
+    """The triangles that have slots (``counts > 0``, (F,)), in order, and their slot counts,
+    each (F,) (padded with triangle 0 and no slots): a dense mesh has far fewer such
+    triangles than triangles, and the slots' bookkeeping runs over this list."""
     n = counts.shape[0]
-    if n <= window_triangles:
-        order = flat_nonzero(counts > 0, n, 0)
-        live = jnp.arange(n) < jnp.sum(counts > 0)
-        return 1, lambda w: (order, jnp.where(live, counts[order], 0))
-    total, ranked = ranked_nonzero(counts > 0)
-
-    def window(w):
-        first = w * window_triangles
-        order = ranked(first, window_triangles, 0)
-        live = jnp.arange(window_triangles) < total - first
-        return order, jnp.where(live, counts[order], 0)
-
-    return _div(total + (window_triangles - 1), window_triangles), window
-
-
-def _each_window(fn, counts, carry, window_triangles: int):
-    """``carry = fn(order, counts_w, carry)`` for each window of `_triangle_windows` in
-    turn (a while loop where there may be more than one)."""
-    n_windows, window = _triangle_windows(counts, window_triangles)
-    if isinstance(n_windows, int):
-        return fn(*window(0), carry)
-    x64 = bool(jax.config.jax_enable_x64)  # the caller's
-
-    def one(c):
-        w, carry = c
-        with jax.enable_x64(x64):
-            return w + 1, fn(*window(w), carry)
-
-    with jax.enable_x64(x64 or any(x.dtype == np.uint64 for x in jax.tree.leaves(carry))):
-        return jax.lax.while_loop(lambda c: c[0] < n_windows, one, (jnp.int32(0), carry))[1]
+    order = flat_nonzero(counts > 0, n, 0)
+    live = jnp.arange(n) < jnp.sum(counts > 0)
+    return order, jnp.where(live, counts[order], 0)
 
 
 def _fragment_source(tri, tri_depth, setup, order, counts, *, width, height, block, slots):
     """Returns ``(fragments(slot0), total_slots)`` for triangles with corners ``tri``
     (coverage), ``tri_depth`` (depth) and `_triangle_setup` result ``setup``, taking
-    ``counts`` slots of each triangle ``order`` (a window of `_triangle_windows`)."""
+    ``counts`` slots of each triangle ``order`` (`_with_slots`)."""
     sigma, tx0, ty0, nbx, _ = setup  # (the slot counts come as `counts`)
     ends = cumsum(counts)
     starts = ends - counts
@@ -682,26 +707,15 @@ def _fragment_source(tri, tri_depth, setup, order, counts, *, width, height, blo
     return fragments, total
 
 
-_STATIC = ("width", "height", "cull_back", "block", "slots", "subpixel_bits",
-           "window_triangles")
+_STATIC = ("width", "height", "cull_back", "subpixel_bits", "strategy")
 
 
-def _depth_test(tri, tri_depth, setup, counts, buf, *, width, height, block, slots,
-                window_triangles):
+def _depth_test(tri, tri_depth, setup, counts, buf, *, width, height, block, slots):
     """Depth-test triangles into the tiled buffer ``buf`` (tiles, block, block): uint64 keys
     (`_depth_keys`) where the depth is at most 32 bits wide, else a pair (depth, triangle).
-    ``counts`` (F,): each triangle's slots (`_each_pass`), taken ``window_triangles``
-    triangles with slots at a time (`_each_window`)."""
-    return _each_window(lambda order, n, buf: _depth_test_window(
-        tri, tri_depth, setup, order, n, buf, width=width, height=height, block=block,
-        slots=slots), counts, buf, window_triangles)
-
-
-def _depth_test_window(tri, tri_depth, setup, order, counts, buf, *, width, height, block,
-                       slots):
-    """`_depth_test` of one window of triangles (`_fragment_source`)."""
-    fragments, total = _fragment_source(tri, tri_depth, setup, order, counts, width=width,
-                                        height=height, block=block, slots=slots)
+    ``counts`` (F,): each triangle's slots (`_each_pass`)."""
+    fragments, total = _fragment_source(tri, tri_depth, setup, *_with_slots(counts),
+                                        width=width, height=height, block=block, slots=slots)
     keyed = not isinstance(buf, tuple)
     x64 = bool(jax.config.jax_enable_x64)  # the caller's
 
@@ -786,28 +800,6 @@ def _tiles_to_image(tiles: Array, width: int, height: int) -> Array:
     return window[:height, :width][::-1]
 
 
-#: Slots per pass: a frame's slots are counted in int32, so a frame with more than this many
-#: (only possible with huge triangles by the tens of thousands) is depth-tested in several
-#: passes over its triangles, each counting at most this many plus one triangle's slots.
-PASS_SLOTS = 1 << 30
-
-
-#: The most triangles with slots taken in one window, by backend (`_triangle_windows`;
-#: others: all of them in one). The 200k torus's visibility on the 2-core VM, against one
-#: window of all 200k triangles: 0.88x at 512^2 in windows of 2^16 (one window: 44,163
-#: triangles with slots), 0.92x in 1.5 * 2^16, 0.95x in 2^17; at 1024^2 0.96x in windows
-#: of 2^16 (two), 1.5 * 2^16 or 2^17 alike; the whole frame 0.94x and 1.00x. A GPU would
-#: wait on the host once more per window.
-WINDOW_TRIANGLES = {"cpu": 1 << 16}
-
-
-def default_window_triangles(num_faces: int, backend: str | None = None) -> int:
-    """`WINDOW_TRIANGLES` of the ``backend`` (JAX's default if None), at most ``num_faces``
-    (and at least 1)."""
-    backend = jax.default_backend() if backend is None else backend
-    return int(max(1, min(num_faces, WINDOW_TRIANGLES.get(backend, num_faces))))
-
-
 def _slot_passes(counts: Array, pass_slots: int) -> tuple[Array, Array]:
     """The pass of each triangle (F,) int32 and the number of passes, for triangles with
     ``counts`` slots each (each at most ``pass_slots``): triangle i is in pass
@@ -856,46 +848,44 @@ def _each_pass(fn, counts, carry, *, tiles: int, pass_slots: int):
                                   (jnp.int32(0), carry))[1]
 
 
-@functools.partial(jax.jit, static_argnames=_STATIC + ("pass_slots",))
-def _rasterize(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits,
-               window_triangles, pass_slots=PASS_SLOTS):
+@functools.partial(jax.jit, static_argnames=_STATIC)
+def _rasterize(clip, faces, *, width, height, cull_back, subpixel_bits, strategy):
     tid, sigma, tri_depth = _visible_triangles(
-        clip, faces, width=width, height=height, cull_back=cull_back, block=block,
-        slots=slots, subpixel_bits=subpixel_bits, window_triangles=window_triangles,
-        pass_slots=pass_slots)
+        clip, faces, width=width, height=height, cull_back=cull_back,
+        subpixel_bits=subpixel_bits, strategy=strategy)
     # facing from the coverage (snapped) orientation, as the rasterizer saw the triangle
     depth, front = _depth_and_facing(tri_depth, sigma, tid,
                                      *pixel_centers(height, width, tri_depth.dtype))
     return tid, depth, front
 
 
-def _visible_triangles(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits,
-                       window_triangles, pass_slots=PASS_SLOTS):
+def _visible_triangles(clip, faces, *, width, height, cull_back, subpixel_bits,
+                       strategy: RasterStrategy):
     """Each pixel's triangle (H, W) (-1: background), each triangle's orientation sign
     (F,) in the window (the snapped corners' ``sign(det M)``: +1 counter-clockwise, i.e.
     front-facing) and the unsnapped corners (`_Corners`)."""
-    kw = dict(width=width, height=height, block=block, slots=slots,
-              window_triangles=window_triangles)
+    block = strategy.block
+    kw = dict(width=width, height=height, block=block, slots=strategy.slots)
     tiles = (-(-width // block)) * (-(-height // block))
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     setup = _triangle_setup(tri, width, height, block, cull_back)
     buf = _each_pass(lambda n, buf: _depth_test(tri, tri_depth, setup, n, buf, **kw),
                      setup[4], _empty_depth_buffer(tiles, block, clip.dtype), tiles=tiles,
-                     pass_slots=pass_slots)
+                     pass_slots=strategy.pass_slots)
     ids = _tiles_to_image(_winners(buf), width, height)
     return jnp.where(ids != _NO_TRIANGLE, ids, -1), setup[0], tri_depth
 
 
 def triangle_ids(clip: Array, faces: Array, *, width: int, height: int,
                  cull_back: bool = False, subpixel_bits: int | None = SUBPIXEL_BITS,
-                 block: int = 4, slots: int | None = None) -> tuple[Array, Array]:
+                 strategy: RasterStrategy | None = None) -> tuple[Array, Array]:
     """`rasterize`'s triangle ids alone, (H, W) int32 (-1: background), and each triangle's
     orientation in the window (F,) (+1: counter-clockwise, front-facing; -1: clockwise; 0:
     degenerate), which `compact` takes instead of computing the facing of every packed
     pixel again. Same arguments as `rasterize`; traceable (no eager checks of values)."""
-    clip, faces, kw = _prepare_args(clip, faces, width, height, cull_back, subpixel_bits, block,
-                                    slots)
+    clip, faces, kw = _prepare_args(clip, faces, width, height, cull_back, subpixel_bits,
+                                    strategy)
     if faces.shape[0] == 0:
         return jnp.full((height, width), -1, jnp.int32), jnp.zeros((0,), clip.dtype)
     tid, sigma, _ = _visible_triangles(clip, faces, **kw)
@@ -928,17 +918,18 @@ def _pixel_depth(tri_depth: _Corners, tid: Array, x: Array, y: Array) -> Array:
     return num / jnp.where(den == 0, 1.0, den)
 
 
-@functools.partial(jax.jit, static_argnames=_STATIC + ("pass_slots",))
-def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_bits,
-              window_triangles, pass_slots=PASS_SLOTS):
+@functools.partial(jax.jit, static_argnames=_STATIC)
+def _overdraw(clip, faces, *, width, height, cull_back, subpixel_bits, strategy):
+    block, slots = strategy.block, strategy.slots
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     tiles = (-(-width // block)) * (-(-height // block))
     setup = _triangle_setup(tri, width, height, block, cull_back)
 
-    def one_window(order, counts, count):
-        fragments, total = _fragment_source(tri, tri_depth, setup, order, counts, width=width,
-                                            height=height, block=block, slots=slots)
+    def one_pass(counts, count):
+        fragments, total = _fragment_source(tri, tri_depth, setup, *_with_slots(counts),
+                                            width=width, height=height, block=block,
+                                            slots=slots)
 
         def round_(c):
             q, count = c
@@ -948,53 +939,30 @@ def _overdraw(clip, faces, *, width, height, cull_back, block, slots, subpixel_b
         return jax.lax.while_loop(lambda c: c[0] * slots < total, round_,
                                   (jnp.int32(0), count))[1]
 
-    count = _each_pass(lambda n, count: _each_window(one_window, n, count, window_triangles),
-                       setup[4], jnp.zeros((tiles, block, block), jnp.int32), tiles=tiles,
-                       pass_slots=pass_slots)
+    count = _each_pass(one_pass, setup[4], jnp.zeros((tiles, block, block), jnp.int32),
+                       tiles=tiles, pass_slots=strategy.pass_slots)
     return _tiles_to_image(count, width, height)
 
 
 def overdraw(clip: Array, faces: Array, *, width: int, height: int, cull_back: bool = False,
-             subpixel_bits: int | None = SUBPIXEL_BITS, block: int = 4,
-             slots: int | None = None) -> Array:
+             subpixel_bits: int | None = SUBPIXEL_BITS,
+             strategy: RasterStrategy | None = None) -> Array:
     """(H, W) int32: how many triangles cover each pixel, before the depth test.
 
     Same coverage rules as `rasterize` (fill rule, clipping, culling). Useful to
     visualise overdraw and to check watertightness: a closed mesh seen from
     outside covers every pixel 0 or 2 times, from inside exactly once.
     """
-    clip, faces, kw = _prepare_args(clip, faces, width, height, cull_back, subpixel_bits, block,
-                                    slots)
+    clip, faces, kw = _prepare_args(clip, faces, width, height, cull_back, subpixel_bits,
+                                    strategy)
     if faces.shape[0] == 0:
         return jnp.zeros((height, width), jnp.int32)
     return _overdraw(clip, faces, **kw)
 
 
-#: The most slots per round, by backend. On the CPU a round's buffers should stay in cache
-#: (2^14: 1.1-1.4x slower, 2^17: 1.3-3x slower than 2^15; 2-core VM). A GPU's while loop
-#: waits on the host for its condition every round, so it wants few, large rounds: on an
-#: H100, visibility of the 200k torus at 1024^2 takes 5.2 ms at 2^15, 2.5 at 2^17, 1.6 at
-#: 2^19 and 3.5 at 2^21 (20k at 512^2: 1.25, 1.02, 1.44 ms at 2^15, 2^17, 2^19), 2026-11-25,
-#: ``scripts/profile_render.py --slots``.
-MAX_SLOTS = {"cpu": 1 << 15}
-MAX_SLOTS_ACCELERATOR = 1 << 19
-
-
-def default_slots(num_faces: int, width: int, height: int, block: int,
-                  backend: str | None = None) -> int:
-    """Slots per round: about one round for small scenes, at most `MAX_SLOTS` of the
-    ``backend`` (JAX's default backend if None; `MAX_SLOTS_ACCELERATOR` for GPUs and other
-    accelerators). More rounds run as needed."""
-    backend = jax.default_backend() if backend is None else backend
-    cap = MAX_SLOTS.get(backend, MAX_SLOTS_ACCELERATOR)
-    n_blocks = (-(-width // block)) * (-(-height // block))
-    want = max(4 * num_faces, n_blocks, 256)
-    return int(min(cap, 1 << (want - 1).bit_length()))
-
-
 def rasterize(clip: Array, faces: Array, *, width: int, height: int, cull_back: bool = False,
-              subpixel_bits: int | None = SUBPIXEL_BITS, block: int = 4,
-              slots: int | None = None) -> Fragments:
+              subpixel_bits: int | None = SUBPIXEL_BITS,
+              strategy: RasterStrategy | None = None) -> Fragments:
     """Rasterize triangles given in clip space (see the module docstring for the conventions).
 
     **Arguments:**
@@ -1005,15 +973,14 @@ def rasterize(clip: Array, faces: Array, *, width: int, height: int, cull_back: 
     - `subpixel_bits`: snap vertex positions to this sub-pixel grid for the
       coverage test (8, like llvmpipe and most GPUs), or None for exact
       (unsnapped) coverage. Interpolation always uses the unsnapped positions.
-    - `block`: side of the pixel blocks a triangle's bounding box is split into.
-    - `slots`: number of (triangle, block) pairs evaluated per round; more rounds
-      run automatically when a frame needs more. Defaults to `default_slots`.
+    - `strategy`: how the work is split (tiles, rounds, windows, passes; the same result
+      whatever it is): a `RasterStrategy`, by default `default_strategy`'s.
 
     **Returns:** a `Fragments`. Visibility is not differentiable; gradients of
     interpolated attributes flow through `Fragments.clip` instead.
     """
-    clip, faces, kw = _prepare_args(clip, faces, width, height, cull_back, subpixel_bits, block,
-                                    slots)
+    clip, faces, kw = _prepare_args(clip, faces, width, height, cull_back, subpixel_bits,
+                                    strategy)
     num_faces = faces.shape[0]
     if num_faces == 0:
         tid = jnp.full((height, width), -1, jnp.int32)
@@ -1023,7 +990,7 @@ def rasterize(clip: Array, faces: Array, *, width: int, height: int, cull_back: 
     return Fragments(tid, depth, front, clip, faces)
 
 
-def _prepare_args(clip, faces, width, height, cull_back, subpixel_bits, block, slots):
+def _prepare_args(clip, faces, width, height, cull_back, subpixel_bits, strategy):
     """Validate `rasterize` arguments (eagerly where values are concrete)."""
     if not all(isinstance(v, (int, np.integer)) and v > 0 for v in (width, height)):
         raise ValueError(f"rasterize: image size must be positive integers, got width={width!r}, "
@@ -1043,8 +1010,12 @@ def _prepare_args(clip, faces, width, height, cull_back, subpixel_bits, block, s
     if subpixel_bits is not None and not 0 <= subpixel_bits <= 12:
         raise ValueError(f"rasterize: `subpixel_bits` must be in [0, 12] or None, got "
                          f"{subpixel_bits}")
-    if block < 1:
-        raise ValueError(f"rasterize: `block` must be >= 1, got {block}")
+    if strategy is None:
+        strategy = default_strategy(faces.shape[0], width, height)
+    elif not isinstance(strategy, RasterStrategy):
+        raise ValueError(f"rasterize: `strategy` must be a RasterStrategy, got "
+                         f"{type(strategy).__name__}")
+    block = strategy.block
     if width * height >= 2**31 or (-(-width // block)) * (-(-height // block)) > 2**28:
         raise ValueError(f"rasterize: a {width}x{height} image is too large (at most 2**31 - 1 "
                          f"pixels and 2**28 tiles of block x block)")
@@ -1058,9 +1029,6 @@ def _prepare_args(clip, faces, width, height, cull_back, subpixel_bits, block, s
         if lo < 0 or hi >= clip.shape[0]:
             raise ValueError(f"rasterize: face indices must be in [0, {clip.shape[0] - 1}], "
                              f"found {lo if lo < 0 else hi}")
-    if slots is None:
-        slots = default_slots(faces.shape[0], width, height, block)
-    kw = dict(width=width, height=height, cull_back=cull_back, block=block, slots=slots,
-              subpixel_bits=subpixel_bits,
-              window_triangles=default_window_triangles(faces.shape[0]))
+    kw = dict(width=width, height=height, cull_back=cull_back, subpixel_bits=subpixel_bits,
+              strategy=strategy)
     return clip, faces, kw

@@ -453,6 +453,11 @@ PACK_MIN_PIXELS = 1 << 16
 PIXEL_CHUNK = (1 << 14, 1 << 16)
 
 
+#: The packed per-pixel stages shade at most this many covered pixels at a time (a pass),
+#: and at most a quarter of the image's.
+PASS_SLOTS = 1 << 16
+
+
 def _packs(opts: RenderOptions, backend: str | None = None) -> bool:
     """Whether `render` runs the per-pixel stages of ``opts`` on packed covered pixels."""
     backend = jax.default_backend() if backend is None else backend
@@ -598,7 +603,7 @@ def _packed_passes(per_pixel, tid: Array, clip: Array, faces: Array, orientation
     mapped and page-faulted in again on every call (6,000 faults a frame, 1.6x the time)."""
     height, width = opts.height, opts.width
     pixels = height * width
-    slots = -(-pixels // 4)
+    slots = min(-(-pixels // 4), PASS_SLOTS)
     total, window = ranked_nonzero(tid.reshape(-1) >= 0)
     names = [n for n in opts.outputs if n not in ("mask", "triangle_id")]
     shapes = jax.eval_shape(
@@ -625,7 +630,7 @@ def _packed_passes(per_pixel, tid: Array, clip: Array, faces: Array, orientation
         s = shapes[n]
         return jnp.zeros((pixels,) + s.shape[1:], s.dtype)
 
-    images = jax.lax.fori_loop(0, 4, step, {n: blank(n) for n in names})
+    images = jax.lax.fori_loop(0, -(-pixels // slots), step, {n: blank(n) for n in names})
     out = {"mask": tid >= 0, "triangle_id": tid}
     out.update({n: v.reshape((height, width) + v.shape[1:]) for n, v in images.items()})
     return {n: out[n] for n in opts.outputs}

@@ -10,7 +10,7 @@ from helpers import box, clip_of, grid_plane, icosphere, perspective_mvp, random
 from refraster import rasterize_ref
 
 import jaxnm
-from jaxnm.raster import overdraw
+from jaxnm.raster import RasterStrategy, overdraw
 
 
 def _unsnapped_depth(ref, clip, faces):
@@ -395,12 +395,12 @@ def test_float64_clip_and_64_bit_callers_rasterize_alike(x64):
         # and in many passes (the frames of over 2**30 slots)
         from jaxnm import raster
 
-        kw = dict(width=40, height=40, cull_back=False, block=4, slots=64, subpixel_bits=8)
+        kw = dict(width=40, height=40, cull_back=False, subpixel_bits=8)
         for c, want in ((jnp.asarray(clip, dtype), tid), (jnp.asarray(clip), tid32)):
-            for window_triangles in (len(faces), 5):  # and in windows of 5 triangles
-                passes = raster._rasterize(c, jnp.asarray(faces, jnp.int32), pass_slots=32,
-                                           window_triangles=window_triangles, **kw)
-                assert np.array_equal(np.asarray(passes[0]), want)
+            passes = raster._rasterize(c, jnp.asarray(faces, jnp.int32),
+                                       strategy=raster.RasterStrategy(slots=64, pass_slots=32),
+                                       **kw)
+            assert np.array_equal(np.asarray(passes[0]), want)
     assert (tid >= 0).mean() > 0.2
     assert np.array_equal(tid[~amb], ref["triangle_id"][~amb])
     assert np.array_equal(tid32[~amb], ref["triangle_id"][~amb])
@@ -432,86 +432,72 @@ def test_triangle_ids_and_orientation_give_rasterize_and_compact():
             assert np.array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)))
 
 
-def test_many_rounds_passes_and_windows_give_the_same_image():
+def test_many_rounds_and_passes_give_the_same_image():
     """A tiny slot budget forces many rounds, a tiny pass size many passes (the int32
-    overflow path of frames with over 2**30 slots), a tiny window of triangles with slots
-    many windows (`raster.WINDOW_TRIANGLES`), alone and within each pass: the result must not
-    change."""
+    overflow path of frames with over 2**30 slots; `raster.RasterStrategy`): the result must
+    not change."""
+    from jaxnm import raster
+    from jaxnm.raster import RasterStrategy
+
     pos, faces = icosphere(2)
     clip = clip_of(pos, perspective_mvp((0.2, 0.5, 2.6))).astype(np.float32)
     a = jaxnm.rasterize(clip, faces, width=40, height=40)
-    b = jaxnm.rasterize(clip, faces, width=40, height=40, slots=7, block=2)
+    b = jaxnm.rasterize(clip, faces, width=40, height=40,
+                        strategy=RasterStrategy(slots=7, block=2))
     assert np.array_equal(np.asarray(a.triangle_id), np.asarray(b.triangle_id))
-    from jaxnm import raster
 
-    kw = dict(width=40, height=40, cull_back=False, block=4, slots=64, subpixel_bits=8,
-              window_triangles=len(faces))
+    kw = dict(width=40, height=40, cull_back=False, subpixel_bits=8)
+    passes = RasterStrategy(slots=64, pass_slots=32)
     reference = np.asarray(raster.overdraw(clip, faces, width=40, height=40))
     c_tid, c_depth, c_front = raster._rasterize(
-        jnp.asarray(clip), jnp.asarray(faces, jnp.int32), pass_slots=32, **kw)
+        jnp.asarray(clip), jnp.asarray(faces, jnp.int32), strategy=passes, **kw)
     assert np.array_equal(np.asarray(a.triangle_id), np.asarray(c_tid))
     assert np.array_equal(np.asarray(a.front_facing), np.asarray(c_front))
-    counts = raster._overdraw(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), pass_slots=32,
-                              **kw)
+    counts = raster._overdraw(jnp.asarray(clip), jnp.asarray(faces, jnp.int32),
+                              strategy=passes, **kw)
     assert np.array_equal(np.asarray(counts), reference)
-    # windows of 13 triangles with slots: alone (one pass), and within many passes
-    windowed = dict(kw, window_triangles=13)
-    tid, _, front = raster._rasterize(jnp.asarray(clip), jnp.asarray(faces, jnp.int32),
-                                      **windowed)
-    assert np.array_equal(np.asarray(a.triangle_id), np.asarray(tid))
-    assert np.array_equal(np.asarray(a.front_facing), np.asarray(front))
-    counts = raster._overdraw(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), **windowed)
-    assert np.array_equal(np.asarray(counts), reference)
-    tid, _, _ = raster._rasterize(jnp.asarray(clip), jnp.asarray(faces, jnp.int32),
-                                  pass_slots=32, **windowed)
-    assert np.array_equal(np.asarray(a.triangle_id), np.asarray(tid))
     # that was many passes
     tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=40,
                                     height=40, subpixel_bits=8)
     count = raster._triangle_setup(tri, 40, 40, 4, False)[4]
     assert int(raster._slot_passes(count, 32)[1]) > 5
-    assert int(jnp.sum(count > 0)) > 10 * 13  # and many windows
     # a pass size the faces x tiles bound exceeds but the frame's slots fit: one pass,
     # found by the float32 sum (not the exact running sums), the same image again
     total = int(jnp.sum(count))
     one = 1 << total.bit_length()
     assert len(faces) * 100 > one > total
     d_tid, _, _ = raster._rasterize(jnp.asarray(clip), jnp.asarray(faces, jnp.int32),
-                                    pass_slots=one, **kw)
+                                    strategy=RasterStrategy(slots=64, pass_slots=one), **kw)
     assert np.array_equal(np.asarray(a.triangle_id), np.asarray(d_tid))
 
 
-def test_windows_of_triangles_by_backend():
-    """The CPU takes triangles with slots 2^16 at a time (`raster.WINDOW_TRIANGLES`), never
-    more than the mesh has; a GPU all of them at once (no host wait per window)."""
-    from jaxnm import raster
-
-    assert raster.default_window_triangles(200_000, "cpu") == 1 << 16
-    assert raster.default_window_triangles(20_480, "cpu") == 20_480
-    assert raster.default_window_triangles(200_000, "gpu") == 200_000
-    assert raster.default_window_triangles(0, "cpu") == 1
-
-
-def test_round_size_by_backend_does_not_change_the_image():
-    """A GPU takes larger rounds than the CPU (`raster.MAX_SLOTS`); the frame is the same."""
+def test_the_strategy_by_backend_does_not_change_the_image():
+    """`default_strategy`: a GPU takes larger rounds than the CPU (`raster.MAX_SLOTS`); the
+    frame is the same."""
     from jaxnm import procedural, raster
 
-    assert raster.default_slots(20480, 512, 512, 4, backend="cpu") == 2**15
-    assert raster.default_slots(20480, 512, 512, 4, backend="gpu") == 2**17
-    assert raster.default_slots(200_000, 1024, 1024, 4, backend="gpu") == 2**19
-    assert raster.default_slots(10, 16, 16, 4, backend="gpu") == 256  # small scenes: one round
+    def strategy(faces, size, backend):
+        return raster.default_strategy(faces, size, size, backend=backend)
+
+    assert strategy(20480, 512, "cpu").slots == 2**15
+    assert strategy(20480, 512, "gpu").slots == 2**17
+    assert strategy(200_000, 1024, "gpu").slots == 2**19
+    assert strategy(10, 16, "gpu").slots == 256  # small scenes: one round
     torus = procedural.torus(1.0, 0.4, 128, 80)
     clip = clip_of(np.asarray(torus.positions, np.float64),
                    perspective_mvp((0.3, 2.0, 2.2))).astype(np.float32)
     kw = dict(width=48, height=48)
-    cpu, gpu = (raster.default_slots(len(torus.faces), 48, 48, 4, backend=b)
-                for b in ("cpu", "gpu"))
-    assert (cpu, gpu) == (2**15, 2**17)
-    a = jaxnm.rasterize(clip, torus.faces, slots=cpu, **kw)
-    b = jaxnm.rasterize(clip, torus.faces, slots=gpu, **kw)
+    cpu, gpu = (strategy(len(torus.faces), 48, b) for b in ("cpu", "gpu"))
+    assert (cpu.slots, gpu.slots) == (2**15, 2**17)
+    a = jaxnm.rasterize(clip, torus.faces, strategy=cpu, **kw)
+    b = jaxnm.rasterize(clip, torus.faces, strategy=gpu, **kw)
     assert (np.asarray(a.triangle_id) >= 0).mean() > 0.2
     for field in ("triangle_id", "depth", "front_facing"):
         assert np.array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)))
+    with pytest.raises(ValueError, match="power of two"):
+        raster.RasterStrategy(pass_slots=3)
+    with pytest.raises(ValueError, match="`block` must be a positive int"):
+        raster.RasterStrategy(block=0)
 
 
 def test_slot_passes_count_past_int32():
@@ -543,8 +529,8 @@ def test_slot_passes_count_past_int32():
          dict(width=8, height=8), "non-finite"),
         (np.zeros((3, 4)), [[0.0, 1.0, 2.0]], dict(width=8, height=8), "integers"),
         (np.zeros((3, 4)), [[0, 1, 2]], dict(width=65536, height=32768), "too large"),
-        (np.zeros((3, 4)), [[0, 1, 2]], dict(width=32768, height=32768, block=1),
-         "too large"),
+        (np.zeros((3, 4)), [[0, 1, 2]],
+         dict(width=32768, height=32768, strategy=RasterStrategy(block=1)), "too large"),
     ],
 )
 def test_bad_arguments_raise_clear_errors(clip, faces, kw, match):
