@@ -79,7 +79,7 @@ def spread(x: ArrayLike, n: int = 3) -> Array:
     colour): broadcasting it is free in the forward pass, but reverse mode transposes a
     broadcast into a reduction over the minor axis of ``n``, which XLA's CPU runs
     through a library call an order of magnitude slower than it should be (one such
-    reduction over 65536 pixels: 2.7 ms, a fifth of a whole frame's gradient). The
+    reduction over 65536 pixels took a fifth of a whole frame's gradient). The
     transpose of a concatenation is slices and elementwise adds, which fuse. The values
     are the same either way.
     """
@@ -114,10 +114,10 @@ def cumsum(x: ArrayLike, block: int = 8) -> Array:
     """Inclusive running sum of a 1-D integer array: `jnp.cumsum`, faster on XLA's CPU.
 
     Exact (integer adds in the array's dtype, wrapping as they do). ``jnp.cumsum``
-    lowers to a tree of reduce-windows and a gather-like combine: 0.9-1.0 ms for 2^18
-    int32 values on a 2-core VM. Here: running sums within blocks of ``block`` by
-    ``log2(block)`` shifted adds, the blocks' totals summed the same way, one level
-    down (until a level fits in one block), then added back: 0.2-0.3 ms.
+    lowers to a tree of reduce-windows and a gather-like combine. Here: running sums within
+    blocks of ``block`` by ``log2(block)`` shifted adds, the blocks' totals summed the same
+    way, one level down (until a level fits in one block), then added back: about a quarter
+    of the time on XLA's CPU.
     """
     x = jnp.asarray(x)
     if x.ndim != 1 or not jnp.issubdtype(x.dtype, jnp.integer):
@@ -141,14 +141,11 @@ def flat_nonzero(mask: ArrayLike, size: int, fill_value: int) -> Array:
     first ``size`` of them, then ``fill_value``: ``jnp.nonzero(mask, size=size,
     fill_value=fill_value)[0]``.
 
-    Two ways, by the work each costs on XLA's CPU (a 2-core VM). A mask of 2^16 entries or
-    more (an image's pixels, a large mesh's triangles) is packed into 32-bit words, and each
-    *output* slot finds its entry: which word by a running count of the words' set bits,
-    which bit from the word's bytes and a table; the mask is read once, and the running sum
-    is over a 32nd of it (2^20 pixels into 2^18 slots: 3.2 -> 0.7 ms; 200k triangles into
-    as many slots: 0.60 -> 0.47 ms).
-    A smaller one takes one running sum (`cumsum`) and one scatter (20k entries: 0.04
-    ms, against 0.10 by words)."""
+    Two ways, by the work each costs on XLA's CPU. A mask of 2^16 entries or more (an
+    image's pixels, a large mesh's triangles) is packed into 32-bit words, and each *output*
+    slot finds its entry: which word by a running count of the words' set bits, which bit
+    from the word's bytes and a table; the mask is read once, and the running sum is over a
+    32nd of it. A smaller one takes one running sum (`cumsum`) and one scatter."""
     mask = jnp.asarray(mask)
     if mask.ndim != 1 or mask.dtype != jnp.bool_:
         raise ValueError(f"flat_nonzero: expected a 1-D boolean mask, got {mask.dtype}{mask.shape}")

@@ -105,10 +105,10 @@ class RasterStrategy:
 
 
 #: The most slots per round, by backend (others: `MAX_SLOTS_ACCELERATOR`). On the CPU a
-#: round's buffers should stay in its caches (2^14 and 2^17 slots were 1.1-1.4x and 1.3-3x
-#: slower than 2^15 on a 2-core x86-64 CPU). A GPU's while loop waits on the host for its
-#: condition every round, so it wants few large rounds (on an H100, visibility of the 200k
-#: torus at 1024^2 took 5.2 ms at 2^15, 2.5 at 2^17, 1.6 at 2^19 and 3.5 at 2^21).
+#: round's buffers should stay in its caches (2^15 was the fastest of 2^14 to 2^17); a
+#: GPU's while loop waits on the host for its condition every round, so it wants few large
+#: rounds (2^19 was the fastest of 2^15 to 2^21 for the benchmark's 200k torus at 1024^2).
+#: `python -m scripts.benchmarks.bench --parts raster` measures visibility.
 MAX_SLOTS = {"cpu": 1 << 15}
 MAX_SLOTS_ACCELERATOR = 1 << 19
 
@@ -249,7 +249,7 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
                                      subpixel_bits=subpixel_bits)
     covered = tid >= 0
     t = jnp.maximum(tid, 0)
-    if orientation is not None:  # (200k triangles at 512^2: 0.9 ms of gathers and snapping)
+    if orientation is not None:  # (spares every slot a gather of its corners and snapping)
         sigma = orientation[t]
     elif capacity < faces.shape[0]:
         # the facing from the fragment's own (snapped) corners: no pass over the mesh
@@ -271,7 +271,7 @@ def expand(values: Array, index: Array, height: int, width: int, fill=0) -> Arra
     # Every slot writes its own pixel (unused slots: distinct indices past the end, dropped),
     # and saying so spares differentiation the general scatter's bookkeeping: for indices
     # that might repeat, JAX's forward-mode rule scatters an image of update ids and
-    # gathers it back to find the winners (1024^2, forward+backward: ~7 ms).
+    # gathers it back to find the winners.
     index = jnp.where(index < n, index, n + jnp.arange(index.shape[0], dtype=index.dtype))
     return out.at[index].set(values, mode="drop", unique_indices=True).reshape(
         (height, width) + values.shape[1:])
@@ -295,7 +295,7 @@ def window_homogeneous(clip: Array, width: int, height: int) -> Array:
 def _div(a: Array, b) -> Array:
     """``a // b`` for non-negative integers ``a`` and positive ``b``, as C division: jnp's
     floor division adds sign fix-ups to every loop it is in (the rasterizer's tile and
-    pixel index arithmetic: 200k triangles, 15.2 -> 14.2 ms a frame without them)."""
+    pixel index arithmetic)."""
     return jax.lax.div(a, jnp.asarray(b, a.dtype))
 
 
@@ -379,7 +379,7 @@ class _Corners:
 
         Structure of arrays: per-triangle setup on (F,) vectors fuses into a few loops,
         where the same arithmetic on (F, 3, 4) or (F, 6, 4) arrays (minor axes of 3 to 6)
-        ran an order of magnitude slower on XLA's CPU backend (200k triangles: 29 ms).
+        ran an order of magnitude slower on XLA's CPU backend.
         """
         return materialize([[self.vertices[:, c][self.faces[:, k]] for c in range(4)]
                             for k in range(3)])
@@ -408,7 +408,7 @@ def _window_box(pts, keep):
         ymin, ymax = jnp.minimum(ymin, jnp.where(k, py, big)), jnp.maximum(ymax, jnp.where(
             k, py, -big))
     # computed once: XLA would otherwise recompute the box (its divisions) in each fusion
-    # that uses it (four at first; 200k triangles: ~3 ms of the frame's CPU time)
+    # that uses it (four at first)
     return (*materialize((xmin, xmax, ymin, ymax)), bad_w)
 
 
@@ -425,7 +425,7 @@ def _triangle_setup(tri: _Corners, width: int, height: int, block: int, cull_bac
     The usual frame has every vertex snapped (``w = 1``: in front of the eye, within the
     snapping range) with a depth in [0, 1]: then nothing is clipped, no corner is divided,
     and a triangle needs only its corners' x and y, gathered as (F, 2) rows (three
-    gathers instead of twelve; the 200k torus's set-up 1.6 -> 1.0 ms on the 2-core VM).
+    gathers instead of twelve).
     Both ways give the same result there, bit for bit: a product with ``w = 1`` is exact.
     """
     h = tri.vertices
@@ -522,7 +522,7 @@ def _general_setup(h: Array, faces: Array, *, width, height, block, cull_back):
         return _window_box(v, [jnp.ones_like(f) for f in front])
 
     # the usual scene lies wholly in front of the near plane: then the crossings, their
-    # divisions and selects are not computed (200k triangles: 0.5 ms of a 2-core CPU)
+    # divisions and selects are not computed
     in_front = functools.reduce(jnp.logical_and, [jnp.all(f) for f in front])
     xmin, xmax, ymin, ymax, bad_w = jax.lax.cond(in_front, corners, clipped, v)
     # a weird projection (kept point with w <= 0): fall back to the whole screen
@@ -822,13 +822,13 @@ def _each_pass(fn, counts, carry, *, tiles: int, pass_slots: int):
     tiles) for that pass's triangles and 0 for the others; a single call with ``counts``
     itself where the frame cannot have more than ``pass_slots`` slots (faces x tiles;
     static). A while loop, not a ``lax.cond`` between it and one pass: XLA's CPU
-    conditional around the depth test made the whole frame ~9 ms slower at 200k triangles
+    conditional around the depth test made the whole frame slower at 200k triangles
     (the ``lax.cond`` below only chooses how the passes are counted)."""
     n = counts.shape[0]
     if n * tiles <= pass_slots:
         return fn(counts, carry)
     # Most frames fit in one pass, and a float32 sum of the counts (each < 2**28) says so
-    # for far less than `_slot_passes`' exact running sums (200k triangles: 0.1 vs 0.9 ms):
+    # for far less than `_slot_passes`' exact running sums:
     # its rounding error is below F * 2**-24 of the sum
     fits = jnp.sum(counts.astype(jnp.float32)) * (1.0 + n * 2.0**-24) < pass_slots
     passes, n_passes = jax.lax.cond(

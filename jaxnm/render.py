@@ -444,12 +444,10 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
 PACK_MIN_PIXELS = 1 << 16
 
 #: The packed per-pixel stages run in chunks of this many slots at least and at most (a
-#: `jax.lax.map`; a quarter of the image's slots in four chunks within these bounds).
-#: Chunks keep their intermediates, a few (slots, 3) float32 arrays each, in the caches:
-#: on a 2-core x86-64 CPU with 1 MiB of L2 per core, the per-pixel stages of the same 51k
-#: covered pixels took 4.5 ms in 2^16 slots and 18.6 ms in 2^17. Fewer chunks mean fewer
-#: whole-map gradient sums in a backward pass (20k torus at 1024^2, forward+backward: 71 ms
-#: in chunks of 2^16, 81 ms in 2^14).
+#: `jax.lax.map`; a pass's slots in four chunks within these bounds). Chunks keep their
+#: intermediates, a few (slots, 3) float32 arrays each, in the caches (with 1 MiB of L2 per
+#: core, 2^17 slots took four times as long as 2^16 for the same covered pixels); fewer
+#: chunks mean fewer whole-map gradient sums in a backward pass.
 PIXEL_CHUNK = (1 << 14, 1 << 16)
 
 
@@ -505,8 +503,7 @@ def _over_chunks(fn, frags: Fragments, chunk: int):
 
     # (`jax.checkpoint`: under reverse mode each chunk's forward is evaluated again in the
     # backward pass rather than its intermediates kept; stacking them chunk by chunk
-    # (zero-filled buffers, dynamic updates, copies) cost twice the recomputation: 4k
-    # sphere at 512^2, forward+backward w.r.t. the map 32 -> 14 ms)
+    # (zero-filled buffers, dynamic updates, copies) cost twice the recomputation)
     out = jax.lax.map(jax.checkpoint(one), per_slot)
     return jax.tree_util.tree_map(lambda y: y.reshape((k * size,) + y.shape[2:])[:n], out)
 
@@ -600,7 +597,7 @@ def _packed_passes(per_pixel, tid: Array, clip: Array, faces: Array, orientation
     quarter of the image covered runs one pass, and every pass's buffers are a quarter of
     the image's: on the CPU, XLA's temporary buffers of a 1024^2 frame then stay under
     glibc's largest threshold for reusing freed memory (32 MiB), where larger ones are
-    mapped and page-faulted in again on every call (6,000 faults a frame, 1.6x the time)."""
+    mapped and page-faulted in again on every call."""
     height, width = opts.height, opts.width
     pixels = height * width
     slots = min(-(-pixels // 4), PASS_SLOTS)
