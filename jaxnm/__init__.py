@@ -16,6 +16,7 @@ by `jaxnm.config`; files are read and written by `jaxnm.io` only.
 """
 
 from .bake import bake_normal_map as bake_normal_map
+from .blend import blend_normal_maps as blend_normal_maps
 from .camera import Camera as Camera
 from .camera import look_at as look_at
 from .camera import orthographic as orthographic
@@ -62,7 +63,7 @@ __all__ = [
     "Attribute", "Barycentrics", "Camera", "DirectionalLight", "FitJob", "FitOptions",
     "FitProblem", "FitTarget", "Fragments", "Frame", "Lights", "Material", "Mesh",
     "NormalMapOptions", "PointLight", "Scene", "bake_normal_map", "barycentrics",
-    "build_mipmaps", "compute_frame",
+    "blend_normal_maps", "build_mipmaps", "compute_frame",
     "cotangent_frame", "decode_normal_map", "default_problem", "default_scene",
     "directional_light", "encode_normal_map", "fit_normal_map", "interpolate", "load_fit",
     "load_scene", "look_at", "orthographic", "perspective", "perturb_normal", "rasterize",
