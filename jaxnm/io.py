@@ -20,8 +20,10 @@ Conventions:
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import io
+import itertools
 import json
 import os
 import re
@@ -54,6 +56,8 @@ __all__ = [
     "save_json",
     "save_loss_plot",
     "write_fit_outputs",
+    "write_fit_renders",
+    "atomic_write",
 ]
 
 PathLike = str | os.PathLike
@@ -70,6 +74,30 @@ _vertex_normals_jit = jax.jit(vertex_normals, static_argnames="weighting")
 
 class JaxnmWarning(UserWarning):
     """Something in an input file was repaired or guessed (e.g. normals computed)."""
+
+
+_TEMPORARY = itertools.count()
+
+
+@contextlib.contextmanager
+def atomic_write(path: PathLike):
+    """Write ``path`` atomically: yields a binary file open on a temporary name in the same
+    folder (``.NAME.PID-N.tmp``), which replaces ``path`` (`os.replace`) once the block has
+    finished; if it raises (a ``KeyboardInterrupt`` included), the temporary file is
+    removed and ``path`` is left as it was. Readers never see a part of a file, whenever
+    the writer is stopped. Parent directories are created."""
+    p = Path(os.fspath(path))
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(f".{p.name}.{os.getpid()}-{next(_TEMPORARY)}.tmp")
+    try:
+        with open(tmp, "xb") as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())  # the data is on disk before the name points to it
+        os.replace(tmp, p)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 # ----------------------------------------------------------------------------- common
@@ -657,15 +685,16 @@ def save_png(path: PathLike, image, *, bits: int = 8) -> None:
     maxv = 2**bits - 1
     q = np.floor(np.clip(img.astype(np.float64), 0.0, 1.0) * maxv + 0.5)
     q = q.astype(np.uint8 if bits == 8 else np.uint16)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_bytes(_encode_png(q))  # not imageio: Pillow cannot write 16-bit colour PNGs
+    data = _encode_png(q)  # not imageio: Pillow cannot write 16-bit colour PNGs
+    with atomic_write(p) as f:
+        f.write(data)
 
 
 def save_aovs(path: PathLike, aovs: dict[str, Any]) -> None:
     """Write named image buffers (AOVs) to an .npz file as float32 ``(H, W, C)`` arrays.
 
     2-D arrays get a trailing channel axis; bool and integer arrays become float32.
-    Parent directories are created.
+    Parent directories are created; the file is written atomically (`atomic_write`).
     """
     p = Path(os.fspath(path))
     if p.suffix.lower() != ".npz":
@@ -685,8 +714,7 @@ def save_aovs(path: PathLike, aovs: dict[str, Any]) -> None:
             raise ValueError(f"{p}: AOV {name!r} must have shape (H, W) or (H, W, C), got "
                              f"{a.shape}")
         out[name] = a.astype(np.float32)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    with open(p, "wb") as f:  # a file object: np.savez would append .npz to other names
+    with atomic_write(p) as f:  # a file object: np.savez would append .npz to other names
         np.savez(f, **out)
 
 
@@ -715,17 +743,18 @@ def _json_default(o):
 
 
 def save_json(path: PathLike, obj: Any) -> None:
-    """Write ``obj`` as indented JSON (NumPy scalars and arrays as numbers and lists)."""
-    p = Path(os.fspath(path))
-    p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
+    """Write ``obj`` as indented JSON (NumPy scalars and arrays as numbers and lists),
+    atomically (`atomic_write`)."""
+    text = json.dumps(obj, indent=2, default=_json_default) + "\n"
+    with atomic_write(path) as f:
+        f.write(text.encode())
 
 
 def save_loss_plot(path: PathLike, history: list[dict]) -> bool:
     """Plot the loss (log scale) and, when recorded, the mean angular error per iteration.
 
     Needs matplotlib (the ``cli`` extra: ``pip install jaxnm[cli]``); returns False,
-    writing nothing, when it is not installed.
+    writing nothing, when it is not installed. Written atomically (`atomic_write`), as a PNG.
     """
     try:
         from matplotlib.figure import Figure  # no pyplot: leaves the caller's backend alone
@@ -744,32 +773,42 @@ def save_loss_plot(path: PathLike, history: list[dict]) -> bool:
         ax2.set_ylabel("mean angular error (deg)", color="C1")
     ax.set_title("jaxnm fit")
     fig.tight_layout()
-    p = Path(os.fspath(path))
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p)
+    with atomic_write(path) as f:
+        fig.savefig(f, format="png")
     return True
 
 
-def write_fit_outputs(outdir: PathLike, outputs) -> list[str]:
-    """Write a `jaxnm.fit.FitOutputs` into ``outdir``: ``normal_map.png``,
-    ``normal_map.npz``, ``render_NN.png``, ``loss.json``, ``loss.png`` (with matplotlib),
-    ``error_map.png`` (with a ground truth) and ``report.json``. Returns the names written."""
+def write_fit_outputs(outdir: PathLike, outputs, *, plot: bool = True) -> list[str]:
+    """Write a `jaxnm.fit.FitOutputs` into ``outdir``, every file atomically
+    (`atomic_write`) and the map first: ``normal_map.npz``, ``normal_map.png``,
+    ``loss.json``, ``error_map.png`` (with a ground truth), ``report.json``, then
+    ``render_NN.png`` (one per row of `renders`, if any) and ``loss.png`` (with
+    ``plot`` and matplotlib). Returns the names written."""
     out = Path(os.fspath(outdir))
     out.mkdir(parents=True, exist_ok=True)
-    written = ["normal_map.png", "normal_map.npz"]
+    with atomic_write(out / "normal_map.npz") as f:
+        np.savez_compressed(f, normals=outputs.normals, slopes=outputs.slopes)
     save_png(out / "normal_map.png", outputs.map_texels, bits=outputs.bits)
-    np.savez_compressed(out / "normal_map.npz", normals=outputs.normals, slopes=outputs.slopes)
-    for k, row in enumerate(outputs.renders):
-        save_png(out / f"render_{k:02d}.png", row)
-    written += ["render_*.png", "loss.json"]
-    (out / "loss.json").write_text(json.dumps(outputs.history, indent=1) + "\n")
-    if save_loss_plot(out / "loss.png", outputs.history):
-        written.append("loss.png")
+    written = ["normal_map.npz", "normal_map.png", "loss.json"]
+    with atomic_write(out / "loss.json") as f:
+        f.write((json.dumps(outputs.history, indent=1) + "\n").encode())
     if outputs.error_map is not None:
         save_png(out / "error_map.png", outputs.error_map)
         written.append("error_map.png")
     save_json(out / "report.json", outputs.report)
-    return written + ["report.json"]
+    written += ["report.json"] + write_fit_renders(out, outputs.renders)
+    if plot and save_loss_plot(out / "loss.png", outputs.history):
+        written.append("loss.png")
+    return written
+
+
+def write_fit_renders(outdir: PathLike, renders: list) -> list[str]:
+    """Write each row of ``renders`` (`jaxnm.fit.FitOutputs.renders`) to
+    ``outdir/render_NN.png``; returns ``["render_*.png"]``, or ``[]`` for no rows."""
+    out = Path(os.fspath(outdir))
+    for k, row in enumerate(renders):
+        save_png(out / f"render_{k:02d}.png", row)
+    return ["render_*.png"] if len(renders) else []
 
 
 # ----------------------------------------------------------------------------- PNG codec
