@@ -44,10 +44,13 @@ levels), are weakly determined; the optional smoothness term regularises them.
 The package, by stage: `problem` (what to fit: `FitProblem`, `FitTarget`,
 `FitOptions`, `FitResult`), `prepare` (the fixed geometry, once), `model`
 (`residuals` and `loss` over `ModelArgs`), `solve` (`fit_normal_map`),
-`diagnostics` (seen texels, identifiability, errors) and `report` (what
-``jaxnm fit`` writes). The built-in problem is `jaxnm.procedural.default_problem`.
+`diagnostics` (seen texels, identifiability, errors), `report` (what
+``jaxnm fit`` writes) and `checkpoint` (a running fit saved, to resume it). The
+built-in problem is `jaxnm.procedural.default_problem`.
 """
 
+from .checkpoint import Checkpoint as Checkpoint
+from .checkpoint import load_checkpoint as load_checkpoint
 from .diagnostics import angular_error as angular_error
 from .diagnostics import check_identifiability as check_identifiability
 from .diagnostics import error_report as error_report
@@ -81,8 +84,10 @@ from .problem import problem_from_scene as problem_from_scene
 from .problem import validate_problem as validate_problem
 from .report import FitOutputs as FitOutputs
 from .report import fit_outputs as fit_outputs
+from .report import fit_renders as fit_renders
 from .report import prepare_held_out as prepare_held_out
 from .report import score_held_out as score_held_out
+from .solve import STOP_TESTS as STOP_TESTS
 from .solve import fit_normal_map as fit_normal_map
 from .solve import level_sizes as level_sizes
 from .solve import make_solver as make_solver
@@ -97,5 +102,6 @@ __all__ = [
     "preconditioner", "prepare", "problem_from_scene", "psnr", "render_with_map", "residuals",
     "sample_split", "seen_texels", "slopes_to_normals", "texel_influence", "validate_problem",
     "view_key", "with_map_size", "shard_views", "FitJob", "FitOutputs", "fit_outputs",
-    "prepare_held_out", "score_held_out", "CHUNK", "texel_sums_for",
+    "prepare_held_out", "score_held_out", "CHUNK", "texel_sums_for", "STOP_TESTS",
+    "Checkpoint", "load_checkpoint", "fit_renders",
 ]

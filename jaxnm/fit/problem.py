@@ -116,9 +116,11 @@ class FitOptions:
     - `rtol`, `atol`: convergence tolerances of the outer solver.
     - `seed`: initial-guess jitter seed (0 jitter by default: a flat start).
     - `init_noise`: standard deviation of the initial slopes.
-    - `ftol`, `patience`: stop as converged when the loss fell by less than ``ftol``
-      (relative) over the last ``patience`` steps (0 disables the test). The
-      solver's own test (``rtol``/``atol`` on the steps) applies too.
+    - `ftol`, `patience`: stop as converged when the loss changed by less than ``ftol``
+      (relative) over the last ``patience`` *full* steps — steps the solver accepted and
+      did not damp or shorten much (`jaxnm.fit.solve`, "When a fit stops"); 0 disables
+      the test. The solver's own test (``rtol``/``atol`` on the steps) applies too, on
+      full steps.
     - `texel_sums`: how ``"lm-texel"`` sums the pixels' contributions into the texels,
       one of `TEXEL_SUMS`: ``"scatter"`` (XLA's scatter-add: on a GPU its atomics add in
       an order that varies from run to run, and with `jaxnm.runtime.use_deterministic_ops`
@@ -172,9 +174,14 @@ class FitResult:
 
     ``normals``: (h, w, 3) unit tangent-space normals (image layout, x along
     +u, y along +v, the decoded convention); ``slopes``: (h, w, 2);
-    ``history``: one dict per step (step, loss, seconds, and the angular
-    error when a ground truth was given); ``stopped``: why it ended;
-    ``identifiability``: the `check_identifiability` report.
+    ``history``: one dict per step (level, size, step, loss, seconds; from step 1 on
+    whether the solver accepted the step and how damped it was; the angular error when a
+    ground truth was given); ``stopped``: why it ended (``"converged"``,
+    ``"no_progress"``, ``"max_steps"``, ``"time_limit"``, ``"interrupted"`` or a
+    solver's failure); ``stop_test``: the test that ended it (a key of
+    `jaxnm.fit.solve.STOP_TESTS`); ``noise_floor``: the float32 rounding of the start's
+    loss, which a fit must beat to have made progress; ``identifiability``: the
+    `check_identifiability` report.
     """
 
     normals: np.ndarray
@@ -184,6 +191,8 @@ class FitResult:
     stopped: str
     best_loss: float
     identifiability: dict = dataclasses.field(default_factory=dict)
+    stop_test: str = ""
+    noise_floor: float = 0.0
 
 
 def validate_problem(problem: FitProblem) -> None:

@@ -14,8 +14,9 @@ from .diagnostics import angular_error, error_report, psnr, seen_texels
 from .model import render_with_map
 from .prepare import Prepared, prepare
 from .problem import FitJob, FitResult
+from .solve import FULL_STEP_DAMPING, STOP_TESTS
 
-__all__ = ["FitOutputs", "fit_outputs", "prepare_held_out", "score_held_out",
+__all__ = ["FitOutputs", "fit_outputs", "fit_renders", "prepare_held_out", "score_held_out",
            "ERROR_MAP_RANGE_DEG"]
 
 #: The error map shows 0 to this many degrees as black to white (unseen texels dark grey).
@@ -74,30 +75,50 @@ def score_held_out(job: FitJob, normals: np.ndarray,
     return out
 
 
-def fit_outputs(job: FitJob, prep: Prepared, result: FitResult, *,
-                prepare_seconds: float = 0.0,
-                held_out: tuple[Prepared, ...] | None = None) -> FitOutputs:
-    """The outputs of a finished fit (see `FitOutputs`); ``held_out``: the held-out
-    targets' `prepare_held_out`, if already made."""
-    problem, enc = job.problem, job.output
-    n = result.normals
-    texels = np.asarray(quantize(encode_normal_map(jnp.asarray(n), encoding=enc.encoding,
-                                                   green=enc.green, bits=enc.bits), enc.bits))
+def fit_renders(prep: Prepared, normals: np.ndarray) -> list:
+    """Per target of ``prep``, the row ``target | re-render with normals | 4 x |difference|``
+    as sRGB (`FitOutputs.renders`)."""
     rows = []
-    for v, imgs in enumerate(render_with_map(prep, jnp.asarray(n))):
+    for v, imgs in enumerate(render_with_map(prep, jnp.asarray(normals))):
         imgs = np.asarray(imgs)
         targets = prep.target_images(v)
         for t in range(imgs.shape[0]):
             row = np.concatenate([targets[t], imgs[t], np.abs(imgs[t] - targets[t]) * 4], 1)
             rows.append(np.asarray(linear_to_srgb(np.clip(row, 0, 1))))
-    o = job.options
-    rule = (f"the loss fell by less than {o.ftol:g} (relative) over {o.patience} steps, or "
-            f"the solver's step test (rtol {o.rtol:g}, atol {o.atol:g}) passed"
-            if o.ftol > 0 else f"the solver's step test (rtol {o.rtol:g}, atol {o.atol:g})")
-    report = {"stopped": result.stopped, "convergence_rule": rule,
-              "steps": len(result.history) - 1,
+    return rows
+
+
+def convergence_rule(options) -> str:
+    """The stopping rule of ``options`` in words (``report.json``'s ``convergence_rule``)."""
+    o = options
+    solver = (f"the solver's step test (rtol {o.rtol:g}, atol {o.atol:g}) on a full step")
+    if o.ftol <= 0:
+        return solver
+    return (f"the loss changed by less than {o.ftol:g} (relative) over the last "
+            f"{o.patience} full steps (accepted, damped less than {FULL_STEP_DAMPING:g}, "
+            f"the loss not raised by more than {o.ftol:g}), or {solver}")
+
+
+def fit_outputs(job: FitJob, prep: Prepared, result: FitResult, *,
+                prepare_seconds: float = 0.0,
+                held_out: tuple[Prepared, ...] | None = None,
+                optional: bool = True) -> FitOutputs:
+    """The outputs of a finished fit (see `FitOutputs`); ``held_out``: the held-out
+    targets' `prepare_held_out`, if already made. With ``optional`` False the slow parts
+    are left out: no `renders` (`fit_renders`) and no held-out scores (`score_held_out`),
+    the report listing them under ``"skipped"``."""
+    problem, enc = job.problem, job.output
+    n = result.normals
+    texels = np.asarray(quantize(encode_normal_map(jnp.asarray(n), encoding=enc.encoding,
+                                                   green=enc.green, bits=enc.bits), enc.bits))
+    report = {"stopped": result.stopped, "stop_test": result.stop_test,
+              "stop_test_meaning": STOP_TESTS.get(result.stop_test, ""),
+              "convergence_rule": convergence_rule(job.options),
+              "steps": sum(1 for h in result.history if h["step"] > 0),
               "fit_seconds": round(result.seconds, 2), "prepare_seconds": round(prepare_seconds, 2),
-              "final_loss": result.best_loss, "identifiability": result.identifiability,
+              "start_loss": result.history[0]["loss"] if result.history else None,
+              "final_loss": result.best_loss, "noise_floor": result.noise_floor,
+              "identifiability": result.identifiability,
               "solver": dataclasses.asdict(job.options), "map_size": list(problem.map_size),
               "frame": problem.frame, "derivatives": problem.derivatives,
               "precision": problem.precision,
@@ -112,8 +133,13 @@ def fit_outputs(job: FitJob, prep: Prepared, result: FitResult, *,
         err = angular_error(n, job.ground_truth)
         error_map = np.where(seen, np.clip(err / ERROR_MAP_RANGE_DEG, 0, 1), 0.25)
         error_map = error_map.astype(np.float32)
-    if job.held_out:
-        report["held_out"] = score_held_out(job, n, held_out)
+    rows = []
+    if optional:
+        rows = fit_renders(prep, n)
+        if job.held_out:
+            report["held_out"] = score_held_out(job, n, held_out)
+    else:
+        report["skipped"] = ["renders"] + (["held_out"] if job.held_out else [])
     return FitOutputs(map_texels=texels, bits=enc.bits, normals=n.astype(np.float32),
                       slopes=result.slopes.astype(np.float32), renders=rows,
                       history=result.history, error_map=error_map, report=report)

@@ -15,8 +15,44 @@ the compiled step. The loss reported per step is the solver's own evaluation
 so each level compiles once.
 
 **Driving the loop in Python** keeps what a user needs between steps: a
-progress bar, Ctrl-C (return the best map so far), a time limit, and a history with
-the angular error against a ground truth.
+progress bar, Ctrl-C (return the best map so far), a time limit, a caller's request to stop
+(``should_stop``), checkpoints (`jaxnm.fit.checkpoint`), and a history with the angular
+error against a ground truth.
+
+**When a fit stops** (`stop_test`; the test that ended a fit is `FitResult.stop_test`).
+From step 1 on, every step records whether the solver *accepted* the point it evaluated,
+how *damped* the move to that point was (the share of the move the solver held back, in
+[0, 1]) and the decrease of the loss its model *predicted* for it. For Levenberg–Marquardt
+(``"lm"``, ``"lm-texel"``) the damping is the damping's share of the curvature along the
+move ``d``, ``lambda |d|^2 / (d.H d + lambda |d|^2)`` (1: a short gradient step, 0: the
+Gauss–Newton step), and the prediction the Gauss–Newton model's; for L-BFGS, how much the
+backtracking line search shortened its first trial, and the gradient's linear
+prediction; Gauss–Newton takes every step at full length. What the model *promised*
+(`promised`) is the prediction undamped: ``predicted / (1 - damping)``.
+
+The fit has **converged** (``"ftol"``) when over the level's last ``patience`` steps the
+loss changed by less than ``ftol`` (relative) *and* at none of them did the solver's model
+promise a larger decrease. The solver's own test (``rtol``/``atol``: a tiny accepted move
+and loss change) counts only on an accepted step damped less than `FULL_STEP_DAMPING`.
+
+Why: a damped or backtracking solver moves the loss little because it holds its steps
+back, not because little is left to gain. Levenberg–Marquardt from a start whose
+curvature is far below its first damping takes steps of length ``|g| / lambda``
+(optimistix starts at ``lambda = 1`` whatever the problem's scale): on a 480-triangle
+asset (a 512x512 map, 3 views x 5 lights) the loss fell by 0.05 % over the first three
+steps, then from 12,662 to 347 over the next 27 once the damping had come down. A
+backtracking L-BFGS keeps the loss exactly flat while it halves its trial step, and
+Gauss–Newton far from the answer can raise the loss before it lowers it. In all these the
+model, undamped, promises far more than the loss gave, so the fit goes on. At the answer
+both are small — also when the solver rejects every step because float32 cannot resolve
+a smaller loss (a rejected step changes nothing; its model promised next to nothing) — so
+the fit stops.
+
+Changes and promises below the loss's **noise floor** (`noise_floor`: the float32
+rounding of its sum and of the residuals it sums) count as nothing: at the end of a
+noise-free fit, float32 cannot resolve anything smaller. A fit that ends on its own
+(converged, the solver's test, or ``max_steps``) without lowering the loss below its
+start's by more than the start's noise floor reports ``stopped == "no_progress"``.
 """
 
 from __future__ import annotations
@@ -25,14 +61,23 @@ import math
 import os
 import sys
 import time
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
 from jax import Array
 
+from .checkpoint import (
+    Checkpoint,
+    check_fingerprint,
+    fit_fingerprint,
+    load_checkpoint,
+    save_checkpoint,
+)
 from .diagnostics import angular_error, check_identifiability, seen_texels, texel_influence
 from .model import ModelArgs, loss, residuals
 from .prepare import Prepared, prepare, shard_views, with_map_size
@@ -40,7 +85,26 @@ from .problem import FitOptions, FitProblem, FitResult
 from .texel_lm import TexelLM, texel_sum_tables
 
 __all__ = ["fit_normal_map", "make_solver", "preconditioner", "level_sizes", "start_slopes",
-           "texel_sums_for"]
+           "texel_sums_for", "stop_test", "noise_floor", "FULL_STEP_DAMPING", "STOP_TESTS"]
+
+#: The solver's own tolerance test (a tiny move and loss change) counts only on an accepted
+#: step damped less than this: a damped step is tiny because it is damped.
+FULL_STEP_DAMPING = 0.5
+
+#: The tests that can end a fit (`FitResult.stop_test`), with what they mean.
+STOP_TESTS = {
+    "ftol": "over the level's last `patience` steps the loss changed by less than ftol "
+            "(relative), and the solver's model, undamped, promised no larger decrease at "
+            "any of them",
+    "solver_tolerance": "the solver's own test (rtol, atol on the step's move and loss "
+                        "change) passed on an accepted step damped less than "
+                        "FULL_STEP_DAMPING",
+    "solver_failure": "the solver reported a failure",
+    "max_steps": "every step of every level was taken",
+    "time_limit": "the time limit passed",
+    "should_stop": "the caller's `should_stop` asked to stop",
+    "keyboard_interrupt": "KeyboardInterrupt (Ctrl-C)",
+}
 
 
 def make_solver(options: FitOptions):
@@ -143,16 +207,74 @@ def _step(kept, z, state):
 
     ``z`` and ``state`` are donated (the new state reuses their buffers instead of
     doubling them); ``kept`` is not (the solver too may hold arrays, e.g. Gauss-Newton's
-    learning rate), and `_unaliased` makes sure no state array is one of ``args``."""
+    learning rate), and `_unaliased` makes sure no state array is one of ``args``.
+
+    Also returns ``(accepted, damping, predicted)``: whether the step accepted the point it
+    evaluated, and how damped the move to that point was and what decrease the solver's
+    model predicted for it (`_move`)."""
     args, solver = kept
+    move = _move(solver, z, state)
     if isinstance(solver, TexelLM):
+        f_before = state.f
         z, state, done, result, loss_value = solver.step(z, state, args)
+        accepted = state.f < f_before  # a rejected point keeps the loss
     else:
         fn = _objective(solver)
+        count = state.num_accepted_steps
         z, state, _ = solver.step(fn, z, args, {}, _restore(solver, state), frozenset())
         done, result = solver.terminate(fn, z, args, {}, state, frozenset())
+        accepted = state.num_accepted_steps > count
         state, loss_value = _shed(solver, state), state.f_info.as_min()
-    return z, state, done, result, loss_value, z * args.scale
+    return z, state, done, result, loss_value, z * args.scale, (accepted, *move)
+
+
+def _dot(a, b) -> Array:
+    return sum(jnp.sum(x * y) for x, y in zip(jax.tree_util.tree_leaves(a),
+                                               jax.tree_util.tree_leaves(b), strict=True))
+
+
+def _share(held: Array, total: Array) -> Array:
+    """``held / total`` clipped to [0, 1] (0 where ``total`` is 0: no move)."""
+    ok = total > 0
+    return jnp.clip(jnp.where(ok, held / jnp.where(ok, total, 1), 0.0), 0.0, 1.0)
+
+
+def _move(solver, z, state) -> tuple[Array, Array]:
+    """How the solver made the move from ``z`` to the point ``state`` asks the next step to
+    evaluate: ``(damping, predicted)``, its damping in [0, 1] and the decrease of the loss
+    its model predicted (see the module's "When a fit stops").
+
+    - Levenberg-Marquardt: the damping's share of the curvature along the move ``d``,
+      ``lambda |d|^2 / (d.H d + lambda |d|^2)``, and the Gauss-Newton model's decrease
+      ``-(g.d + d.H d / 2)``. `TexelLM` keeps the latter, and ``d.(H + lambda I) d =
+      -g.d`` (a conjugate-gradient iterate); for optimistix's, ``lambda = 1 / step size``,
+      ``d.H d = |J d|^2`` and ``g.d = r.J d`` (one product with the linearisation the
+      state holds).
+    - Gauss-Newton: no damping (a fixed learning rate ``t``: ``1 - min(t, 1)``), the same
+      model.
+    - a backtracking line search (L-BFGS): ``1 - step / first step``, and the decrease
+      the gradient predicts, ``-g.d``."""
+    if isinstance(solver, TexelLM):
+        d = state.delta
+        return _share(state.lam * jnp.sum(d * d), -jnp.sum(state.g * d)), state.predicted
+    d = jax.tree_util.tree_map(jnp.subtract, state.y_eval, z)
+    info, search = state.f_info, solver.search
+    if isinstance(info, optx.FunctionInfo.ResidualJac):
+        jd = info.jac.mv(d)
+        dhd = _dot(jd, jd)
+        predicted = -(_dot(info.residual, jd) + 0.5 * dhd)
+    else:
+        dhd, predicted = None, -_dot(info.grad, d)
+    if isinstance(search, optx.BacktrackingArmijo):
+        damping = 1.0 - state.search_state.step_size / search.step_init
+    elif isinstance(search, optx.LearningRate):
+        damping = 1.0 - jnp.minimum(search.learning_rate, 1.0)
+    elif dhd is not None and isinstance(solver.descent, optx.DampedNewtonDescent):
+        dd = _dot(d, d)  # lambda |d|^2 / (|J d|^2 + lambda |d|^2), lambda = 1 / step size
+        damping = _share(dd, state.search_state.step_size * dhd + dd)
+    else:
+        damping = jnp.zeros(())
+    return damping, predicted
 
 
 def _buffers(x) -> tuple:
@@ -220,14 +342,61 @@ def level_sizes(map_size: tuple[int, int], coarse_to_fine: int) -> list[tuple[in
     return [(max(2, h >> k), max(2, w >> k)) for k in range(coarse_to_fine, -1, -1)]
 
 
-def _flat(history: list, level: int, options: FitOptions) -> bool:
-    """Whether this level's loss fell by less than ``options.ftol`` (relative) over the last
-    ``options.patience`` steps."""
-    losses = [h["loss"] for h in history if h["level"] == level]
-    if options.ftol <= 0 or len(losses) <= options.patience:
-        return False
-    before, now = losses[-1 - options.patience], losses[-1]
-    return bool(before - now <= options.ftol * abs(before))
+def promised(rec: dict) -> float:
+    """The decrease of the loss the solver's model promised for the step of ``rec`` (a
+    history record from step 1 on) had the solver not damped it: ``predicted / (1 -
+    damping)`` (infinite for a move damped to nothing). For a line search's shortened step
+    this is its full step's linear prediction; for Levenberg-Marquardt it lies between the
+    undamped Gauss-Newton step's predicted decrease and twice that (exactly so on a
+    quadratic with one curvature)."""
+    held = 1.0 - rec["damping"]
+    return rec["predicted"] / held if held > 0 else math.inf
+
+
+def stop_test(records: list[dict], options: FitOptions,
+              floor: Callable[[float], float] | None = None) -> str | None:
+    """The convergence test (the module's "When a fit stops") on one level's ``records``
+    (history entries, the level's start first): ``"ftol"`` when over the last
+    ``options.patience`` steps the loss changed by less than ``options.ftol`` (relative)
+    and at none of them did the solver's model, undamped (`promised`), predict a larger
+    decrease; None otherwise, and always with ``ftol`` 0. ``floor``: the loss's noise floor
+    as a function of the loss (`noise_floor`): changes and promises below it count as
+    nothing."""
+    ftol, patience = options.ftol, options.patience
+    if ftol <= 0 or len(records) <= patience:
+        return None
+
+    def small(x: float, loss_value: float) -> bool:
+        return x <= max(ftol * abs(loss_value), floor(loss_value) if floor else 0.0)
+
+    window = records[-1 - patience:]
+    before = window[0]["loss"]
+    if (small(abs(before - window[-1]["loss"]), before)
+            and all(small(promised(rec), prev["loss"]) for prev, rec in zip(window, window[1:]))):
+        return "ftol"
+    return None
+
+
+def noise_floor(loss_value: float, terms: int, mean_square: float) -> float:
+    """The rounding in a float32 loss ``0.5 |r|^2`` of ``terms`` residuals, whose targets'
+    values have the mean square ``mean_square``: ``eps32 (sqrt(terms) |loss| + 8 sqrt(2
+    |loss| mean_square))``. The first term is the float32 sum's (``terms`` roundings of
+    random sign); the second the residuals' own, each a few roundings of the image value
+    it subtracts (measured at the end of noise-free fits of the built-in problem, where it
+    dominates: 5 to 6 times ``eps32 sqrt(2 loss mean_square)``). A loss change below it
+    cannot be told from rounding."""
+    eps = float(np.finfo(np.float32).eps)
+    loss_value = abs(loss_value)
+    return eps * (math.sqrt(terms) * loss_value + 8.0 * math.sqrt(2.0 * loss_value * mean_square))
+
+
+def _loss_terms(prep: Prepared) -> tuple[int, float]:
+    """The number of residuals of ``prep``'s loss and the mean square of its targets' values
+    (for `noise_floor`; on the host, so no XLA program is compiled for it)."""
+    terms = sum(b.images.size for b in prep.batches)
+    square = sum(float(np.sum(np.square(np.asarray(b.images, np.float64))))
+                 for b in prep.batches)
+    return terms, square / max(terms, 1)
 
 
 def _like(level: Prepared, prep: Prepared) -> Prepared:
@@ -246,17 +415,18 @@ class _Progress:
     """Per-step progress on stderr: a tqdm bar (loss, error, ETA), or a line per step where
     tqdm is not installed; nothing when disabled."""
 
-    def __init__(self, total: int, enabled: bool):
+    def __init__(self, total: int, enabled: bool, done: int = 0):
         self.bar = None
         self.enabled = enabled
         self.total = total
-        self.count = 0
+        self.count = done
         if enabled:
             try:
                 from tqdm import tqdm
             except ImportError:
                 return
-            self.bar = tqdm(total=total, desc="fit", unit="step", dynamic_ncols=True)
+            self.bar = tqdm(total=total, initial=done, desc="fit", unit="step",
+                            dynamic_ncols=True)
 
     def update(self, rec: dict) -> None:
         if not self.enabled:
@@ -277,11 +447,43 @@ class _Progress:
             self.bar.close()
 
 
+def _fresh_state(solver, z, args: ModelArgs):
+    """The solver's state before the first step, in buffers of its own."""
+    if isinstance(solver, TexelLM):  # made on the host, in buffers of its own
+        return solver.init(z, args)
+    # our own copy: the initial state can hold library-wide constant arrays (optimistix's
+    # result codes), which donating it to `_step` would free
+    return jax.tree_util.tree_map(lambda x: _copy(x) if isinstance(x, jax.Array) else x,
+                                  _shed(solver, _init(solver, z, args)))
+
+
+def _saved_state(path, fresh, leaves: list):
+    """``fresh`` (a `_fresh_state`) with its arrays replaced by a checkpoint's ``leaves``
+    (each put where the fresh one lives)."""
+    dynamic, static = eqx.partition(fresh, eqx.is_array)
+    now, treedef = jax.tree_util.tree_flatten(dynamic)
+    if [(a.shape, a.dtype) for a in now] != [(a.shape, a.dtype) for a in leaves]:
+        raise ValueError(f"{path}: cannot resume this fit: the checkpoint's solver state does "
+                         "not fit this solver and problem")
+    arrays = [jax.device_put(a, b.sharding) for a, b in zip(leaves, now, strict=True)]
+    return eqx.combine(treedef.unflatten(arrays), static)
+
+
+def _layout(prep: Prepared) -> list:
+    """How ``prep`` was laid out: its arrays' shapes, types and device counts."""
+    return [[list(x.shape), str(x.dtype), len(x.sharding.device_set)]
+            for x in jax.tree_util.tree_leaves(prep) if isinstance(x, jax.Array)]
+
+
 def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                    ground_truth: np.ndarray | None = None, progress: bool = True,
                    prepared: Prepared | None = None, strength: float = 1.0,
                    time_limit: float | None = None,
-                   error_texels: np.ndarray | None = None) -> FitResult:
+                   error_texels: np.ndarray | None = None,
+                   should_stop: Callable[[dict], bool] | None = None,
+                   checkpoint: str | os.PathLike | None = None,
+                   checkpoint_every: float = 30.0,
+                   resume: bool | str | os.PathLike = False) -> FitResult:
     """Fit the normal map of ``problem`` (see `jaxnm.fit`).
 
     **Arguments:**
@@ -293,15 +495,44 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     - `prepared`: reuse a `prepare(problem)` result.
     - `strength`: the map's x/y scale used when rendering (1: as fitted).
     - `time_limit`: stop (keeping the best map) after this many seconds.
+    - `should_stop`: called after every step with its history record; when it returns
+      True the fit ends after that step (``stopped == "interrupted"``, ``stop_test ==
+      "should_stop"``), with a last checkpoint. No signal handler is installed: a
+      command line's Ctrl-C handler can use this to stop cleanly.
+    - `checkpoint`: a file (``.npz``, `jaxnm.fit.checkpoint`) to keep a checkpoint of
+      the fit in, written atomically every `checkpoint_every` seconds of fitting (0:
+      after every step) and when the fit ends (except on a ``KeyboardInterrupt``, which
+      may land inside a step: the last checkpoint is then the one before). None (the
+      default): nothing is written.
+    - `resume`: carry on from a saved fit: a checkpoint file, or True for `checkpoint`
+      (which must then exist). The same steps, history and result as if the fit had
+      never stopped (bitwise on the CPU); new checkpoints go to `checkpoint` (None: none
+      are written). The checkpoint must come from the same problem, map size, solver,
+      arithmetic options (`jaxnm.fit.checkpoint.ARITHMETIC_OPTIONS`) and `strength`, else
+      a one-line `ValueError` names the file and what differs; the stopping rule and the
+      time limit (counted over the whole fit) may change. A checkpoint of a fit that had
+      converged returns its result without a step.
+
+    **Returns:** a `FitResult`; its `stopped` says why the fit ended, `stop_test` which
+    test ended it (`STOP_TESTS`; see the module's "When a fit stops" for the stopping rule
+    and ``"no_progress"``).
 
     Warns (`FitWarning`) when no view has three lights with non-coplanar
     directions (`check_identifiability`; the report is in the result). A
     `KeyboardInterrupt` (Ctrl-C) during the fit ends it and returns the best map so far
     (``stopped == "interrupted"``); no signal handler is installed.
     Deterministic for a given `options.seed`. History step 0 is the start; the
-    loss of each record is that of the map the solver holds after the step.
+    loss of each record is that of the map the solver holds after the step; from step 1
+    on, ``accepted``, ``damping`` and ``predicted`` say how the solver took the step (the
+    module's "When a fit stops").
     """
     t_start = time.perf_counter()
+    if not (isinstance(checkpoint_every, (int, float)) and checkpoint_every >= 0):
+        raise ValueError(f"checkpoint_every must be a number of seconds >= 0, got "
+                         f"{checkpoint_every!r}")
+    source = checkpoint if resume is True else (resume or None)
+    if resume is True and checkpoint is None:
+        raise ValueError("resume=True needs the `checkpoint` to resume from")
     prep = prepared if prepared is not None else prepare(problem)
     identifiability = check_identifiability(prep)  # warns when the lights cannot determine it
     h, w = problem.map_size
@@ -318,16 +549,53 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
         if gt.shape != (h, w, 3) or seen.shape != (h, w):
             raise ValueError(f"{problem.source}: the ground truth {gt.shape} and error texels "
                              f"{seen.shape} must match the map size {(h, w)}")
+    fingerprint = saved = None
+    if checkpoint is not None or source is not None:
+        fingerprint = fit_fingerprint(problem, options, strength=strength, layout=_layout(prep))
+    if source is not None:
+        saved = load_checkpoint(source)
+        check_fingerprint(source, saved.meta.get("fingerprint", {}), fingerprint)
     solver = make_solver(options)
     history: list = []
-    stopped = "max_steps"
+    stopped, test = "max_steps", "max_steps"
     best = (math.inf, slopes)
-    bar = _Progress(options.max_steps * len(sizes), progress)
+    start = (0, 0, False)  # level, step, whether that level had ended
+    if saved is not None:
+        m = saved.meta
+        history, best = m["history"], (float(m["best_loss"]), saved.best_slopes)
+        stopped, test = m["stopped"], m["stop_test"]
+        start = (m["level"], m["next_step"], m["level_done"])
+        t_start = time.perf_counter() - m["seconds"]  # the fit's clock goes on
+    terms = _loss_terms(prep)
+
+    def floor(loss_value: float) -> float:
+        return noise_floor(loss_value, *terms)
+
+    bar = _Progress(options.max_steps * len(sizes), progress,
+                    done=sum(1 for rec in history if rec["step"] > 0))
+    last = None  # (level, step, z, state) after the last step taken here
+    last_save = time.perf_counter()
+
+    def save(level_done: bool) -> None:
+        level, k, z, state = last
+        leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(eqx.filter(state,
+                                                                               eqx.is_array))]
+        meta = {"fingerprint": fingerprint, "level": level, "next_step": k + 1,
+                "level_done": level_done, "stopped": stopped, "stop_test": test,
+                "best_loss": best[0], "seconds": time.perf_counter() - t_start,
+                "history": history}
+        save_checkpoint(checkpoint, Checkpoint(meta=meta, z=np.asarray(z),
+                                               best_slopes=np.asarray(best[1]), state=leaves))
+
     try:
         for level, size in enumerate(sizes):
-            if level > 0:
+            if level < start[0] or (level == start[0] and start[2]):
+                continue  # done before the checkpoint
+            resuming = saved is not None and level == start[0]
+            if level > 0 and not resuming:
                 slopes = _upsample(best[1], size)
                 best = (math.inf, slopes)
+            stopped, test = "max_steps", "max_steps"
             lp = prep if size == (h, w) else _like(with_map_size(prep, size), prep)
             scale_host = _host_preconditioner(lp)
             scale = jax.device_put(scale_host)
@@ -338,50 +606,66 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
             args = ModelArgs.create(lp, smoothness=options.smoothness, strength=strength,
                                     scale=scale, reduce=options.solver != "lbfgs",
                                     texel_sums=sums)
-            z = jax.device_put((np.asarray(slopes) / scale_host).astype(np.float32))
-            if isinstance(solver, TexelLM):  # made on the host, in buffers of its own
-                state = solver.init(z, args)
+            if resuming:
+                z = jax.device_put(saved.z)
+                state = _saved_state(source, _fresh_state(solver, z, args), saved.state)
             else:
-                # our own copy: the initial state can hold library-wide constant arrays
-                # (optimistix's result codes), which donating it to `_step` would free
-                state = jax.tree_util.tree_map(
-                    lambda x: _copy(x) if isinstance(x, jax.Array) else x,
-                    _shed(solver, _init(solver, z, args)))
+                z = jax.device_put((np.asarray(slopes) / scale_host).astype(np.float32))
+                state = _fresh_state(solver, z, args)
+            records = [rec for rec in history if rec["level"] == level]
             # optimistix's first step evaluates the start and proposes the first move,
             # so the start's loss arrives with it: record it as step 0
-            for k in range(options.max_steps + 1):
-                z, state, done, result, loss_value, slopes = _step(
+            for k in range(start[1] if resuming else 0, options.max_steps + 1):
+                z, state, done, result, loss_value, slopes, move = _step(
                     (args, solver), z, _unaliased(state, (args, solver)))
                 rec = {"level": level, "size": list(size), "step": k,
                        "loss": float(loss_value), "seconds": time.perf_counter() - t_start}
+                if k > 0:  # (step 0 evaluates the start)
+                    rec.update(accepted=bool(move[0]), damping=float(move[1]),
+                               predicted=float(move[2]))
                 if np.isfinite(rec["loss"]) and rec["loss"] < best[0]:
                     best = (rec["loss"], slopes)
                 if gt is not None and size == (h, w):
                     err = angular_error(_unit_normals(best[1]), gt)[seen]
                     rec["mean_angular_error_deg"] = float(err.mean())
                 history.append(rec)
+                records.append(rec)
+                last = (level, k, z, state)
                 if k > 0:
                     bar.update(rec)
                 if time_limit is not None and rec["seconds"] > time_limit:
-                    stopped = "time_limit"
+                    stopped, test = "time_limit", "time_limit"
+                elif k > 0 and bool(done) and result != optx.RESULTS.successful:
+                    stopped, test = str(result), "solver_failure"
+                elif (k > 0 and bool(done) and rec["accepted"]
+                      and rec["damping"] < FULL_STEP_DAMPING):
+                    stopped, test = "converged", "solver_tolerance"
+                elif stop_test(records, options, floor) is not None:
+                    stopped, test = "converged", "ftol"
+                elif should_stop is not None and should_stop(rec):
+                    stopped, test = "interrupted", "should_stop"
+                if test != "max_steps":
                     break
-                if k > 0 and bool(done):
-                    stopped = ("converged" if result == optx.RESULTS.successful
-                               else str(result))
-                    break
-                if _flat(history, level, options):
-                    stopped = "converged"
-                    break
-            if stopped in ("interrupted", "time_limit"):
+                if (checkpoint is not None and k < options.max_steps
+                        and time.perf_counter() - last_save >= checkpoint_every):
+                    save(level_done=False)
+                    last_save = time.perf_counter()
+            if test in ("time_limit", "should_stop"):
                 break
+        if checkpoint is not None and last is not None:
+            save(level_done=test not in ("max_steps", "time_limit", "should_stop"))
     except KeyboardInterrupt:  # Ctrl-C (or a caller's `_thread.interrupt_main`)
-        stopped = "interrupted"
+        stopped, test = "interrupted", "keyboard_interrupt"
     finally:
         bar.close()
     final = best[1]
     if final.shape[:2] != (h, w):  # stopped during a coarse level
         final = _upsample(final, (h, w))
+    start_floor = floor(history[0]["loss"]) if history else 0.0
+    if (test in ("ftol", "solver_tolerance", "max_steps") and history
+            and not best[0] < history[0]["loss"] - start_floor):
+        stopped = "no_progress"
     return FitResult(normals=_unit_normals(final).astype(np.float32), slopes=np.asarray(final),
                      history=history, seconds=time.perf_counter() - t_start, stopped=stopped,
-                     best_loss=float(best[0]), identifiability=identifiability)
-
+                     best_loss=float(best[0]), identifiability=identifiability,
+                     stop_test=test, noise_floor=start_floor)
