@@ -2,19 +2,30 @@
 
     jaxnm render [SCENE.json] [-o out.png] [--aovs out.npz] [--derivatives MODE]
                  [--frame FRAME] [--normal-map PATH] [--width W --height H]
-    jaxnm fit [FIT.json] [-o OUTDIR] ...
+    jaxnm fit [FIT.json] [-o OUTDIR] [--checkpoint-every SECONDS] [--resume] ...
 
 Options override the scene (or fit) file; with no file the built-in scene or
 problem (a rivet-mapped torus, generated in code) is used. Errors in the
 input are one line naming the file and the field, with exit code 2.
+
+``jaxnm fit`` keeps a checkpoint in ``OUTDIR/checkpoint.npz`` (by default every 30 s of
+fitting, and when the fit ends); ``--resume`` carries on from it. Ctrl-C during the fit
+stops it after the current step, and during the writing of the outputs leaves out the
+optional ones (held-out scores, renders, the loss plot): either way ``normal_map.png``,
+``normal_map.npz`` and ``report.json`` are written, the report saying what was
+interrupted, and the exit code is 130. A second Ctrl-C stops at once; every file is written
+atomically, so none is ever left half-written.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -27,6 +38,9 @@ DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
 
 #: Environment variable naming the command line's compilation cache folder (``off``: none).
 CACHE_ENV = "JAXNM_COMPILATION_CACHE"
+
+#: The checkpoint ``jaxnm fit`` keeps in its output folder (`jaxnm.fit.checkpoint`).
+CHECKPOINT_NAME = "checkpoint.npz"
 
 
 def _add_xla_flag(flag: str) -> None:
@@ -182,8 +196,9 @@ def _add_fit(sub) -> None:
     p.add_argument("--coarse-to-fine", type=int, dest="coarse_to_fine",
                    help="number of coarser levels solved first")
     p.add_argument("--ftol", type=float,
-                   help="converged when the loss falls by less than this fraction over "
-                   "--patience steps (default 1e-3; 0: run all --max-steps)")
+                   help="converged when the loss changes by less than this fraction over "
+                   "--patience steps at none of which the solver's model, undamped, promised "
+                   "more (default 1e-3; 0: only the solver's own test)")
     p.add_argument("--patience", type=int, help="steps the --ftol test spans (default 3)")
     p.add_argument("--texel-sums", dest="texel_sums", choices=TEXEL_SUMS,
                    help="lm-texel's sums into the texels: scatter-adds, or fixed-order tables "
@@ -193,12 +208,39 @@ def _add_fit(sub) -> None:
     p.add_argument("--quick", action="store_true",
                    help="built-in problem at 128x128 renders and a 64x64 map (a smoke test)")
     p.add_argument("--no-progress", action="store_true", dest="no_progress")
+    p.add_argument("--checkpoint-every", type=float, default=30.0, dest="checkpoint_every",
+                   metavar="SECONDS",
+                   help=f"save the fit to OUTDIR/{CHECKPOINT_NAME} every SECONDS of fitting and "
+                   "when it ends (default: %(default)s; 0: no checkpoints)")
+    p.add_argument("--resume", action="store_true",
+                   help=f"carry on from OUTDIR/{CHECKPOINT_NAME}: the same fit file and options "
+                   "give the map an uninterrupted fit gives (--max-steps, --ftol, --patience "
+                   "and --time-limit may change)")
 
 
-def _fit(args) -> int:
-    from . import io
+class _CtrlC:
+    """``jaxnm fit``'s SIGINT handler. Before the fit a Ctrl-C stops the command at once
+    (``KeyboardInterrupt``); the first one during the fit asks it to stop after the
+    current step, and while the outputs are written, to leave out the optional ones; the
+    next one stops at once."""
+
+    def __init__(self):
+        self.phase = "prepare"  # then "fit", then "writing"
+        self.requested = None  # the phase of the first Ctrl-C, once there was one
+
+    def __call__(self, signum, frame) -> None:
+        if self.phase == "prepare" or self.requested is not None:
+            raise KeyboardInterrupt
+        self.requested = self.phase
+        what = ("stopping after this step" if self.phase == "fit"
+                else "writing the map and the report only")
+        # (os.write: a print here could re-enter one the handler interrupted)
+        os.write(2, f"\njaxnm fit: Ctrl-C: {what} (Ctrl-C again to stop at once)\n".encode())
+
+
+def _fit(args, ctrl_c: _CtrlC) -> int:
     from .config import load_fit
-    from .fit import fit_normal_map, fit_outputs, prepare, prepare_held_out
+    from .fit import fit_normal_map, prepare, prepare_held_out
     from .procedural import default_fit_job
 
     say = (lambda msg: None) if args.no_progress else (  # noqa: E731
@@ -210,6 +252,13 @@ def _fit(args) -> int:
     if args.time_limit is not None and not args.time_limit > 0:
         raise ValueError(f"--time-limit must be a positive number of seconds, got "
                          f"{args.time_limit}")
+    if not (math.isfinite(args.checkpoint_every) and args.checkpoint_every >= 0):
+        raise ValueError(f"--checkpoint-every must be a number of seconds >= 0, got "
+                         f"{args.checkpoint_every}")
+    out = Path(args.output)
+    checkpoint = out / CHECKPOINT_NAME
+    if args.resume and not checkpoint.is_file():
+        raise FileNotFoundError(f"{checkpoint}: no checkpoint to resume from (--resume)")
     if args.config:
         say(f"reading {args.config} ...")
         job = load_fit(args.config)
@@ -228,15 +277,28 @@ def _fit(args) -> int:
     prep = prepare(job.problem)
     t_prep = time.perf_counter() - t0
     held_out = prepare_held_out(job)  # with the same compiled G-buffer program
-    say("fitting (the first step includes compilation) ...")
+    if not args.resume:
+        checkpoint.unlink(missing_ok=True)  # a new fit: an old checkpoint is not its own
+    say(f"resuming from {checkpoint} ..." if args.resume
+        else "fitting (the first step includes compilation) ...")
+    ctrl_c.phase = "fit"
     result = fit_normal_map(job.problem, job.options, ground_truth=job.ground_truth,
                             progress=not args.no_progress, prepared=prep,
-                            time_limit=job.time_limit)
+                            time_limit=job.time_limit,
+                            should_stop=lambda rec: ctrl_c.requested is not None,
+                            checkpoint=checkpoint if args.checkpoint_every > 0 else None,
+                            checkpoint_every=args.checkpoint_every,
+                            resume=checkpoint if args.resume else False)
+    ctrl_c.phase = "writing"
     say("writing outputs ...")
-    outputs = fit_outputs(job, prep, result, prepare_seconds=t_prep, held_out=held_out)
-    written = io.write_fit_outputs(args.output, outputs)
-    rep = outputs.report
+    rep, written = _write_fit_outputs(
+        out, job, prep, result, t_prep, held_out, ctrl_c,
+        checkpoint={"file": CHECKPOINT_NAME if args.checkpoint_every > 0 else None,
+                    "resumed": args.resume})
     line = f"fit {rep['stopped']} after {rep['steps']} steps in {rep['fit_seconds']:.1f} s"
+    if rep["interrupted"]:
+        when = "during the fit" if rep["interrupted_phase"] == "fit" else "while writing"
+        line += f" (interrupted {when})"
     if "error" in rep:
         e = rep["error"]
         line += (f"; angular error over {e['seen_texels']} seen texels: mean {e['mean_deg']:.3f}"
@@ -244,13 +306,58 @@ def _fit(args) -> int:
     for h in rep.get("held_out", []):
         line += f"; held-out PSNR {h['psnr_db_vs_target']:.1f} dB"
     print(line)
-    print(f"outputs in {Path(args.output)}/ ({', '.join(written)})")
-    return 0
+    print(f"outputs in {out}/ ({', '.join(written)})")
+    return 130 if rep["interrupted"] else 0
+
+
+def _write_fit_outputs(out: Path, job, prep, result, prepare_seconds: float, held_out,
+                       ctrl_c: _CtrlC, checkpoint: dict) -> tuple[dict, list]:
+    """Write the outputs of ``result`` to ``out``: the map and a report listing what is
+    ``"pending"`` first, then what is optional (held-out scores, renders, the loss plot) as
+    long as Ctrl-C was not pressed (`_CtrlC`; what was left out is ``"skipped"``), then the
+    final report. ``checkpoint`` goes into the report. Returns the report and the names
+    written."""
+    from . import io
+    from .fit import fit_outputs, fit_renders, score_held_out
+
+    outputs = fit_outputs(job, prep, result, prepare_seconds=prepare_seconds, optional=False)
+    report = outputs.report
+    report["checkpoint"] = checkpoint
+
+    def mark() -> None:
+        phase = ctrl_c.requested or ("fit" if result.stopped == "interrupted" else None)
+        report["interrupted"] = phase is not None
+        if phase is not None:
+            report["interrupted_phase"] = phase
+
+    parts = (["held_out"] if job.held_out else []) + ["renders", "loss_plot"]
+    report.pop("skipped", None)
+    report["pending"] = parts  # (what a report left by a second Ctrl-C is without)
+    mark()
+    written = io.write_fit_outputs(out, outputs, plot=False)
+    skipped = []
+    for part in parts:
+        if ctrl_c.requested is not None:
+            skipped.append(part)
+        elif part == "held_out":
+            report["held_out"] = score_held_out(job, result.normals, held_out)
+        elif part == "renders":
+            written += io.write_fit_renders(out, fit_renders(prep, result.normals))
+        elif io.save_loss_plot(out / "loss.png", result.history):
+            written.append("loss.png")
+    del report["pending"]
+    if skipped:
+        report["skipped"] = skipped
+    mark()
+    io.save_json(out / "report.json", report)
+    return report, written
 
 
 def main(argv=None) -> int:
     """Run ``jaxnm render`` or ``jaxnm fit`` with ``argv`` (default: ``sys.argv[1:]``);
-    returns the exit code (2 for bad input, with a one-line error on stderr)."""
+    returns the exit code (2 for bad input, with a one-line error on stderr; 130 after
+    Ctrl-C). ``jaxnm fit`` handles SIGINT while it runs (`_CtrlC`; not where SIGINT is
+    ignored, nor outside the main thread) and puts the previous handler back."""
     parser = argparse.ArgumentParser(prog="jaxnm", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     _add_render(sub)
@@ -267,11 +374,21 @@ def main(argv=None) -> int:
         _add_xla_flag(DETERMINISTIC_FLAG)  # before JAX starts a backend
     if not args.no_compile_cache:
         _use_compilation_cache()
+    ctrl_c, previous = _CtrlC(), None
+    if (args.command == "fit" and threading.current_thread() is threading.main_thread()
+            and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN):
+        previous = signal.signal(signal.SIGINT, ctrl_c)  # restored below
     try:
-        return _render(args) if args.command == "render" else _fit(args)
+        return _render(args) if args.command == "render" else _fit(args, ctrl_c)
     except (ValueError, FileNotFoundError, ImportError) as e:
         print(f"jaxnm {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"jaxnm {args.command}: interrupted", file=sys.stderr)
+        return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
 
 
 if __name__ == "__main__":
