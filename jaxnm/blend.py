@@ -66,7 +66,7 @@ BLEND_METHODS = ("linear", "udn", "whiteout", "reoriented", "partial_derivative"
                  "surface_gradient")
 
 #: Mikkelsen's guard of the surface gradient's denominator (FLT_EPSILON).
-_SG_EPS = 1.1920929e-07
+_SG_EPS = 2.0**-23
 
 
 def _vectors(func: str, **named: ArrayLike) -> tuple[Array, ...]:

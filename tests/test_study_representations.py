@@ -1,0 +1,127 @@
+"""scripts/studies/study_representations.py: each conclusion of docs/studies/representations.md,
+asserted on small runs of the study's own functions (the full study is the script's), and the
+``--quick`` run writing its JSON and figures."""
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("quicktex")
+pytest.importorskip("texture2ddecoder")
+
+from scripts.studies import study_representations as R  # noqa: E402
+
+SIZE = 256
+
+
+def test_the_height_field_gradient_is_its_derivative():
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(0, 1, 100), rng.uniform(0, 1, 100)
+    e = 1e-6
+    for terms in (R.BASE_TERMS, R.DETAIL_TERMS):
+        fd = np.stack([R.height(u + e, v, terms)[0] - R.height(u - e, v, terms)[0],
+                       R.height(u, v + e, terms)[0] - R.height(u, v - e, terms)[0]], -1)
+        np.testing.assert_allclose(fd / (2 * e), R.height(u, v, terms)[1], atol=1e-7)
+    # periodic on the unit square: the map tiles
+    np.testing.assert_allclose(R.height(u + 1, v - 1)[0], R.height(u, v)[0], atol=1e-12)
+
+
+def test_quad_differences_follow_gl():
+    x = np.arange(16.0).reshape(4, 4) ** 2  # rows from the top, window y up
+    fx, fy = R._quad_differences(x, fine=True)
+    cx, cy = R._quad_differences(x, fine=False)
+    # fine: each row its own right-minus-left, each column its own upper-minus-lower
+    assert fx[0, 0] == fx[0, 1] == x[0, 1] - x[0, 0] and fx[1, 0] == x[1, 1] - x[1, 0]
+    assert fy[0, 1] == fy[1, 1] == x[0, 1] - x[1, 1]
+    # coarse: the quad's bottom row and left column for all four pixels
+    assert cx[0, 0] == cx[1, 1] == x[1, 1] - x[1, 0]
+    assert cy[0, 1] == cy[1, 0] == x[0, 0] - x[1, 0]
+
+
+@pytest.fixture(scope="module")
+def reps():
+    return {n: R.build(n, SIZE) for n in R.REPRESENTATIONS}
+
+
+def test_blending_partial_derivatives_and_derivative_maps_are_exact():
+    """Conclusion: partial derivatives, surface gradients and added derivative maps give the
+    summed height fields' normal to float rounding; UDN, whiteout, RNM and linear do not, in
+    that order."""
+    rows = R.blend_methods(128)["rows"]
+    for exact in ("partial_derivative", "surface_gradient", "derivative maps added"):
+        assert rows[exact]["max"] < 1e-3, (exact, rows[exact])
+    means = [rows[m]["mean"] for m in ("udn", "whiteout", "reoriented", "linear")]
+    assert means == sorted(means) and means[0] > 0.3 and means[-1] > 5, means
+
+
+def test_a_bump_map_differenced_on_screen_is_blocky_up_close(reps):
+    """Conclusion: up close the differenced height map jumps at texel borders (p99 of the
+    neighbour angle several times the truth's); the derivative and normal maps do not."""
+    sub = {k: reps[k] for k in ("tangent8", "derivative8", "height_fine", "height_coarse")}
+    rows = R.magnification(sub, SIZE, pixels=32)["rows"]
+    truth = rows["truth"]["jump_p99"]
+    for smooth in ("tangent8", "derivative8"):
+        assert rows[smooth]["jump_p99"] < 1.3 * truth
+    for blocky in ("height_fine", "height_coarse"):
+        assert rows[blocky]["jump_p99"] > 3 * truth
+        assert rows[blocky]["mean"] > 2 * rows["derivative8"]["mean"]
+
+
+def test_minification_two_channels_lose_z_and_bits_do_not_matter(reps):
+    """Conclusions: 8-bit codes add under 0.1 deg, a fifth or less of what the filter itself
+    loses against the footprint average (16 bits: nothing); two-channel maps (and
+    BC5) rebuild z from the filtered, shortened x and y and are several times further off at
+    4 texels per pixel; the object-space map is the tangent-space map's twin on a plane."""
+    sub = {k: reps[k] for k in ("tangent8", "tangent16", "two_channel8", "object8")}
+    rows = R.minification(sub, SIZE, (1, 4), pixels=32)
+    t8, t16 = rows["tangent8"], rows["tangent16"]
+    for a, b in zip(t8, t16):  # against the exact normals filtered alike
+        assert b["mean"] < 1e-3 and a["mean"] < 0.1 and a["mean"] < 0.2 * a["footprint_mean"]
+    assert rows["two_channel8"][1]["mean"] > 2 * t8[1]["mean"]
+    assert abs(rows["object8"][1]["mean"] - t8[1]["mean"]) < 0.1 * t8[1]["mean"]
+
+
+def test_the_encoders_rank_quicktex_etcpak_pillow():
+    """Conclusion: quicktex's BC5 is the closest to the 8-bit codes, etcpak's next, Pillow's
+    furthest; texture2ddecoder and Pillow decode every encoder's blocks alike."""
+    rows = [r for r in R.encoders(128, repeats=1) if r["format"] == "bc5"]
+    rms = {r["encoder"]: r["rms_codes"] for r in rows}
+    assert rms["quicktex"] < rms["etcpak"] < rms["pillow"], rms
+    assert rms["pillow"] > 2 * rms["quicktex"]
+    assert all(r["decoders_agree"] for r in rows)
+
+
+def test_the_supersampled_reference_converges():
+    u, v = R.texel_uv(SIZE)
+    n0 = R.truth_normal(u, v).astype(np.float32)
+    uv, _, _, step = R.view(16, 4, SIZE)
+    r = [R.reference_specular(n0, uv, step, ss) for ss in (2, 4, 8, 16)]
+    d = [np.abs(a - b).max() for a, b in zip(r, r[1:])]
+    assert d[0] > d[1] > d[2] and d[2] < 0.25 * d[0], d
+
+
+def test_toksvig_and_lean_follow_the_reference_where_renormalised_mips_alias():
+    """Conclusion: at 4 and 8 texels per pixel Toksvig and LEAN are about twice as close to
+    the supersampled highlights as renormalised or shortened mips (which agree with each
+    other); at one texel per pixel every choice is close."""
+    sp = R.specular(SIZE, (1, 4, 8), pixels=16)
+    for i in (1, 2):
+        ren = sp["renormalized"][i]["rms"]
+        assert abs(sp["shortened"][i]["rms"] - ren) < 0.05 * ren
+        assert sp["toksvig"][i]["rms"] < 0.65 * ren and sp["lean"][i]["rms"] < 0.65 * ren
+        assert sp["renormalized"][i]["mean_bias"] > 0.1  # highlights too bright
+    assert max(sp[c][0]["rms"] for c in R.FILTER_CHOICES) < 0.06
+
+
+@pytest.mark.slow
+def test_the_quick_study_writes_its_json_and_figures(tmp_path):
+    pytest.importorskip("matplotlib")
+    R.main(["--quick", "--out", str(tmp_path)])
+    res = json.loads((tmp_path / "representations.json").read_text())
+    assert set(res["speed_ms"]) == set(R.REPRESENTATIONS)
+    assert res["blend_representations"]["object8"] is None
+    assert res["meta"]["command"].endswith("--quick")
+    for name in ("fig_magnification.png", "fig_minification.png", "fig_blend.png",
+                 "fig_storage.png", "fig_specular.png"):
+        assert (tmp_path / name).stat().st_size > 5000, name
