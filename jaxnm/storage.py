@@ -54,6 +54,7 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
+from .io import atomic_write
 from .textures import NormalMapOptions, encode_normal_map, quantize
 
 __all__ = [
@@ -318,7 +319,7 @@ def save_dds_normal_map(path: str | os.PathLike, normals: ArrayLike, *, format: 
     The normals are encoded as two unsigned 8-bit channels (`encode_normal_map` with
     ``channels=2``, rounded to codes), block-compressed by `encoder`, and written in the
     container Pillow's DDS plugin writes (DXGI ``BC5_TYPELESS`` for BC5, ``DXT5`` for
-    DXT5nm).
+    DXT5nm), atomically (`jaxnm.io.atomic_write`).
 
     **Arguments:**
     - `path`: the ``.dds`` file to write.
@@ -338,8 +339,8 @@ def save_dds_normal_map(path: str | os.PathLike, normals: ArrayLike, *, format: 
         n, channels=2, green=green, uv_origin=uv_origin))) * 255), np.uint8)
     blocks = encode_blocks(codes, format=format, encoder=encoder)
     header, offset = _pillow_dds(_rgba(codes, format), format)
-    data = header[:offset] + blocks
-    Path(os.fspath(path)).write_bytes(data)
+    with atomic_write(path) as f:  # readers never see a part of the file
+        f.write(header[:offset] + blocks)
     return codes
 
 

@@ -208,3 +208,23 @@ def test_bad_files_get_one_line_naming_them(tmp_path):
         S.save_dds_normal_map(tmp_path / "x.dds", _normals(6))
     with pytest.raises(ValueError, match="unknown encoder='nvtt'"):
         S.save_dds_normal_map(tmp_path / "x.dds", _normals(8), encoder="nvtt")
+
+
+def test_endpoints_refit_by_least_squares_do_no_worse_than_the_encoders():
+    """For an encoder's indices, a texel is affine in its block's endpoints, so the best
+    (unrounded) endpoints are one least-squares solve per block: never worse than the
+    encoder's own endpoints, which are one feasible point."""
+    n = _normals(32, seed=3)
+    codes = np.asarray(np.round((n[..., :2] + 1) / 2 * 255), np.uint8)
+    blocks = S.encode_blocks(codes, format="bc5", encoder="etcpak")
+    e, i = S.bc5_blocks(blocks, (32, 32))
+    target = codes.reshape(8, 4, 8, 4, 2).transpose(0, 2, 4, 1, 3).reshape(8, 8, 2, 16)
+    w, c = (np.asarray(a, np.float64) for a in S.bc4_weights(i, e[..., 0] > e[..., 1]))
+    before = np.asarray(S.bc4_decode(e, i), np.float64)
+    fitted = np.empty(e.shape)
+    for idx in np.ndindex(e.shape[:3]):
+        fitted[idx] = np.linalg.lstsq(w[idx], target[idx] - c[idx], rcond=None)[0]
+    after = np.asarray(S.bc4_decode(fitted, i, eight_values=e[..., 0] > e[..., 1]),
+                       np.float64)
+    sse = lambda v: np.sum((v - target) ** 2, axis=-1)  # noqa: E731
+    assert (sse(after) <= sse(before) + 1e-6).all() and sse(after).sum() < sse(before).sum()
