@@ -156,7 +156,7 @@ def test_a_resumed_fit_is_the_uninterrupted_fit(small, solver, levels, tmp_path)
     resumed finished fit is the finished fit without a step."""
     problem, gt, prep = small
     opts = F.FitOptions(solver=solver, max_steps=7, ftol=0.0, coarse_to_fine=levels,
-                        lsmr_steps=10, init_noise=0.05, seed=3)
+                        init_noise=0.05, seed=3)  # (the other tests' compiled steps)
     kw = dict(prepared=prep, progress=False, ground_truth=gt)
     ref = F.fit_normal_map(problem, opts, **kw)
     ck = tmp_path / "fit.npz"
@@ -183,7 +183,7 @@ def test_resuming_with_more_steps_continues_the_fit(small, tmp_path):
     """A fit that ran out of steps, resumed with more, is the fit run with more from the
     start (the stopping rule's settings may change between the two)."""
     problem, _, prep = small
-    short = F.FitOptions(max_steps=4, ftol=0.0, lsmr_steps=10)
+    short = F.FitOptions(max_steps=4, ftol=0.0)
     longer = dataclasses.replace(short, max_steps=9)
     ck = tmp_path / "fit.npz"
     F.fit_normal_map(problem, short, prepared=prep, progress=False, checkpoint=ck)
