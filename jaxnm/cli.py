@@ -99,8 +99,8 @@ def _add_render(sub) -> None:
     p.add_argument("--precision", choices=PRECISIONS,
                    help="shader arithmetic of the frame and perturbation (float16: mediump)")
     p.add_argument("--normal-map", metavar="PATH",
-                   help="use this tangent-space normal map (8/16-bit PNG, unsigned, green up; "
-                   "the scene's uv origin, wrap, filter and strength)")
+                   help="use this tangent-space normal map (an 8/16-bit PNG, or a BC5 or DXT5nm "
+                   "DDS; unsigned, green up; the scene's uv origin, wrap, filter and strength)")
     p.add_argument("--height-map", metavar="PATH", dest="height_map",
                    help="bump the surface with this height map instead (grayscale image)")
     p.add_argument("--height-scale", type=float, default=0.02, dest="height_scale",
@@ -151,7 +151,13 @@ def _render(args) -> int:
         w, h = args.width or scene.width, args.height or scene.height
         if (w, h) != (scene.width, scene.height):
             changes.update(width=w, height=h, camera=_rescaled_camera(scene, w, h))
-    if args.normal_map:
+    if args.normal_map and Path(args.normal_map).suffix.lower() == ".dds":
+        from .storage import load_dds_normal_map
+
+        m = load_dds_normal_map(args.normal_map)  # BC5 or DXT5nm: two channels, z rebuilt
+        changes.update(normal_map=m.texels, normal_map_options=dataclasses.replace(
+            m.options(scene.normal_map_options), green="up"))
+    elif args.normal_map:
         raw, bits = io.load_texture(args.normal_map, channels=3)
         changes.update(normal_map=raw, normal_map_options=dataclasses.replace(
             scene.normal_map_options, encoding="unsigned", channels=3, green="up",

@@ -283,6 +283,13 @@ def load_normal_map(spec: Any, *, base_dir=".", where: str = ""):
         if opts.encoding != "unsigned" or opts.channels != 3:
             raise ValueError(f"{w}'builtin:rivets' is stored as a 3-channel unsigned map")
         return default_normal_map_texels(256), dataclasses.replace(opts, bits=8)
+    if Path(ref).suffix.lower() == ".dds":  # BC5 or DXT5nm: two 8-bit channels
+        from .storage import load_dds_normal_map
+
+        m = load_dds_normal_map(Path(base_dir) / ref)
+        if opts.encoding != "unsigned" or opts.space != "tangent":
+            raise ValueError(f"{w}{ref!r}: a DDS map is an unsigned tangent-space map")
+        return m.texels.astype(np.float32), m.options(opts)
     raw, bits = io.load_texture(Path(base_dir) / ref, channels=opts.channels)
     if opts.encoding == "signed" and bits in (8, 16):
         raise ValueError(f"{w}{ref!r}: encoding 'signed' needs float data (.npy/.npz); an "

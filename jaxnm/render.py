@@ -196,7 +196,7 @@ def covered_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *,
                     opts: RenderOptions) -> tuple[GBuffer, Array, int]:
     """`build_gbuffer` for the covered pixels only: ``(gbuffer, index, count)``.
 
-    Rasterizes (`_visible`), counts the covered pixels on the host, and runs the per-pixel
+    Rasterizes (`_visible_placed`), counts the covered pixels on the host, and runs the per-pixel
     stages on them packed (`jaxnm.raster.compact`) into image / 2^k slots. The G-buffer's
     per-pixel fields have a leading axis of slots, of which the first ``count`` are the
     covered pixels in row-major image order (row 0 at the top); ``index`` (slots,) holds
@@ -209,9 +209,11 @@ def covered_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *,
         raise ValueError("covered_gbuffer: 'gbuffer' derivatives need the whole image's "
                          "G-buffer (build_gbuffer)")
     check_mesh(mesh, opts)
-    tid, count, clip, orientation = _visible(mesh, camera, width=opts.width,
-                                             height=opts.height, cull_back=opts.cull_back)
-    count = int(count)
+    # render's visibility program: a fit's targets rendered first leave it compiled
+    tid, clip, orientation = _visible_placed(mesh, camera, _NO_SHIFT, width=opts.width,
+                                             height=opts.height, cull_back=opts.cull_back,
+                                             affine=False)
+    count = int(np.count_nonzero(np.asarray(tid) >= 0))
     gb, index = _covered(mesh, camera, albedo, tid, clip, orientation, opts=opts,
                          capacity=_capacity(count, opts.width * opts.height))
     return gb, index, count
@@ -228,7 +230,7 @@ def _compact(mesh: Mesh, camera: Camera, triangle_id: Array, capacity: int,
              clip: Array | None = None, orientation: Array | None = None):
     """`jaxnm.raster.compact` of ``mesh`` seen by ``camera``: (packed fragments, index);
     ``clip``, ``orientation``: the mesh's clip-space vertices and its triangles'
-    orientations where the caller has them (`_visible`)."""
+    orientations where the caller has them (`_visible_placed`)."""
     if clip is None:
         clip = to_clip(mesh.positions, camera)
     return compact(triangle_id, clip, mesh.faces.astype(jnp.int32), capacity,
@@ -434,7 +436,8 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
             placement)
     if not _packs(opts):
         return _frame(*args, opts=opts, affine=affine)
-    seen = _visible_placed(scene.mesh, camera, placement, opts=opts, affine=affine)
+    seen = _visible_placed(scene.mesh, camera, placement, width=opts.width, height=opts.height,
+                           cull_back=opts.cull_back, affine=affine)
     return _packed_frame(*args, *seen, opts=opts, affine=affine)
 
 
@@ -525,17 +528,20 @@ def _frame(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, ori
     return _image_layout(result, opts)
 
 
-@functools.partial(jax.jit, static_argnames=("opts", "affine"))
-def _visible_placed(mesh: Mesh, camera: Camera, placement, *, opts: RenderOptions,
-                    affine: bool):
-    """`_packed_frame`'s first program: each pixel's triangle (-1: background), the mesh's
-    clip-space vertices and its triangles' orientations (`triangle_ids`). Two programs, not
-    one: each keeps its own temporary buffers, which for a 200k-triangle mesh together
-    passed glibc's 32 MiB threshold (`_packed_passes`)."""
+@functools.partial(jax.jit, static_argnames=("width", "height", "cull_back", "affine"))
+def _visible_placed(mesh: Mesh, camera: Camera, placement, *, width: int, height: int,
+                    cull_back: bool, affine: bool):
+    """Visibility, a program of its own: each pixel's triangle (-1: background), the (placed)
+    mesh's clip-space vertices and its triangles' orientations (`triangle_ids`), which the
+    per-pixel program (`_packed_frame`, a fit's `covered_gbuffer`) then need not compute
+    again. Only what visibility depends on is static, so `render` and `covered_gbuffer`
+    share one compiled program per image size and culling. Two programs, not one with the
+    per-pixel stages: each keeps its own temporary buffers, which for a 200k-triangle mesh
+    together passed glibc's 32 MiB threshold (`_packed_passes`)."""
     mesh = _place(mesh, placement, affine)
     clip = materialize(to_clip(mesh.positions, camera))
-    tid, orientation = triangle_ids(clip, mesh.faces.astype(jnp.int32), width=opts.width,
-                                    height=opts.height, cull_back=opts.cull_back)
+    tid, orientation = triangle_ids(clip, mesh.faces.astype(jnp.int32), width=width,
+                                    height=height, cull_back=cull_back)
     return tid, clip, orientation
 
 
@@ -722,6 +728,10 @@ def camera_relative(scene: Scene) -> tuple[Scene, Array]:
                                model=None), origin
 
 
+#: The placement of a mesh already where it belongs (`_place`): zero shift.
+_NO_SHIFT = np.zeros(3, np.float32)
+
+
 def _capacity(count: int, pixels: int) -> int:
     """Slots for ``count`` covered pixels of a ``pixels``-pixel image: the smallest of
     pixels / 2, / 4, ..., / 64 that holds them, or all of them when more than half the
@@ -732,14 +742,3 @@ def _capacity(count: int, pixels: int) -> int:
             break
         capacity = pixels >> k
     return capacity
-
-
-@functools.partial(jax.jit, static_argnames=("width", "height", "cull_back"))
-def _visible(mesh: Mesh, camera: Camera, *, width: int, height: int, cull_back: bool):
-    """Each pixel's triangle (-1: background), how many pixels are covered, the mesh's
-    clip-space vertices and its triangles' orientations, which the per-pixel program then
-    need not compute again; the depth is left to the packed pixels (`compact`)."""
-    clip = materialize(to_clip(mesh.positions, camera))
-    tid, orientation = triangle_ids(clip, mesh.faces, width=width, height=height,
-                                    cull_back=cull_back)
-    return tid, jnp.count_nonzero(tid >= 0), clip, orientation

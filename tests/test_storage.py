@@ -228,3 +228,41 @@ def test_endpoints_refit_by_least_squares_do_no_worse_than_the_encoders():
                        np.float64)
     sse = lambda v: np.sum((v - target) ** 2, axis=-1)  # noqa: E731
     assert (sse(after) <= sse(before) + 1e-6).all() and sse(after).sum() < sse(before).sum()
+
+
+def test_jaxnm_render_and_scene_files_read_dds_maps(tmp_path, capsys):
+    """`jaxnm render --normal-map x.dds` and a scene file's ``normal_map`` path read a BC5
+    map: the image is the one of the same texels given to the scene directly (two unsigned
+    channels, z rebuilt); a bad DDS is one line naming the file, exit code 2."""
+    import dataclasses
+    import json
+
+    import jaxnm
+    from jaxnm import io as jio
+    from jaxnm.cli import main
+
+    path = tmp_path / "rivets.dds"
+    S.save_dds_normal_map(path, _normals(64), format="bc5")
+    m = S.load_dds_normal_map(path)
+    sc = jaxnm.default_scene(width=48, height=48)
+    ref = jaxnm.render(sc.replace(normal_map=m.texels, normal_map_options=dataclasses.replace(
+        m.options(sc.normal_map_options), green="up")))["color"]
+    out = tmp_path / "out.png"
+    assert main(["render", "--normal-map", str(path), "--width", "48", "--height", "48",
+                 "-o", str(out), "--no-compile-cache", "--aovs", str(tmp_path / "a.npz"),
+                 "--aov-list", "color"]) == 0
+    np.testing.assert_allclose(jio.load_aovs(tmp_path / "a.npz")["color"], ref, atol=1e-6)
+    scene_file = tmp_path / "scene.json"
+    scene_file.write_text(json.dumps({
+        "mesh": "builtin:torus", "camera": {"eye": [0, -2.35, 1.75], "target": [0, 0, -0.1],
+                                            "up": [0, 0, 1]},
+        "width": 48, "height": 48, "normal_map": {"path": "rivets.dds", "green": "up"}}))
+    loaded = jaxnm.load_scene(scene_file)
+    assert loaded.normal_map_options.channels == 2 and loaded.normal_map.shape == (64, 64, 2)
+    np.testing.assert_array_equal(np.asarray(loaded.normal_map), m.texels)
+    bad = tmp_path / "bad.dds"
+    bad.write_bytes(b"DDS " + bytes(200))
+    capsys.readouterr()
+    assert main(["render", "--normal-map", str(bad), "-o", str(out), "--no-compile-cache"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "bad.dds" in err, err
