@@ -753,3 +753,31 @@ def jax_copy(scene):
 
     return jax.tree_util.tree_map(lambda x: np.array(x) if isinstance(x, np.ndarray) else x,
                                   scene)
+
+
+def test_render_and_a_fits_prepare_share_one_visibility_program():
+    """`render` (a fit's targets) and `covered_gbuffer` (its `prepare`) run one compiled
+    visibility program per image size and culling: after a render, `covered_gbuffer`
+    compiles its per-pixel program only (a second rasterizer was a second of `jaxnm fit`)."""
+    import jax
+
+    from jaxnm.render import RenderOptions, covered_gbuffer
+
+    compiles = []
+    counting = [False]
+
+    def listen(name, seconds, **kwargs):
+        if counting[0] and name == "/jax/core/compile/backend_compile_duration":
+            compiles.append(kwargs.get("fun_name", "?"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)  # (0.8.0: cannot unregister)
+    scene = default_scene(width=256, height=256)  # packed: visibility a program of its own
+    jax.block_until_ready(render(scene)["color"])
+    counting[0] = True
+    try:
+        gb, index, count = covered_gbuffer(scene.mesh, scene.camera, jnp.asarray(scene.albedo),
+                                           opts=RenderOptions.of(scene))
+        assert count > 0 and "jit(_covered)" in compiles
+        assert not any("visible" in c for c in compiles), compiles
+    finally:
+        counting[0] = False
