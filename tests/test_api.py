@@ -152,11 +152,12 @@ def test_each_vocabulary_is_defined_once(vocab, owner):
     assert defined in ([owner], [owner_mod.__name__ + ".problem"]), defined
 
 
-def test_the_readme_module_table_matches_the_package():
-    """Every module (or subpackage) in jaxnm/ appears in the README's module table, and the
-    table names nothing that does not exist."""
-    readme = (ROOT / "README.md").read_text()
-    table = readme[readme.index("### Modules"):]
+def test_the_design_pages_module_table_matches_the_package():
+    """Every module (or subpackage) in jaxnm/ appears in the module table of the design page
+    (docs/guides/design.md, "The package"), and the table names nothing that does not
+    exist."""
+    page = (ROOT / "docs" / "guides" / "design.md").read_text()
+    table = page[page.index("## The package"):]
     table = table[:table.index("\n## ")]
     listed = set(re.findall(r"^\| `(jaxnm/[\w/.]+)` \|", table, re.M))
     actual = {f"jaxnm/{p.name}" for p in (ROOT / "jaxnm").glob("*.py")

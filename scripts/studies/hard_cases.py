@@ -10,7 +10,8 @@ of ``u`` and ``v`` scaled so that the longer is unit (Schüler's normalisation),
 here in float64. Each case reports the worst pixel's angle to it, the tolerance it must
 meet, and whether the image, the gradients with respect to the map, the vertex positions,
 the camera and the lights, and every output are finite. Writes ``hard_cases.json``,
-``hard_cases.md`` and one PNG per case (the shaded image) into ``--out``.
+``hard_cases.md``, one PNG per case (the shaded image) and ``cases.png`` (every case's image,
+labelled, in one figure; needs matplotlib) into ``--out``.
 """
 
 from __future__ import annotations
@@ -236,6 +237,29 @@ def run_case(case: Case) -> dict:
     return rec
 
 
+def _contact_sheet(rows: list[dict], images: list[np.ndarray], path: Path) -> None:
+    """Every case's shaded image with its name and worst error, in one figure."""
+    try:
+        from matplotlib.figure import Figure
+    except ImportError:
+        print("matplotlib missing: no cases.png (pip install '.[notebook]')")
+        return
+    cols = 6
+    rows_n = -(-len(images) // cols)
+    fig = Figure(figsize=(1.9 * cols, 2.25 * rows_n), dpi=100)
+    for k, ax in enumerate(fig.subplots(rows_n, cols).ravel()):
+        ax.set_axis_off()
+        if k >= len(images):
+            continue
+        ax.imshow(images[k], interpolation="nearest")
+        r = rows[k]
+        worst = f"worst {r['worst_deg']:.1g} deg" if "worst_deg" in r else "finite"
+        name = r["case"] if len(r["case"]) <= 30 else r["case"][:28] + "..."
+        ax.set_title(f"{name}\n{worst}", fontsize=6.5)
+    fig.tight_layout()
+    fig.savefig(path)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="hard_cases_out")
@@ -245,9 +269,10 @@ def main(argv=None) -> int:
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    rows = []
+    rows, images = [], []
     for k, case in enumerate(cases(args.size)):
         rec = run_case(case)
+        images.append(rec["image"])
         save_png(out / f"case_{k:02d}.png", rec.pop("image"))
         rec["image"] = f"case_{k:02d}.png"
         rows.append(rec)
@@ -261,6 +286,7 @@ def main(argv=None) -> int:
         md.append(f"| {r['case']} | {worst} | {tol} | {r['finite_outputs']} / "
                   f"{r['finite_gradients']} | {'yes' if r['pass'] else 'NO'} | {r['image']} |")
     (out / "hard_cases.md").write_text("\n".join(md) + "\n")
+    _contact_sheet(rows, images, out / "cases.png")
     print("\n".join(md))
     return 0 if all(r["pass"] for r in rows) else 1
 

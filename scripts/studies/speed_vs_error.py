@@ -16,7 +16,7 @@ float64 truth. Per configuration:
 - ``normal_mean`` / ``normal_p95`` (degrees): the perturbed normal against the float64
   truth *of the method's own convention* (Schüler's gradient frame for the screen-space and
   per-triangle methods, MikkTSpace's orthonormal frame for ``vertex``/``vertex_area``; see
-  ``docs/frames.md``), built from the smooth torus's analytic frame and the map value the
+  ``docs/studies/frames.md``), built from the smooth torus's analytic frame and the map value the
   renderer sampled (decoded from the same filter at the rendered uv and uv derivatives, so
   only the frame and the arithmetic differ);
 - ``image_rmse``: the RMS difference of the linear colour from the image shaded (by
