@@ -239,10 +239,12 @@ def decode_errors(case, image: np.ndarray, frame: str, size: int = 128) -> np.nd
     normal with ``frame`` and the high-poly normal where the baker's ray hits."""
     mesh = jaxnm.Mesh(jnp.asarray(case.lo_pos, jnp.float32), jnp.asarray(case.lo_faces),
                       jnp.asarray(case.lo_uv, jnp.float32), jnp.asarray(case.lo_n, jnp.float32))
+    if frame == "vertex":
+        mesh = mesh.with_tangents()  # MikkTSpace, as Blender's baker
     scene = Scene(mesh=mesh, camera=case.camera, width=size, height=size,
                   normal_map=jnp.asarray(image, jnp.float32),
                   normal_map_options=NormalMapOptions(filter="bilinear", wrap="clamp"),
-                  frame=frame, source=case.name).replace()
+                  frame=frame, source=case.name)
     out = jaxnm.render(scene, outputs=("perturbed_normal", "position", "normal", "mask",
                                        "triangle_id"))
     m = np.asarray(out["mask"])[..., 0] > 0
