@@ -88,6 +88,7 @@ from .report import fit_renders as fit_renders
 from .report import prepare_held_out as prepare_held_out
 from .report import score_held_out as score_held_out
 from .solve import STOP_TESTS as STOP_TESTS
+from .solve import compile_fit as compile_fit
 from .solve import fit_normal_map as fit_normal_map
 from .solve import level_sizes as level_sizes
 from .solve import make_solver as make_solver
@@ -98,7 +99,7 @@ __all__ = [
     "SOLVERS", "TEXEL_SUMS", "FitOptions", "FitProblem", "FitResult", "FitTarget",
     "FitWarning", "ModelArgs",
     "Prepared", "View", "ViewBatch", "angular_error", "check_identifiability", "error_report",
-    "fit_normal_map", "level_sizes", "loss", "make_solver", "normals_to_slopes",
+    "fit_normal_map", "compile_fit", "level_sizes", "loss", "make_solver", "normals_to_slopes",
     "preconditioner", "prepare", "problem_from_scene", "psnr", "render_with_map", "residuals",
     "sample_split", "seen_texels", "slopes_to_normals", "texel_influence", "validate_problem",
     "view_key", "with_map_size", "shard_views", "FitJob", "FitOutputs", "fit_outputs",

@@ -84,8 +84,9 @@ from .prepare import Prepared, prepare, shard_views, with_map_size
 from .problem import FitOptions, FitProblem, FitResult
 from .texel_lm import TexelLM, texel_sum_tables
 
-__all__ = ["fit_normal_map", "make_solver", "preconditioner", "level_sizes", "start_slopes",
-           "texel_sums_for", "stop_test", "noise_floor", "FULL_STEP_DAMPING", "STOP_TESTS"]
+__all__ = ["fit_normal_map", "compile_fit", "make_solver", "preconditioner", "level_sizes",
+           "start_slopes", "texel_sums_for", "stop_test", "noise_floor", "FULL_STEP_DAMPING",
+           "STOP_TESTS"]
 
 #: The solver's own tolerance test (a tiny move and loss change) counts only on an accepted
 #: step damped less than this: a damped step is tiny because it is damped.
@@ -447,6 +448,48 @@ class _Progress:
             self.bar.close()
 
 
+def _level_args(prep: Prepared, size: tuple[int, int], options: FitOptions,
+                strength: float) -> tuple[ModelArgs, np.ndarray]:
+    """The step's model arguments for the level of map ``size`` (``prep`` re-planned for it
+    where it is a coarser level) and its texel scales (`preconditioner`) on the host."""
+    h, w = prep.options[0].normal_map_shape
+    lp = prep if tuple(size) == (h, w) else _like(with_map_size(prep, size), prep)
+    scale_host = _host_preconditioner(lp)
+    # least squares on reduced residuals (same loss and Gauss-Newton steps, fewer numbers
+    # per pixel); L-BFGS only needs the loss and its gradient
+    sums = texel_sum_tables(lp) if texel_sums_for(lp, options) == "tables" else None
+    args = ModelArgs.create(lp, smoothness=options.smoothness, strength=strength,
+                            scale=jax.device_put(scale_host), reduce=options.solver != "lbfgs",
+                            texel_sums=sums)
+    return args, scale_host
+
+
+def compile_fit(problem: FitProblem, options: FitOptions = FitOptions(), *,
+                prepared: Prepared | None = None, strength: float = 1.0) -> float:
+    """Compile the solver step of `fit_normal_map`'s first level ahead of time, without
+    running it: the fit's first step then compiles nothing (later coarse-to-fine levels,
+    of other map sizes, still compile when they start).
+
+    For a caller that wants compilation apart from the fit: to time it, or to hand the
+    compiler's working memory back to the system before the fit's own buffers are
+    allocated (the command line does: its peak memory is then the larger of the two, not
+    their sum).
+
+    **Arguments:** as `fit_normal_map`'s (`prepared`: reuse a `prepare(problem)` result).
+
+    **Returns:** the seconds it took.
+    """
+    t0 = time.perf_counter()
+    prep = prepared if prepared is not None else prepare(problem)
+    size = level_sizes(tuple(problem.map_size), options.coarse_to_fine)[0]
+    args, scale_host = _level_args(prep, size, options, strength)
+    solver = make_solver(options)
+    z = jax.device_put((start_slopes(size, options) / scale_host).astype(np.float32))
+    state = _fresh_state(solver, z, args)
+    _step.lower((args, solver), z, _unaliased(state, (args, solver))).compile()
+    return time.perf_counter() - t0
+
+
 def _fresh_state(solver, z, args: ModelArgs):
     """The solver's state before the first step, in buffers of its own."""
     if isinstance(solver, TexelLM):  # made on the host, in buffers of its own
@@ -596,16 +639,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                 slopes = _upsample(best[1], size)
                 best = (math.inf, slopes)
             stopped, test = "max_steps", "max_steps"
-            lp = prep if size == (h, w) else _like(with_map_size(prep, size), prep)
-            scale_host = _host_preconditioner(lp)
-            scale = jax.device_put(scale_host)
-            # least squares on reduced residuals (same loss and Gauss-Newton steps,
-            # fewer numbers per pixel); L-BFGS only needs the loss and its gradient
-            sums = (texel_sum_tables(lp) if texel_sums_for(lp, options) == "tables"
-                    else None)
-            args = ModelArgs.create(lp, smoothness=options.smoothness, strength=strength,
-                                    scale=scale, reduce=options.solver != "lbfgs",
-                                    texel_sums=sums)
+            args, scale_host = _level_args(prep, size, options, strength)
             if resuming:
                 z = jax.device_put(saved.z)
                 state = _saved_state(source, _fresh_state(solver, z, args), saved.state)
