@@ -64,6 +64,7 @@ __all__ = [
     "DDSNormalMap",
     "load_dds_normal_map",
     "save_dds_normal_map",
+    "save_dds_blocks",
     "encode_blocks",
     "decode_blocks",
     "bc4_blocks",
@@ -337,11 +338,33 @@ def save_dds_normal_map(path: str | os.PathLike, normals: ArrayLike, *, format: 
         raise ValueError(f"save_dds_normal_map: `normals` must be (H, W, 3), got {n.shape}")
     codes = np.asarray(np.round(np.asarray(quantize(encode_normal_map(
         n, channels=2, green=green, uv_origin=uv_origin))) * 255), np.uint8)
-    blocks = encode_blocks(codes, format=format, encoder=encoder)
-    header, offset = _pillow_dds(_rgba(codes, format), format)
-    with atomic_write(path) as f:  # readers never see a part of the file
-        f.write(header[:offset] + blocks)
+    save_dds_blocks(path, encode_blocks(codes, format=format, encoder=encoder),
+                    codes.shape[:2], format=format)
     return codes
+
+
+def save_dds_blocks(path: str | os.PathLike, blocks: bytes, size_hw: tuple[int, int], *,
+                    format: str = "bc5") -> None:
+    """Write blocks made elsewhere (an encoder, `jaxnm.fit.fit_stored_map`) as a one-level
+    DDS file, in the container Pillow's DDS plugin writes, atomically.
+
+    **Arguments:**
+    - `path`: the ``.dds`` file to write.
+    - `blocks`: one level's blocks, 16 bytes per 4x4 texels, row by row of blocks.
+    - `size_hw`: ``(H, W)``, multiples of 4.
+    - `format`: one of `DDS_FORMATS`.
+    """
+    _check_option("save_dds_blocks", "format", format, DDS_FORMATS)
+    h, w = int(size_hw[0]), int(size_hw[1])
+    if h % 4 or w % 4 or not h or not w:
+        raise ValueError(f"save_dds_blocks: the size must be a multiple of 4 texels, got "
+                         f"{h}x{w}")
+    if len(blocks) != h * w:
+        raise ValueError(f"save_dds_blocks: {len(blocks)} bytes of blocks for {h}x{w} texels; "
+                         f"expected {h * w}")
+    header, offset = _pillow_dds(np.zeros((h, w, 4), np.uint8), format)
+    with atomic_write(path) as f:  # readers never see a part of the file
+        f.write(header[:offset] + bytes(blocks))
 
 
 # --------------------------------------------------------------------------- BC4 blocks

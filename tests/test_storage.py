@@ -266,3 +266,37 @@ def test_jaxnm_render_and_scene_files_read_dds_maps(tmp_path, capsys):
     assert main(["render", "--normal-map", str(bad), "-o", str(out), "--no-compile-cache"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "bad.dds" in err, err
+
+
+def test_jaxnm_render_refuses_bad_dds_files_in_one_line(tmp_path, capsys):
+    """`jaxnm render --normal-map` with a DDS of another format, a BC5 file of odd
+    dimensions or one whose header lists a wrong mip count: one line on stderr naming the
+    file and the fault, exit code 2."""
+    from jaxnm.cli import main
+
+    good = tmp_path / "good.dds"
+    S.save_dds_normal_map(good, _normals(8), format="bc5")
+    data = good.read_bytes()
+    bad = {}
+    bad["dxt1.dds"] = None  # written by Pillow below
+    odd = bytearray(data)
+    struct.pack_into("<I", odd, 16, 6)  # dwWidth: 6 texels
+    bad["odd.dds"] = bytes(odd)
+    mips = bytearray(data)
+    struct.pack_into("<I", mips, 28, 3)  # dwMipMapCount: 3 levels listed, one stored
+    bad["mips.dds"] = bytes(mips)
+    why = {"dxt1.dds": "unsupported DDS format", "odd.dds": "multiple of 4 texels",
+           "mips.dds": "wrong mip count"}
+    for name, content in bad.items():
+        p = tmp_path / name
+        if content is None:
+            Image.fromarray(np.zeros((8, 8, 4), np.uint8), "RGBA").save(p, "DDS",
+                                                                       pixel_format="DXT1")
+        else:
+            p.write_bytes(content)
+        capsys.readouterr()
+        assert main(["render", "--normal-map", str(p), "-o", str(tmp_path / "out.png"),
+                     "--no-compile-cache"]) == 2, name
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and str(p) in err and why[name] in err, err
+    assert not (tmp_path / "out.png").exists()
