@@ -22,6 +22,14 @@ decoded tangent-space map vector ``m`` (``m.x`` along ``+u``, ``m.y`` along
   tangents with a handedness sign, Gram-Schmidt per pixel.
 - ``"axis"`` (`axis_frame`): the fixed-axis approximation (GLSL Hacker); it
   ignores the uv mapping.
+- ``"gram_schmidt"`` (`gram_schmidt_frame`) and ``"separate"`` (`separate_frame`):
+  Schüler's frame made orthonormal, or with ``T`` and ``B`` each made unit, as
+  engines often ship it.
+- ``"cross"`` (`cross_frame`): the cross-product tangent quoted in the article's
+  comments (devsh, 2018), with ``B = N x T``.
+- ``"surface_gradient"`` (`surface_gradient_frame`): the per-pixel basis of
+  Mikkelsen's surface-gradient framework (2020), orthonormal, in MikkTSpace's
+  convention.
 - ``"cotangent_unnormalized"``: ``"cotangent"`` with ``normalize="none"`` (the
   true gradients of u and v); ``"exact_face"``: ``"exact"`` with the triangle's
   face normal; ``"none"``: ``T = B = 0`` (no perturbation).
@@ -54,6 +62,7 @@ from .numerics import eps, safe_norm, safe_normalize, safe_rsqrt, spread, tiny
 
 __all__ = [
     "FRAMES",
+    "SCREEN_FRAMES",
     "check_frame",
     "Frame",
     "axis_frame",
@@ -66,11 +75,19 @@ __all__ = [
     "vertex_frame",
     "vertex_tangents",
     "mikktspace_frame",
+    "gram_schmidt_frame",
+    "separate_frame",
+    "cross_frame",
+    "surface_gradient_frame",
 ]
 
 #: The frame methods (`compute_frame`, the scene key ``frame``, ``--frame``).
 FRAMES = ("cotangent", "cotangent_unnormalized", "nonperspective", "exact", "exact_face",
-          "vertex", "vertex_area", "axis", "none")
+          "vertex", "vertex_area", "axis", "gram_schmidt", "separate", "cross",
+          "surface_gradient", "none")
+#: The methods that take screen-space derivatives of the position and the uv.
+SCREEN_FRAMES = ("cotangent", "cotangent_unnormalized", "nonperspective", "gram_schmidt",
+                 "separate", "cross", "surface_gradient")
 _NORMALIZE_MODES = ("max", "none")
 
 #: A summed per-vertex tangent shorter than this fraction of the summed face weights
@@ -304,6 +321,138 @@ def nonperspective_frame(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Ar
     return Frame(T, B, N)
 
 
+def gram_schmidt_frame(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Array, *,
+                       ddy_sign: int = 1) -> Frame:
+    r"""Schüler's frame (`cotangent_frame`) made orthonormal by Gram-Schmidt.
+
+    .. math:: T' = \operatorname{normalize}(T - N (N \cdot T)), \qquad
+              B' = \operatorname{normalize}(B - N (N \cdot B) - T' (T' \cdot B))
+
+    ``T'`` is the direction of ``grad u``; ``B'`` is the part of ``grad v``
+    orthogonal to it, which is the direction of ``dp/dv`` (``dp/dv`` is
+    orthogonal to ``grad u``). So it is neither of the two conventions where the
+    uv is sheared: the gradient frame's ``B`` and MikkTSpace's ``T`` differ from
+    it by the shear angle. Engines orthonormalise so that the transpose is the
+    inverse (the article's comments discuss why that is not so otherwise).
+
+    **Arguments:** as `cotangent_frame` (``normalize="max"``).
+
+    **Returns:** an orthonormal `Frame` (``T = B = 0`` where Schüler's are zero);
+    it keeps the sign of Schüler's ``T`` and ``B`` (negative on back faces).
+    """
+    f = cotangent_frame(N, dp1, dp2, duv1, duv2, ddy_sign=ddy_sign)
+    T = safe_normalize(f.T - N * _dot(N, f.T, True))
+    b = f.B - N * _dot(N, f.B, True)
+    B = safe_normalize(b - T * _dot(T, b, True))
+    return Frame(T, B, N)
+
+
+def separate_frame(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Array, *,
+                   ddy_sign: int = 1) -> Frame:
+    r"""Schüler's frame with ``T`` and ``B`` normalised separately.
+
+    ``T = normalize(grad u)``, ``B = normalize(grad v)`` (each with the sign of
+    ``D`` as in `cotangent_frame`): the directions of the gradient frame, but each
+    of unit length, where Schüler divides both by the longer one. Where ``u`` and
+    ``v`` are scaled unequally (a stretched uv) the map's x and y are then weighted
+    as if they were not.
+
+    **Arguments:** as `cotangent_frame` (``normalize="max"``).
+
+    **Returns:** a `Frame` with unit ``T``, ``B`` (not orthogonal where the uv is sheared).
+    """
+    f = cotangent_frame(N, dp1, dp2, duv1, duv2, ddy_sign=ddy_sign)
+    return Frame(safe_normalize(f.T), safe_normalize(f.B), N)
+
+
+def _dp_du_direction(dp1: Array, dp2: Array, duv1: Array, duv2: Array) -> tuple[Array, Array]:
+    """``dp1 dv2 - dp2 dv1`` (``= D_uv dp/du`` with ``D_uv = du1 dv2 - du2 dv1``) and ``D_uv``."""
+    t = dp1 * duv2[..., 1:2] - dp2 * duv1[..., 1:2]
+    det = duv1[..., 0:1] * duv2[..., 1:2] - duv2[..., 0:1] * duv1[..., 1:2]
+    return t, det
+
+
+def cross_frame(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Array, *,
+                ddy_sign: int = 1) -> Frame:
+    r"""The cross-product tangent from the comments on Schüler's article (devsh, 2018).
+
+    The comment's GLSL reads
+
+    .. code-block:: glsl
+
+        vec3 t = dFdx(uv.y) * dFdy(p) - dFdx(p) * dFdy(uv.y);
+        T = normalize(t - N * dot(N, t));  B = cross(N, T);
+
+    **Its sign.** With ``J = [dp1 dp2]`` and the uv Jacobian
+    ``M = [[du1, du2], [dv1, dv2]]`` (``D_uv = det M``), ``dp/du = J M^{-1} e_1
+    = (dp1 dv2 - dp2 dv1) / D_uv``, so the comment's ``t`` is
+    ``-D_uv dp/du``. With GL's y-up derivatives a front face with an unmirrored
+    uv has ``D_uv > 0``: as written, ``T`` is ``-dp/du`` and ``B = N x T`` is
+    ``-dp/dv``'s direction, the map turned by 180 degrees (bumps read as dents).
+    With y-down derivatives (HLSL ``ddy``, Vulkan) ``D_uv < 0`` and the comment is
+    right. This function is written for jaxnm's y-up derivatives:
+    ``t = dp1 dv2 - dp2 dv1`` (``ddy_sign=-1`` gives the comment's expression on
+    GL derivatives). ``B = N x T`` carries no handedness, so where the uv is
+    mirrored (``D_uv < 0`` on a front face) ``T`` is reversed and ``B`` is right.
+
+    ``T`` is the exact direction of ``dp/du`` (projected on the plane normal to
+    ``N``) and ``B`` the right-handed normal to it: MikkTSpace's orthonormal
+    convention for unmirrored uv (see `surface_gradient_frame` for the signed one).
+
+    **Arguments:** as `cotangent_frame`.
+
+    **Returns:** an orthonormal `Frame`; ``T = B = 0`` where ``t`` vanishes.
+    """
+    _check_ddy_sign(ddy_sign)
+    if ddy_sign == -1:
+        dp2, duv2 = -dp2, -duv2
+    t, _ = _dp_du_direction(dp1, dp2, duv1, duv2)
+    T = safe_normalize(t - N * _dot(N, t, True))
+    return Frame(T, _cross(N, T), N)
+
+
+def surface_gradient_frame(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Array, *,
+                           ddy_sign: int = 1) -> Frame:
+    r"""The per-pixel tangent basis of Mikkelsen's surface-gradient framework (2020).
+
+    Mikkelsen, "Surface Gradient-Based Bump Mapping Framework" (JCGT 9(3), 2020)
+    writes every bump as a surface gradient ``g`` and resolves
+    ``N' = normalize(N - g)``. A tangent-space map value ``m`` is the height
+    derivative ``(dh/ds, dh/dt) = (-m_x / m_z, -m_y / m_z)`` along the basis, so
+    ``g = -(m_x T + m_y B) / m_z`` and ``N - g = (m_x T + m_y B + m_z N) / m_z``:
+    for ``m_z > 0`` `perturb_normal` with this frame gives the resolved normal.
+    Without vertex tangents the paper builds the basis from screen derivatives:
+    the surface derivatives ``sigma_x = dp1 - N (N . dp1)``, ``sigma_y``
+    likewise, combined by the inverse uv Jacobian, which gives the direction of
+    ``dp/du`` on the plane normal to ``N``:
+
+    .. math:: T = \operatorname{normalize}(\operatorname{sign}(D_{uv})\,
+              (\sigma_x dv_2 - \sigma_y dv_1)), \qquad
+              B = s\, N \times T,\quad s = \operatorname{sign}(D_{uv})
+              \operatorname{sign}(N \cdot (dp_1 \times dp_2))
+
+    with ``D_uv = du1 dv2 - du2 dv1``. ``s`` is the uv's handedness on the
+    surface (``sign((dp/du x dp/dv) . N)``), so mirrored uvs are decoded as
+    MikkTSpace decodes them: on a plane this is MikkTSpace's orthonormal frame
+    exactly, from screen derivatives alone (whereas `cross_frame` has no ``s``).
+
+    **Arguments:** as `cotangent_frame`.
+
+    **Returns:** an orthonormal `Frame`, oriented by the surface (not by the view);
+    ``T = B = 0`` where the uv derivatives are degenerate.
+    """
+    _check_ddy_sign(ddy_sign)
+    if ddy_sign == -1:
+        dp2, duv2 = -dp2, -duv2
+    t, det = _dp_du_direction(dp1, dp2, duv1, duv2)
+    sd = jnp.where(det < 0, -1.0, 1.0).astype(t.dtype)
+    T = safe_normalize(sd * (t - N * _dot(N, t, True)))
+    facing = jnp.where(_dot(N, _cross(dp1, dp2), True) < 0, -1.0, 1.0).astype(t.dtype)
+    B = (sd * facing) * _cross(N, T)
+    ok = jnp.abs(det) > 0
+    return Frame(jnp.where(ok, T, 0.0), jnp.where(ok, B, 0.0), N)
+
+
 def exact_frame(tri_p: Array, tri_uv: Array, N: Array | None = None, *,
                 use_face_normal: bool = False, normalize: str = "max") -> Frame:
     r"""The cotangent frame from the triangle's own edges (the geometry-shader variant).
@@ -531,6 +680,12 @@ def face_forward(frame: Frame, front_facing: Array) -> Frame:
     return Frame(frame.T * s, frame.B * s, frame.N * s)
 
 
+_SCREEN_VARIANTS = {"gram_schmidt": gram_schmidt_frame, "separate": separate_frame,
+                    "cross": cross_frame, "surface_gradient": surface_gradient_frame}
+# the frames whose T and B carry the sign of the screen orientation (negative on back faces)
+_VIEW_ORIENTED = ("gram_schmidt", "separate", "cross")
+
+
 def _value(x):
     return x.value if isinstance(x, Attribute) else jnp.asarray(x)
 
@@ -559,7 +714,7 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
     `ddy_sign`, `double_sided` are static):
     - `N`: ``(..., 3)`` interpolated normal (or its `Attribute`); normalised here.
     - `p_attr`, `uv_attr`: position (world or camera-relative) and uv
-      `Attribute`s with derivatives: ``"cotangent"``, ``"nonperspective"``.
+      `Attribute`s with derivatives: the `SCREEN_FRAMES`.
     - `tri_p`, `tri_uv`: ``(..., 3, 3)``, ``(..., 3, 2)`` corners
       (`jaxnm.interpolate.triangle_corners`): ``"exact"``, ``"exact_face"``.
     - `tangent`: ``(..., 4)`` interpolated tangent and sign: per-corner MikkTSpace
@@ -570,7 +725,7 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
       re-orienting the published cotangent frame, see there).
     - `normalize`, `ddy_sign`: see `cotangent_frame` (``normalize`` also for
       ``"nonperspective"`` and ``"exact"``; ``"cotangent_unnormalized"`` always
-      uses ``"none"``; ``ddy_sign`` for the screen-space ones).
+      uses ``"none"``; ``ddy_sign`` for the `SCREEN_FRAMES`).
 
     **Returns:** a `Frame` for `perturb_normal`. Where `N` is (numerically)
     zero, e.g. background pixels, every method returns ``T = B = N = 0``, so
@@ -592,6 +747,10 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
         duv1, duv2 = _derivs(uv_attr, "uv_attr", frame)
         fn = cotangent_frame if frame == "cotangent" else nonperspective_frame
         out = fn(n, dp1, dp2, duv1, duv2, normalize=normalize, ddy_sign=ddy_sign)
+    elif frame in _SCREEN_VARIANTS:
+        dp1, dp2 = _derivs(p_attr, "p_attr", frame)
+        duv1, duv2 = _derivs(uv_attr, "uv_attr", frame)
+        out = _SCREEN_VARIANTS[frame](n, dp1, dp2, duv1, duv2, ddy_sign=ddy_sign)
     elif frame == "exact":
         if tri_p is None or tri_uv is None:
             raise ValueError("compute_frame(frame='exact') needs `tri_p` and `tri_uv` "
@@ -618,7 +777,7 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
     if double_sided:
         if front_facing is None:
             raise ValueError("compute_frame(double_sided=True) needs `front_facing`")
-        if frame == "cotangent" and normalize == "max":
+        if (frame == "cotangent" and normalize == "max") or frame in _VIEW_ORIENTED:
             s = jnp.where(jnp.asarray(front_facing)[..., None], 1.0, -1.0).astype(out.T.dtype)
             out = Frame(out.T * s, out.B * s, out.N)
         out = face_forward(out, front_facing)

@@ -305,7 +305,7 @@ def _tangent_frame(opts: RenderOptions, mesh: Mesh, frags, gb, bary) -> _frames.
 
     inputs = {}
     n = low(gb["normal"])
-    if kind in ("cotangent", "cotangent_unnormalized", "nonperspective"):
+    if kind in _frames.SCREEN_FRAMES:
         quads = None if frags.pixels is None else frags.window_pixels()
         inputs = dict(p_attr=at_precision(gb["view"], prec, frags.mask, derivatives=mode,
                                           pixels=quads),
