@@ -81,3 +81,85 @@ def test_measure_on_a_plane():
     assert rows["axis"]["T_mean"] > 179.0
     # ... and the non-perspective frame is off under a 60 deg field of view at 45 deg
     assert rows["nonperspective"]["error_mean"] > 1.0
+
+
+# --------------------------------------------------------------------------------------
+# the document's conclusions, each at a small size (one compiled program per frame, shared)
+# --------------------------------------------------------------------------------------
+
+SIZE = 32
+SHEARED = S.UV_LAYOUTS["sheared 30 deg"]
+VARIANTS = ("cotangent", "nonperspective", "gram_schmidt", "separate", "cross",
+            "surface_gradient")
+
+
+def _by_method(rows):
+    return {r["method"]: r for r in rows}
+
+
+@pytest.fixture(scope="module")
+def sheared_plane():
+    return _by_method(S.measure(S.Plane(SHEARED), S._camera(60, 60), SIZE, methods=VARIANTS))
+
+
+def test_the_worst_case_over_the_hemisphere_measures_the_frame():
+    """The hemisphere's worst angle bounds the fixed map value's, and is 180 degrees for a
+    frame whose T is reversed (a map value along -T turns to +T)."""
+    n = np.tile([0.0, 0.0, 1.0], (4, 1))
+    t, b = np.tile([1.0, 0.0, 0.0], (4, 1)), np.tile([0.0, 1.0, 0.0], (4, 1))
+    worst, op = S.frame_measures(-t, b, n, t, b, n)
+    assert np.all(worst > 170.0) and np.allclose(op, 2.0)  # 256 directions: near 180
+    tilt = np.tile([np.cos(0.1), np.sin(0.1), 0.0], (4, 1))
+    worst, op = S.frame_measures(tilt, b, n, t, b, n)
+    fixed = S.angle(S.perturbed(tilt, b, n), S.perturbed(t, b, n))
+    assert np.all(worst >= fixed) and np.all(worst < np.degrees(0.1) * 1.01)
+
+
+def test_perspective_correct_frames_are_exact_on_a_plane_and_shipped_variants_are_not(
+        sheared_plane):
+    r = sheared_plane
+    # Schüler's frame against the gradient truth, the two orthonormal variants against
+    # MikkTSpace's: float32 rounding, for every map value of the hemisphere
+    assert r["cotangent"]["worst_max"] < 1e-3 and r["cotangent"]["convention"] == "gradient"
+    for m in ("cross", "surface_gradient"):
+        assert r[m]["convention"] == "orthonormal" and r[m]["worst_max"] < 1e-3, r[m]
+    # Gram-Schmidt and separately normalised T and B are neither convention on a sheared uv
+    for m in ("gram_schmidt", "separate"):
+        assert min(r[m]["worst_p95"], r[m]["other_worst_p95"]) > 5.0, r[m]
+        assert min(r[m]["gradient_mean"], r[m]["orthonormal_mean"]) > 1.0, r[m]
+    assert r["nonperspective"]["error_mean"] > 1.0
+
+
+def test_foreshortening_not_perspective_breaks_the_nonperspective_frame(sheared_plane):
+    head_on = S.measure(S.Plane(SHEARED), S._ortho_camera(0), SIZE, methods=("nonperspective",))
+    assert head_on[0]["worst_max"] < 1e-3
+    tilted = S.measure(S.Plane(SHEARED), S._ortho_camera(60), SIZE,
+                       methods=("nonperspective", "cotangent"))
+    r = _by_method(tilted)
+    predicted = S.nonperspective_prediction(60, SHEARED)
+    assert predicted > 5.0 and abs(r["nonperspective"]["error_mean"] - predicted) < 0.01
+    assert r["cotangent"]["error_max"] < 1e-3
+
+
+def test_mirrored_halves_need_the_handedness(sheared_plane):
+    r = _by_method(S.measure(S.MirrorPlane(S.UV_LAYOUTS["orthogonal"]), S._camera(45, 60), SIZE,
+                             methods=("cross", "surface_gradient", "cotangent")))
+    assert r["surface_gradient"]["worst_max"] < 1e-3 and r["cotangent"]["worst_max"] < 1e-3
+    # the cross-product frame reverses T on the mirrored half: about half the pixels
+    assert r["cross"]["worst_max"] > 170.0 and r["cross"]["T_p95"] > 179.0
+    assert r["cross"]["T_mean"] > 45.0
+
+
+def test_a_directx_map_read_as_opengl_is_off_by_its_green_mirror(sheared_plane):
+    flipped = S.MAP_VALUE * [1.0, -1.0, 1.0]
+    r = _by_method(S.measure(S.Plane(S.UV_LAYOUTS["orthogonal"]), S._camera(60, 60), SIZE,
+                             methods=("cotangent",), stored=flipped))["cotangent"]
+    n, t, b = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    expected = float(S.angle(S.perturbed(t, b, n, flipped), S.perturbed(t, b, n)))
+    assert expected > 10 and abs(r["error_mean"] - expected) < 1e-3
+
+
+def test_hlsl_ddy_turns_the_screen_space_frame_by_180_degrees():
+    r = _by_method(S.measure(S.Plane(SHEARED), S._camera(60, 60), SIZE, methods=("cotangent",),
+                             ddy="down"))["cotangent"]
+    assert r["T_mean"] > 179.9 and r["B_mean"] > 179.9 and r["worst_max"] > 179.0

@@ -1,6 +1,20 @@
 """The frame study: how far each tangent frame is from the truth, and what it depends on.
 
-    python -m scripts.studies.study_frames --out frames_out [--size 96] [--quick]
+    python -m scripts.studies.study_frames --out frames_out [--size 128] [--quick]
+        [--sweeps all | NAME,...] [--asset suzanne.npz]
+
+Besides the fixed map value's angle, every record carries measures that do not depend on
+the map: the worst angle over the hemisphere of map values and the operator norm of
+``F - F*`` (per pixel), the angles and relative length errors of T and B, each as mean,
+p95 and max over the ``pixels``. The fov, view-angle and distance sweeps run fine, coarse
+and analytic derivatives; ``orthographic`` tilts a plane under an orthographic camera (the
+non-perspective frame against its closed form); ``conventions`` feeds HLSL's ddy to the
+screen-space frames, reads a DirectX (green-down) map as OpenGL and decodes a plane whose
+mirrored halves share their texels; ``real`` decodes a map Blender baked onto Suzanne's uv
+layout (`blender_suzanne.py`) with trilinear mip-mapped sampling up to 1024x1024, against
+Blender's own MikkTSpace decode in float64, with each frame's compiled cost in ms.
+``frames.json`` carries the run's metadata (jaxnm version and commit, JAX version, machine,
+run time) and ``frames_summary.json`` the small table data.
 
 For every frame method and derivative mode, the per-pixel angle between the perturbed
 normal (a fixed, clearly tilted map value) and the float64 truth, and the angles of T and
@@ -45,6 +59,9 @@ import argparse
 import csv
 import json
 import math
+import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -53,7 +70,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxnm
-from jaxnm.camera import Camera, look_at, perspective
+from jaxnm.camera import Camera, look_at, orthographic, perspective
 from jaxnm.frames import FRAMES
 from jaxnm.interpolate import DERIVATIVE_MODES
 from jaxnm.scene import Scene
@@ -62,7 +79,9 @@ from jaxnm.textures import NormalMapOptions, decode_normal_map, sample
 MAP_VALUE = np.array([0.35, -0.25, 0.9]) / np.linalg.norm([0.35, -0.25, 0.9])
 METHODS = [f for f in FRAMES if f != "none"]
 GRADIENT_METHODS = ("cotangent", "cotangent_unnormalized", "nonperspective", "exact",
-                    "exact_face", "axis")
+                    "exact_face", "axis", "gram_schmidt", "separate")
+#: The map values of the worst case: a Fibonacci set over the upper hemisphere (z >= 0).
+HEMISPHERE = 256
 UV_LAYOUTS = {"orthogonal": [[0.5, 0.0], [0.0, 0.5]],
               "stretched 1:4": [[0.5, 0.0], [0.0, 0.125]],
               "sheared 30 deg": [[0.5, 0.5 * math.tan(math.radians(30))], [0.0, 0.5]],
@@ -188,6 +207,26 @@ class Cylinder:
         return 2 * np.pi * dp_da, 2 * dp_dz, np.stack([np.cos(a), np.sin(a), 0 * a], -1)
 
 
+class MirrorPlane(Plane):
+    """A plane whose two halves share their texels: ``u`` mirrored about ``x = 0``
+    (``u = 0.5 + a |x| + b y``), the layout of a symmetric asset baked once for both
+    halves. The right half's uv is `Plane`'s; the left half's is its mirror image, with
+    the opposite handedness. Vertices on the mirror line are shared."""
+
+    def __init__(self, uv_matrix, size=2.0, segments=4):
+        super().__init__(uv_matrix, size, segments)
+        xy = self.pos[:, :2] * [[1.0, 1.0]]
+        xy[:, 0] = np.abs(xy[:, 0])
+        self.uv = xy @ self.a.T + 0.5
+
+    def frame_at(self, p):
+        dp_du, dp_dv, n = (np.array(x) for x in super().frame_at(p))
+        left = p[:, 0] < 0
+        dp_du[left, 0] *= -1  # x -> -x on the left half
+        dp_dv[left, 0] *= -1
+        return dp_du, dp_dv, n
+
+
 def flat_shaded(surf):
     """The same mesh with face normals: every triangle its own three vertices."""
     p = surf.pos[surf.faces]
@@ -240,8 +279,41 @@ def _map_texels(kind: str) -> np.ndarray:
     return ((jaxnm.procedural.default_normal_map(128) + 1) / 2).astype(np.float32)
 
 
+def hemisphere(k=HEMISPHERE):
+    """``k`` unit vectors spread evenly over the upper hemisphere (z from 1 down to 0)."""
+    i = np.arange(k) + 0.5
+    z = 1.0 - i / k
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    r = np.sqrt(1.0 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
+
+
+def _stats(rec, prefix, e):
+    rec[f"{prefix}_mean"] = float(np.mean(e))
+    rec[f"{prefix}_p95"] = float(np.percentile(e, 95))
+    rec[f"{prefix}_max"] = float(np.max(e))
+
+
+def frame_measures(t, b, n, t0, b0, n0, chunk=4096):
+    """Map-independent measures of a frame ``(t, b, n)`` against a truth ``(t0, b0, n0)``
+    (each ``(P, 3)``, float64), per pixel: the worst angle over every map value of the
+    upper hemisphere (`hemisphere`) between ``normalize(F m)`` and ``normalize(F* m)``, and
+    the operator norm (largest singular value) of ``F - F*``, ``F = [t b n]``."""
+    ms = hemisphere()
+    worst = np.empty(len(t))
+    for a in range(0, len(t), chunk):
+        sl = slice(a, a + chunk)
+        f = np.stack([t[sl], b[sl], n[sl]], -1)
+        f0 = np.stack([t0[sl], b0[sl], n0[sl]], -1)
+        v = np.einsum("pij,kj->pki", f, ms)
+        v0 = np.einsum("pij,kj->pki", f0, ms)
+        worst[sl] = angle(v, v0).max(1)
+    d = np.stack([t - t0, b - b0, n - n0], -1)
+    return worst, np.linalg.norm(d, ord=2, axis=(-2, -1))
+
+
 def measure(surf, camera, size, methods=METHODS, modes=("fine",), keep_maps=False,
-            normal_map="constant", precision="float32") -> list:
+            normal_map="constant", precision="float32", ddy="up", stored=None) -> list:
     """One record per (method, mode): mean / p95 / max angles of the perturbed normal to
     the smooth surface's truth of the method's convention (``error_*``) and to the other
     convention's (``gradient_*`` / ``orthonormal_*``), to the mesh's own per-triangle
@@ -249,8 +321,21 @@ def measure(surf, camera, size, methods=METHODS, modes=("fine",), keep_maps=Fals
 
     ``normal_map``: ``"constant"`` (every texel the fixed tilted `MAP_VALUE`) or
     ``"rivets"`` (the default scene's map, 128 texels, bilinear; the truth decodes the
-    same bilinear sample at the pixel's rendered uv, so only the frame differs)."""
+    same bilinear sample at the pixel's rendered uv, so only the frame differs).
+
+    Map-independent measures against the method's own truth: ``worst_*`` (the worst angle
+    over the hemisphere of map values, per pixel), ``opnorm_*`` (the operator norm of
+    ``F - F*``), the angles of T and B (``T_*``, ``B_*``) and their relative length
+    errors (``Tlen_*``, ``Blen_*``: ``|T| / |T*| - 1``), each as mean, p95 and max over
+    the ``pixels``.
+
+    ``ddy="down"`` feeds HLSL's ``ddy`` to the screen-space frames; ``stored`` (a map
+    value) puts that value in the texels while the truth still decodes `MAP_VALUE` (a
+    map stored in another convention)."""
     texels = _map_texels(normal_map)
+    if stored is not None:
+        texels = np.broadcast_to(((np.asarray(stored) + 1) / 2).astype(np.float32),
+                                 texels.shape).copy()
     options = NormalMapOptions(filter="nearest" if normal_map == "constant" else "bilinear",
                                wrap="clamp" if normal_map == "constant" else "repeat")
     mesh = _mesh(surf)
@@ -258,7 +343,7 @@ def measure(surf, camera, size, methods=METHODS, modes=("fine",), keep_maps=Fals
         mesh = mesh.with_tangents()
     scene = Scene(mesh=mesh, camera=camera, width=size, height=size,
                   normal_map=jnp.asarray(texels), normal_map_options=options,
-                  source="<frame study>")
+                  source="<frame study>", ddy=ddy)
     rows, maps = [], {}
     for mode in modes:
         for method in methods:
@@ -287,7 +372,8 @@ def measure(surf, camera, size, methods=METHODS, modes=("fine",), keep_maps=Fals
             face = {"gradient": (fu, fbu) if unnorm else (fg, fb), "orthonormal": (fo, fbo)}
             pn = np.asarray(out["perturbed_normal"], np.float64)[m]
             rec = {"method": method, "mode": mode, "convention": own, "map": normal_map,
-                   "precision": precision, "pixels": int(m.sum())}
+                   "precision": precision, "pixels": int(m.sum()), "ddy": ddy,
+                   "stored": None if stored is None else [float(x) for x in stored]}
             for conv, (t, b) in truth.items():
                 e = angle(pn, perturbed(t, b, n, mv))
                 rec[f"{conv}_mean"] = float(e.mean())
@@ -306,8 +392,16 @@ def measure(surf, camera, size, methods=METHODS, modes=("fine",), keep_maps=Fals
             t_px = np.asarray(out["tangent"], np.float64)[m]
             b_px = np.asarray(out["bitangent"], np.float64)[m]
             t_own, b_own = truth[own]
-            rec["T_mean"] = float(angle(t_px, t_own).mean())
-            rec["B_mean"] = float(angle(b_px, b_own).mean())
+            _stats(rec, "T", angle(t_px, t_own))
+            _stats(rec, "B", angle(b_px, b_own))
+            ln = np.linalg.norm
+            _stats(rec, "Tlen", np.abs(ln(t_px, axis=-1) / ln(t_own, axis=-1) - 1))
+            _stats(rec, "Blen", np.abs(ln(b_px, axis=-1) / ln(b_own, axis=-1) - 1))
+            for conv, (t, b) in truth.items():
+                worst, op = frame_measures(t_px, b_px, n_px, t, b, n)
+                pre = "" if conv == own else "other_"
+                _stats(rec, pre + "worst", worst)
+                _stats(rec, pre + "opnorm", op)
             rows.append(rec)
     return (rows, maps) if keep_maps else rows
 
@@ -324,15 +418,194 @@ def _camera(view_deg, fov, target=(0.0, 0.0, 0.0), dist=None, extent=1.0):
                                 perspective(fov, 1.0, dist * 1e-3, dist * 10))
 
 
+def _ortho_camera(view_deg, extent=1.0):
+    """An orthographic camera looking at the origin at ``view_deg`` from the +z normal,
+    framing a square of half-size ``extent``: no perspective, only the surface's tilt
+    (foreshortening by ``cos(view)`` along one axis)."""
+    r = math.radians(view_deg)
+    eye = 5.0 * np.array([0.0, -math.sin(r), math.cos(r)])
+    h = 1.15 * extent
+    return Camera.from_matrices(look_at(eye, (0, 0, 0), (0, 1, 0) if view_deg < 1e-6 else
+                                        (0, 0, 1)), orthographic(-h, h, -h, h, 0.1, 20.0))
+
+
+def nonperspective_prediction(view_deg, uv_matrix, m=MAP_VALUE):
+    """The non-perspective frame under an orthographic camera, in closed form (float64):
+    on the plane ``z = 0`` seen at ``view_deg`` about the x axis, one pixel step is
+    ``dp1 = (s, 0, 0)`` and ``dp2 = (0, s / cos(view), 0)``, ``duv = A dp``, and
+    ``T = dp1 du1 + dp2 du2`` (``B`` with ``v``). Returns the angle in degrees between
+    its perturbed normal and the gradient truth's for the map value ``m``."""
+    a = np.asarray(uv_matrix, np.float64)
+    c = math.cos(math.radians(view_deg))
+    dp1, dp2 = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0 / c, 0.0])
+    duv1, duv2 = a @ dp1[:2], a @ dp2[:2]
+    t = dp1 * duv1[0] + dp2 * duv2[0]
+    b = dp1 * duv1[1] + dp2 * duv2[1]
+    s = math.sqrt(max(t @ t, b @ b))
+    n = np.array([0.0, 0.0, 1.0])
+    (tg, bg), _, _ = truth_frames(*Plane(a).frame_at(n[None]))
+    return float(angle(perturbed(t / s, b / s, n, m), perturbed(tg[0], bg[0], n, m)))
+
+
 def _torus_camera():
     return Camera.from_matrices(look_at((4.0, -1.4, 1.6), (1.4, 0.0, 0.0), (0, 0, 1)),
                                 perspective(40, 1.0, 0.05, 50))
 
 
-SWEEPS = ("fov", "view angle", "uv", "distance", "derivatives", "precision", "tessellation")
+# --------------------------------------------------------------------------------------
+# a real asset: Blender's Suzanne, its uv layout, a map baked by Cycles (MikkTSpace)
+# --------------------------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
-def sweeps(size: int, quick: bool, only=SWEEPS) -> list:
+def bake_asset(path: Path, size: int = 512) -> Path | None:
+    """Run `scripts/studies/blender_suzanne.py` in Blender's environment (None without it)."""
+    from scripts.studies.blender_bake_cases import blender_python
+
+    py = blender_python()
+    if py is None:
+        return None
+    if not path.exists():
+        subprocess.run([py, str(ROOT / "scripts" / "studies" / "blender_suzanne.py"),
+                        str(path), "--size", str(size)], check=True, capture_output=True)
+    return path
+
+
+def _suzanne_camera():
+    return Camera.from_matrices(look_at((1.3, -4.6, 1.1), (0.0, 0.0, 0.1), (0, 0, 1)),
+                                perspective(36, 1.0, 0.1, 50))
+
+
+def _barycentric(p, tri):
+    """Barycentric weights of points ``p`` (P, 3) in triangles ``tri`` (P, 3, 3), float64."""
+    e1, e2, d = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], p - tri[:, 0]
+    g11, g12, g22 = (np.sum(e1 * e1, -1), np.sum(e1 * e2, -1), np.sum(e2 * e2, -1))
+    r1, r2 = np.sum(d * e1, -1), np.sum(d * e2, -1)
+    det = g11 * g22 - g12 * g12
+    b1, b2 = (g22 * r1 - g12 * r2) / det, (g11 * r2 - g12 * r1) / det
+    return np.stack([1 - b1 - b2, b1, b2], -1)
+
+
+def _time_render(scene, method, reps):
+    """Median wall time (ms) of a compiled render of the perturbed normal (steady state)."""
+    def run():
+        out = jaxnm.render(scene, outputs=("perturbed_normal",), frame=method)
+        jax.block_until_ready(out)
+
+    run()
+    run()
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        run()
+        times.append(1e3 * (time.perf_counter() - t0))
+    return float(np.median(times))
+
+
+def real_mesh(asset: Path, sizes=(256, 1024), methods=METHODS, reps=5,
+              time_size=None, keep_maps=False):
+    """Each frame decoding a real baked map on a real uv layout, against the baker's decode.
+
+    The reference is MikkTSpace as Blender decodes it, in float64: Blender's own corner
+    tangents and signs (`blender_suzanne.py`) interpolated with the pixel's barycentric
+    weights, ``B = sign N x T``, ``normalize(m.x T + m.y B + m.z N)``, with ``m`` the map
+    value jaxnm sampled (trilinear, mip-mapped) at the pixel. ``ms``: the compiled,
+    steady-state time of rendering the perturbed normal (median of ``reps``);
+    ``frame_ms``: less the time of the same render with no frame (``none``)."""
+    d = np.load(asset)
+    mesh = jaxnm.Mesh(jnp.asarray(d["positions"], jnp.float32), jnp.asarray(d["faces"],
+                                                                                jnp.int32),
+                      jnp.asarray(d["uv"], jnp.float32),
+                      jnp.asarray(d["normals"], jnp.float32)).with_tangents()
+    pos, faces, nrm = d["positions"], d["faces"], d["normals"]
+    rows, maps = [], {}
+    for size in sizes:
+        scene = Scene(mesh=mesh, camera=_suzanne_camera(), width=size, height=size,
+                      normal_map=jnp.asarray(d["image"], jnp.float32),
+                      normal_map_options=NormalMapOptions(filter="trilinear", wrap="repeat"),
+                      source="<Suzanne>")
+        ref_out = jaxnm.render(scene, outputs=("perturbed_normal", "tangent", "bitangent",
+                                                "normal", "position", "triangle_id", "mask",
+                                                "front_facing"), frame="vertex")
+        m = (np.asarray(ref_out["mask"])[..., 0] > 0) & (
+            np.asarray(ref_out["front_facing"])[..., 0] > 0)
+        tri = np.asarray(ref_out["triangle_id"])[..., 0][m].astype(np.int64)
+        bary = _barycentric(np.asarray(ref_out["position"], np.float64)[m], pos[faces[tri]])
+        t_b = np.einsum("pk,pkj->pj", bary, d["tangents"][tri])
+        sgn = np.where(np.einsum("pk,pk->p", bary, d["signs"][tri]) < 0, -1.0, 1.0)[:, None]
+        n_b = np.einsum("pk,pkj->pj", bary, nrm[faces[tri]])
+        # the sampled map value, from jaxnm's MikkTSpace decode: m ~ F^-1 n'
+        f = np.stack([np.asarray(ref_out[k], np.float64)[m] for k in
+                      ("tangent", "bitangent", "normal")], -1)
+        pn = np.asarray(ref_out["perturbed_normal"], np.float64)[m]
+        mv = _unit(np.linalg.solve(f, pn[..., None])[..., 0])
+        ref = _unit(t_b * mv[:, :1] + sgn * np.cross(n_b, t_b) * mv[:, 1:2] + n_b * mv[:, 2:3])
+        none_ms = (_time_render(scene, "none", reps)
+                   if time_size in (None, size) else None)
+        for method in methods:
+            out = jaxnm.render(scene, outputs=("perturbed_normal",), frame=method)
+            e = angle(np.asarray(out["perturbed_normal"], np.float64)[m], ref)
+            rec = {"sweep": "real", "surface": "Suzanne", "method": method, "size": size,
+                   "mode": "fine", "map": "baked", "pixels": int(m.sum()),
+                   "convention": "gradient" if method in GRADIENT_METHODS else "orthonormal"}
+            _stats(rec, "error", e)
+            rec["above_5deg"] = int(np.sum(e > 5.0))
+            if none_ms is not None:
+                rec["ms"] = _time_render(scene, method, reps)
+                rec["frame_ms"] = rec["ms"] - none_ms
+                rec["none_ms"] = none_ms
+            rows.append(rec)
+            if keep_maps and size == sizes[0]:
+                img = np.full(m.shape, np.nan)
+                img[m] = e
+                maps[method] = img
+            print(json.dumps({k: rec[k] for k in ("method", "size", "error_mean")}),
+                  flush=True)
+        jax.clear_caches()
+    return (rows, maps) if keep_maps else rows
+
+
+def metadata(run_s: float, argv) -> dict:
+    """What produced a run: jaxnm's version and commit, JAX's version, the machine."""
+    import platform
+
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True,
+                                text=True, check=True).stdout.strip()
+        dirty = bool(subprocess.run(["git", "status", "--porcelain", "--", "jaxnm",
+                                     "scripts/studies/study_frames.py"], cwd=ROOT,
+                                    capture_output=True, text=True).stdout.strip())
+    except (OSError, subprocess.CalledProcessError):
+        commit, dirty = None, None
+    cpu = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"jaxnm": jaxnm.__version__, "commit": commit, "modified": dirty,
+            "jax": jax.__version__, "backend": jax.default_backend(),
+            "machine": f"{platform.machine()}, {os.cpu_count()} cores, {cpu}",
+            "python": platform.python_version(), "run_s": round(run_s, 1),
+            "command": "python -m scripts.studies.study_frames " + " ".join(argv)}
+
+
+SWEEPS = ("fov", "view angle", "uv", "distance", "derivatives", "orthographic",
+          "conventions", "real", "precision", "tessellation")
+#: The default run (the two long ones, precision and tessellation, on request).
+DEFAULT_SWEEPS = SWEEPS[:-2]
+#: The derivative modes of the fov, view-angle and distance sweeps.
+SWEEP_MODES = ("fine", "coarse", "analytic")
+#: The screen-space frames the convention sweep feeds HLSL's ddy to.
+DDY_METHODS = ("cotangent", "nonperspective", "gram_schmidt", "separate", "cross",
+               "surface_gradient")
+
+
+def sweeps(size: int, quick: bool, only=DEFAULT_SWEEPS, asset: Path | None = None,
+           real_sizes=(256, 1024)) -> list:
     rows = []
 
     def tag(records, **kw):
@@ -364,19 +637,48 @@ def sweeps(size: int, quick: bool, only=SWEEPS) -> list:
             forget()
     for fov in ([] if "fov" not in only else
                 (1, 30, 120) if quick else (1, 10, 30, 60, 90, 120)):
-        tag(measure(plane, _camera(45, fov), size), sweep="fov", fov=fov, view=45,
-            surface="plane", uv="sheared 30 deg")
+        tag(measure(plane, _camera(45, fov), size, modes=SWEEP_MODES), sweep="fov", fov=fov,
+            view=45, surface="plane", uv="sheared 30 deg")
     for view in ([] if "view angle" not in only else
                  (0, 60, 89) if quick else (0, 30, 60, 75, 85, 89)):
-        tag(measure(plane, _camera(view, 60), size), sweep="view angle", fov=60, view=view,
-            surface="plane", uv="sheared 30 deg")
+        tag(measure(plane, _camera(view, 60), size, modes=SWEEP_MODES), sweep="view angle",
+            fov=60, view=view, surface="plane", uv="sheared 30 deg")
     for name, a in (UV_LAYOUTS.items() if "uv" in only else ()):
         tag(measure(Plane(a), _camera(45, 60), size), sweep="uv", fov=60, view=45,
             surface="plane", uv=name)
     for f in ([] if "distance" not in only else
               (0.1, 1, 10) if quick else (0.1, 0.3, 1, 3, 10)):
-        tag(measure(plane, _camera(60, 60, dist=f * base), size), sweep="distance", fov=60,
-            view=60, distance=f, surface="plane", uv="sheared 30 deg")
+        tag(measure(plane, _camera(60, 60, dist=f * base), size, modes=SWEEP_MODES),
+            sweep="distance", fov=60, view=60, distance=f, surface="plane",
+            uv="sheared 30 deg")
+    for view in ([] if "orthographic" not in only else
+                 (0, 60, 89) if quick else (0, 15, 30, 45, 60, 75, 89)):
+        for name in ("orthogonal", "sheared 30 deg"):
+            recs = measure(Plane(UV_LAYOUTS[name]), _ortho_camera(view), size,
+                           methods=("cotangent", "nonperspective", "cross", "exact"))
+            for r in recs:
+                if r["method"] == "nonperspective":
+                    r["predicted"] = nonperspective_prediction(view, UV_LAYOUTS[name])
+            tag(recs, sweep="orthographic", view=view, surface="plane", uv=name,
+                camera="orthographic")
+    if "conventions" in only:
+        tag(measure(plane, _camera(45, 60), size, methods=DDY_METHODS, ddy="down"),
+            sweep="conventions", case="HLSL ddy", fov=60, view=45, surface="plane",
+            uv="sheared 30 deg")
+        green_down = MAP_VALUE * [1.0, -1.0, 1.0]
+        tag(measure(plane, _camera(45, 60), size, stored=green_down),
+            sweep="conventions", case="DirectX map read as OpenGL", fov=60, view=45,
+            surface="plane", uv="sheared 30 deg")
+        for name in ("sheared 30 deg", "mirrored"):
+            tag(measure(MirrorPlane(UV_LAYOUTS[name if name != "mirrored" else "orthogonal"]),
+                        _camera(45, 60), size),
+                sweep="conventions", case="mirrored halves share texels", fov=60, view=45,
+                surface="mirror plane", uv=name if name != "mirrored" else "orthogonal")
+        forget()
+    if "real" in only and asset is not None:
+        rows.extend(real_mesh(asset, sizes=(128,) if quick else real_sizes, reps=3 if quick
+                              else 5, time_size=None))
+        forget()
     if "derivatives" in only:
         tag(measure(plane, _camera(45, 60), size, modes=DERIVATIVE_MODES),
             sweep="derivatives", fov=60, view=45, surface="plane", uv="sheared 30 deg")
@@ -415,18 +717,64 @@ def _plot(rows, out: Path) -> None:
                                        "view angle from the normal (deg)"),
                                       ("distance", "distance", "error_vs_distance.png",
                                        "camera distance / distance that frames the plane")):
-        fig = Figure(figsize=(6.5, 4), dpi=100)
-        ax = fig.add_subplot()
-        for method in METHODS:
-            pts = sorted((r[key], r["error_mean"]) for r in rows
-                         if r["sweep"] == sweep and r["method"] == method)
-            if pts:
-                plot = ax.loglog if sweep == "distance" else ax.semilogy
-                plot(*zip(*[(x, max(y, 1e-6)) for x, y in pts]), "o-", label=method)
-        ax.set(xlabel=xlabel, ylabel="mean error vs own truth (deg)", title=sweep)
-        ax.legend(fontsize=7)
+        if not any(r["sweep"] == sweep for r in rows):
+            continue
+        fig = Figure(figsize=(10, 4), dpi=90)
+        for k, (stat, label) in enumerate((("error_mean", "mean error, the fixed map value"),
+                                           ("worst_p95", "p95 of the worst over the "
+                                            "hemisphere"))):
+            ax = fig.add_subplot(1, 2, k + 1)
+            for j, method in enumerate(METHODS):
+                for mode, style in (("fine", "o-"), ("coarse", "x:"), ("analytic", "+--")):
+                    pts = sorted((r[key], r[stat]) for r in rows if r["sweep"] == sweep
+                                 and r["method"] == method and r["mode"] == mode)
+                    if pts:
+                        plot = ax.loglog if sweep == "distance" else ax.semilogy
+                        plot(*zip(*[(x, max(y, 1e-6)) for x, y in pts]), style,
+                             color=f"C{j % 10}", ms=4,
+                             label=method if mode == "fine" else None)
+            ax.set(xlabel=xlabel, ylabel=f"{label} (deg)", title=f"{sweep}: o fine, x coarse, "
+                   "+ analytic")
+            if k == 0:
+                ax.legend(fontsize=6, ncol=2)
         fig.tight_layout()
         fig.savefig(out / fname)
+    ortho = [r for r in rows if r["sweep"] == "orthographic"]
+    if ortho:
+        fig = Figure(figsize=(6.5, 4), dpi=90)
+        ax = fig.add_subplot()
+        for j, (method, uv) in enumerate((("nonperspective", "orthogonal"),
+                                          ("nonperspective", "sheared 30 deg"),
+                                          ("cotangent", "sheared 30 deg"),
+                                          ("cross", "orthogonal"))):
+            pts = sorted((r["view"], r["error_mean"], r.get("predicted")) for r in ortho
+                         if r["method"] == method and r["uv"] == uv)
+            ax.semilogy([x for x, _, _ in pts], [max(y, 1e-6) for _, y, _ in pts], "o-",
+                        color=f"C{j}", label=f"{method}, {uv} uv")
+            if method == "nonperspective":
+                ax.semilogy([x for x, _, _ in pts], [max(z, 1e-6) for _, _, z in pts], "k:",
+                            lw=1)
+        ax.set(xlabel="tilt of the plane from the image plane (deg)",
+               ylabel="mean error vs own truth (deg)",
+               title="orthographic camera (dotted: closed form)")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / "error_vs_tilt_orthographic.png")
+    real = [r for r in rows if r["sweep"] == "real" and "frame_ms" in r]
+    if real:
+        big = max(r["size"] for r in real)
+        fig = Figure(figsize=(6.5, 4.2), dpi=90)
+        ax = fig.add_subplot()
+        for j, r in enumerate(x for x in real if x["size"] == big):
+            ax.scatter(max(r["frame_ms"], 0.01), max(r["error_mean"], 1e-4), color=f"C{j % 10}",
+                       marker="os^D"[j // 10])
+            ax.annotate(r["method"], (max(r["frame_ms"], 0.01), max(r["error_mean"], 1e-4)),
+                        fontsize=7)
+        ax.set(xscale="log", yscale="log", xlabel=f"frame's cost at {big}x{big} (ms, above "
+               "'none')", ylabel="mean angle to Blender's decode (deg)",
+               title="Suzanne, baked map, trilinear")
+        fig.tight_layout()
+        fig.savefig(out / "cost_vs_error_real.png")
     prec = [r for r in rows if r["sweep"] == "precision" and r["surface"] == "plane"]
     if prec:
         fig = Figure(figsize=(9, 4), dpi=100)
@@ -453,14 +801,17 @@ def _plot(rows, out: Path) -> None:
     for k, method in enumerate(METHODS):
         vals = [next((r["error_mean"] for r in rows if r["sweep"] == "uv" and r["uv"] == u
                       and r["method"] == method), np.nan) for u in layouts]
-        ax.bar(np.arange(len(layouts)) + 0.1 * k, np.maximum(vals, 1e-6), 0.1, label=method)
+        w = 0.8 / len(METHODS)
+        ax.bar(np.arange(len(layouts)) + w * k, np.maximum(vals, 1e-6), w, label=method)
     ax.set_yscale("log")
-    ax.set_xticks(np.arange(len(layouts)) + 0.35, layouts, fontsize=7)
+    ax.set_xticks(np.arange(len(layouts)) + 0.4, layouts, fontsize=7)
     ax.set(ylabel="mean error vs own truth (deg)", title="uv layout")
     ax.legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(out / "error_vs_uv.png")
     fig = Figure(figsize=(9, 4), dpi=100)
+    if not any(r["sweep"] == "tessellation" for r in rows):
+        return
     for k, normals in enumerate(("smooth", "flat")):
         ax = fig.add_subplot(1, 2, k + 1)
         for surf in ("torus", "sphere", "cylinder"):
@@ -477,27 +828,70 @@ def _plot(rows, out: Path) -> None:
     fig.savefig(out / "error_vs_tessellation.png")
 
 
+def summary(rows, meta) -> dict:
+    """The rows behind the document's tables, with only the columns they show (small
+    enough to keep beside the document)."""
+    keep = ("sweep", "case", "method", "mode", "fov", "view", "distance", "uv", "surface",
+            "camera", "size", "pixels", "predicted", "ddy", "above_5deg", "ms", "frame_ms")
+    stats = ("error", "gradient", "orthonormal", "worst", "opnorm", "other_worst", "T", "B",
+             "Tlen", "Blen")
+    out = []
+    for r in rows:
+        if r["sweep"] in ("precision", "tessellation") or r.get("map") == "rivets":
+            continue
+        rec = {k: r[k] for k in keep if k in r}
+        for k in stats:
+            for q in ("mean", "p95", "max"):
+                if f"{k}_{q}" in r:
+                    rec[f"{k}_{q}"] = float(f"{r[f'{k}_{q}']:.4g}")
+        out.append(rec)
+    return {"metadata": meta, "rows": out}
+
+
+def _error_maps(maps, path: Path) -> None:
+    """One panel per frame: its angle to the reference, 0 (black) to 10 degrees (white)."""
+    try:
+        from matplotlib.figure import Figure
+    except ImportError:
+        return
+    names = list(maps)
+    cols = 4
+    rows = -(-len(names) // cols)
+    fig = Figure(figsize=(2.2 * cols, 2.3 * rows), dpi=80)
+    for k, name in enumerate(names):
+        ax = fig.add_subplot(rows, cols, k + 1)
+        im = ax.imshow(maps[name], vmin=0, vmax=10, cmap="magma")
+        ax.set_title(name, fontsize=8)
+        ax.axis("off")
+    fig.colorbar(im, ax=fig.axes, shrink=0.6, label="deg")
+    fig.savefig(path)
+
+
 def main(argv=None) -> None:
+    argv = list(argv) if argv is not None else None
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="frames_out")
-    ap.add_argument("--size", type=int, default=96)
+    ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--quick", action="store_true", help="fewer sweep points (a smoke test)")
-    ap.add_argument("--sweeps", default=",".join(SWEEPS),
-                    help="comma-separated subset of: " + ", ".join(SWEEPS))
+    ap.add_argument("--sweeps", default=",".join(DEFAULT_SWEEPS),
+                    help="comma-separated subset of: " + ", ".join(SWEEPS) + " (default: all "
+                    "but precision and tessellation); 'all' for every one")
+    ap.add_argument("--asset", default=None,
+                    help="the real asset's npz (default: OUT/suzanne.npz, baked by Blender "
+                    "when missing; the real sweep is left out without Blender)")
     args = ap.parse_args(argv)
-    only = tuple(x.strip() for x in args.sweeps.split(","))
+    only = SWEEPS if args.sweeps == "all" else tuple(x.strip() for x in args.sweeps.split(","))
     if bad := [x for x in only if x not in SWEEPS]:
         ap.error(f"--sweeps: unknown {bad}; expected any of {', '.join(SWEEPS)}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    rows = sweeps(args.size, args.quick, only)
-    (out / "frames.json").write_text(json.dumps(rows, indent=1) + "\n")
-    keys = sorted({k for r in rows for k in r})
-    with open(out / "frames.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        w.writerows(rows)
+    asset = None
+    if "real" in only:
+        asset = Path(args.asset) if args.asset else bake_asset(out / "suzanne.npz")
+        if asset is None:
+            print("no Blender environment: the real-asset sweep is left out")
+    rows = sweeps(args.size, args.quick, only, asset=asset)
     _plot(rows, out)
     _, maps = measure(Torus(32), _torus_camera(), args.size, keep_maps=True)
     from jaxnm.io import save_png
@@ -505,7 +899,20 @@ def main(argv=None) -> None:
     for method, img in maps.items():
         save_png(out / f"error_map_{method}.png",
                  np.nan_to_num(np.clip(img / 5.0, 0, 1), nan=0.25).astype(np.float32))
-    print(f"wrote {out} in {time.perf_counter() - t0:.0f} s")
+    if asset is not None and not args.quick:
+        _, rmaps = real_mesh(asset, sizes=(512,), methods=METHODS, keep_maps=True,
+                             time_size=-1)
+        _error_maps(rmaps, out / "real_error_maps.png")
+    meta = metadata(time.perf_counter() - t0, sys.argv[1:] if argv is None else argv)
+    (out / "frames.json").write_text(json.dumps({"metadata": meta, "rows": rows}, indent=1)
+                                     + "\n")
+    (out / "frames_summary.json").write_text(json.dumps(summary(rows, meta)) + "\n")
+    keys = sorted({k for r in rows for k in r})
+    with open(out / "frames.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+    print(f"wrote {out} in {meta['run_s']:.0f} s")
 
 
 if __name__ == "__main__":
