@@ -17,10 +17,9 @@ import numpy as np
 from jax import Array
 
 #: Matrix products of geometry are computed in full float32 on every backend.
-HIGHEST = jax.lax.Precision.HIGHEST
+_HIGHEST = jax.lax.Precision.HIGHEST
 
-__all__ = ["Camera", "look_at", "perspective", "orthographic", "to_clip", "clip_float64",
-           "eye_to_world"]
+__all__ = ["Camera", "look_at", "perspective", "orthographic", "to_clip", "eye_to_world"]
 
 
 @jax.tree_util.register_dataclass
@@ -69,7 +68,7 @@ class Camera:
     @property
     def view_projection(self) -> Array:
         """``projection @ view``."""
-        return jnp.matmul(self.projection, self.view, precision=HIGHEST)
+        return jnp.matmul(self.projection, self.view, precision=_HIGHEST)
 
 
 def _as_matrix(m, name: str) -> np.ndarray:
@@ -158,7 +157,7 @@ def to_clip(positions: Array, camera: Camera) -> Array:
             + proj[:, :, 3])
 
 
-def clip_float64(points, camera: Camera, model=None) -> np.ndarray:
+def _clip_float64(points, camera: Camera, model=None) -> np.ndarray:
     """`to_clip` on the host in float64: clip-space coordinates (N, 4) of object-space
     ``points`` (N, 3) moved by ``model`` (an affine 4x4 object-to-world matrix, or None)
     and seen by a concrete ``camera``. For decisions made before a frame's programs run

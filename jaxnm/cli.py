@@ -34,13 +34,13 @@ __all__ = ["main"]
 #: The XLA flag that makes GPU scatter-adds and reductions run in a fixed order, so that two
 #: identical runs give bit-identical results (the CPU's already do). The command line sets it
 #: unless ``--nondeterministic``; from Python, put it in ``XLA_FLAGS`` before importing JAX.
-DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
+_DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
 
 #: Environment variable naming the command line's compilation cache folder (``off``: none).
-CACHE_ENV = "JAXNM_COMPILATION_CACHE"
+_CACHE_ENV = "JAXNM_COMPILATION_CACHE"
 
 #: The checkpoint ``jaxnm fit`` keeps in its output folder (`jaxnm.fit.checkpoint`).
-CHECKPOINT_NAME = "checkpoint.npz"
+_CHECKPOINT_NAME = "checkpoint.npz"
 
 
 def _release_freed_memory() -> None:
@@ -68,10 +68,10 @@ def _add_xla_flag(flag: str) -> None:
         os.environ["XLA_FLAGS"] = f"{flags} {flag}".strip()
 
 
-def compilation_cache_dir() -> Path | None:
+def _compilation_cache_dir() -> Path | None:
     """Where the command line keeps compiled programs: ``$JAXNM_COMPILATION_CACHE`` if set
     (``off`` or empty: nowhere), else ``$XDG_CACHE_HOME/jaxnm/xla`` (``~/.cache/jaxnm/xla``)."""
-    env = os.environ.get(CACHE_ENV)
+    env = os.environ.get(_CACHE_ENV)
     if env is not None:
         return None if env.strip().lower() in ("", "off", "0", "false", "no") else Path(env)
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
@@ -79,13 +79,13 @@ def compilation_cache_dir() -> Path | None:
 
 
 def _use_compilation_cache() -> Path | None:
-    """Turn on JAX's persistent compilation cache in `compilation_cache_dir`, so that a second
+    """Turn on JAX's persistent compilation cache in `_compilation_cache_dir`, so that a second
     run loads its compiled programs from disk; leaves a cache configured elsewhere alone."""
     import jax
 
     if jax.config.jax_compilation_cache_dir:
         return Path(jax.config.jax_compilation_cache_dir)
-    path = compilation_cache_dir()
+    path = _compilation_cache_dir()
     if path is None:
         return None
     try:
@@ -144,7 +144,7 @@ def _render(args) -> int:
     import numpy as np
 
     from . import io
-    from .config import load_height_map, load_scene
+    from .config import _load_height_map, load_scene
     from .procedural import default_scene
     from .render import OUTPUTS, render
     from .shading import to_display
@@ -181,7 +181,7 @@ def _render(args) -> int:
             scene.normal_map_options, encoding="unsigned", channels=3, green="up",
             space="tangent", bits=bits if bits in (8, 16) else 8))
     if args.height_map:
-        d, opts = load_height_map({"path": args.height_map, "scale": args.height_scale},
+        d, opts = _load_height_map({"path": args.height_map, "scale": args.height_scale},
                                   where="--height-map: ")
         changes.update(normal_map=d, normal_map_options=opts)
     if changes:
@@ -234,10 +234,10 @@ def _add_fit(sub) -> None:
     p.add_argument("--no-progress", action="store_true", dest="no_progress")
     p.add_argument("--checkpoint-every", type=float, default=30.0, dest="checkpoint_every",
                    metavar="SECONDS",
-                   help=f"save the fit to OUTDIR/{CHECKPOINT_NAME} every SECONDS of fitting and "
+                   help=f"save the fit to OUTDIR/{_CHECKPOINT_NAME} every SECONDS of fitting and "
                    "when it ends (default: %(default)s; 0: no checkpoints)")
     p.add_argument("--resume", action="store_true",
-                   help=f"carry on from OUTDIR/{CHECKPOINT_NAME}: the same fit file and options "
+                   help=f"carry on from OUTDIR/{_CHECKPOINT_NAME}: the same fit file and options "
                    "give the map an uninterrupted fit gives (--max-steps, --ftol, --patience "
                    "and --time-limit may change)")
 
@@ -280,7 +280,7 @@ def _fit(args, ctrl_c: _CtrlC) -> int:
         raise ValueError(f"--checkpoint-every must be a number of seconds >= 0, got "
                          f"{args.checkpoint_every}")
     out = Path(args.output)
-    checkpoint = out / CHECKPOINT_NAME
+    checkpoint = out / _CHECKPOINT_NAME
     if args.resume and not checkpoint.is_file():
         raise FileNotFoundError(f"{checkpoint}: no checkpoint to resume from (--resume)")
     if args.config:
@@ -321,7 +321,7 @@ def _fit(args, ctrl_c: _CtrlC) -> int:
     say("writing outputs ...")
     rep, written = _write_fit_outputs(
         out, job, prep, result, t_prep, held_out, ctrl_c,
-        checkpoint={"file": CHECKPOINT_NAME if args.checkpoint_every > 0 else None,
+        checkpoint={"file": _CHECKPOINT_NAME if args.checkpoint_every > 0 else None,
                     "resumed": args.resume})
     line = f"fit {rep['stopped']} after {rep['steps']} steps in {rep['fit_seconds']:.1f} s"
     if rep["interrupted"]:
@@ -399,7 +399,7 @@ def main(argv=None) -> int:
                        "by default results are reproducible on every backend")
     args = parser.parse_args(argv)
     if not args.nondeterministic:
-        _add_xla_flag(DETERMINISTIC_FLAG)  # before JAX starts a backend
+        _add_xla_flag(_DETERMINISTIC_FLAG)  # before JAX starts a backend
     if not args.no_compile_cache:
         _use_compilation_cache()
     ctrl_c, previous = _CtrlC(), None

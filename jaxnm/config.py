@@ -77,17 +77,18 @@ from .maps import height_to_derivative_map
 from .procedural import builtin_mesh, default_normal_map_texels
 from .scene import (
     Scene,
+    _check_scene_options,
     back_faces_hidden,
-    check_scene_options,
     default_material,
     validate_scene,
 )
 from .shading import DirectionalLight, Lights, Material, PointLight, stack_lights
 from .textures import NormalMapOptions, decode_normal_map, srgb_to_linear
 
-__all__ = ["load_scene", "scene_from_dict", "load_fit", "fit_from_dict", "parse_camera",
-           "parse_lights", "parse_material", "load_normal_map", "load_height_map",
-           "SCENE_KEYS", "FIT_KEYS"]
+__all__ = [
+    "load_scene", "scene_from_dict", "load_fit", "fit_from_dict", "SCENE_KEYS", "FIT_KEYS",
+    "TANGENT_MODES"
+]
 
 SCENE_KEYS = ("mesh", "model", "camera", "width", "height", "normal_map", "height_map",
               "albedo", "lights", "material", "frame", "derivatives", "precision", "double_sided",
@@ -177,7 +178,7 @@ def _rewrap(e: ValueError, where: str) -> ValueError:
 # --------------------------------------------------------------------------------------
 
 
-def parse_camera(spec: Any, *, aspect: float, where: str = "") -> Camera:
+def _parse_camera(spec: Any, *, aspect: float, where: str = "") -> Camera:
     """A camera from ``{"eye", "target", "up", "fov_y_deg", "near", "far"}`` or
     ``{"view", "projection"}``; ``where`` prefixes error messages (e.g. ``"fit.json: "``)."""
     w = f"{where}camera: "
@@ -209,7 +210,7 @@ def parse_camera(spec: Any, *, aspect: float, where: str = "") -> Camera:
         raise ValueError(f"{w}{str(e).removeprefix('camera: ')}") from None
 
 
-def parse_lights(spec: Any, *, where: str = "") -> Lights:
+def _parse_lights(spec: Any, *, where: str = "") -> Lights:
     """`Lights` from a non-empty list of ``{"type": "directional"|"point", ...}`` objects."""
     if not isinstance(spec, list) or not spec:
         raise ValueError(f"{where}'lights' must be a non-empty list of light objects")
@@ -242,7 +243,7 @@ def parse_lights(spec: Any, *, where: str = "") -> Lights:
         raise ValueError(f"{where}'lights': {e}") from None
 
 
-def parse_material(spec: Any, *, where: str = "") -> tuple[Material, str]:
+def _parse_material(spec: Any, *, where: str = "") -> tuple[Material, str]:
     """``(material, shading model)`` from ``{"model", "diffuse", "specular", "shininess",
     "ambient"}`` (defaults: `jaxnm.scene.default_material`, Blinn-Phong)."""
     w = f"{where}material: "
@@ -271,7 +272,7 @@ def _map_options(spec: dict, known, where: str, **fixed) -> NormalMapOptions:
         raise ValueError(f"{where}{str(e).removeprefix('NormalMapOptions: ')}") from None
 
 
-def load_normal_map(spec: Any, *, base_dir=".", where: str = ""):
+def _load_normal_map(spec: Any, *, base_dir=".", where: str = ""):
     """``(stored texels, NormalMapOptions)`` from a scene's ``normal_map`` entry (a path,
     ``"builtin:rivets"``, or an object with ``path`` and the `NormalMapOptions` fields)."""
     spec = _object(spec, "normal_map", where)
@@ -298,7 +299,7 @@ def load_normal_map(spec: Any, *, base_dir=".", where: str = ""):
                                                        else opts.bits)
 
 
-def load_height_map(spec: Any, *, base_dir=".", where: str = ""):
+def _load_height_map(spec: Any, *, base_dir=".", where: str = ""):
     """``(derivative map, NormalMapOptions)`` from a ``height_map`` entry (a path or an
     object with ``path``, ``scale`` in world units, ``uv_origin``, ``wrap``, ``filter``):
     the height map is rendered by surface-gradient bump mapping through its derivative map."""
@@ -362,9 +363,9 @@ def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scen
     cull = data.get("cull_back", "auto")  # auto: where no back face can be seen
     if cull != "auto" and not isinstance(cull, bool):
         raise ValueError(f"{where}'cull_back' must be true, false or \"auto\", got {cull!r}")
-    camera = parse_camera(data.get("camera"), aspect=width / height, where=where)
-    lights = parse_lights(data["lights"], where=where) if "lights" in data else None
-    material, shading = parse_material(data.get("material", {}), where=where)
+    camera = _parse_camera(data.get("camera"), aspect=width / height, where=where)
+    lights = _parse_lights(data["lights"], where=where) if "lights" in data else None
+    material, shading = _parse_material(data.get("material", {}), where=where)
     if "shading" in data:
         if "model" in data.get("material", {}):
             raise ValueError(f"{where}give the shading model as 'material.model' or 'shading', "
@@ -377,7 +378,7 @@ def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scen
                          f"{tangent_mode!r}")
     if data.get("normal_map") is not None and data.get("height_map") is not None:
         raise ValueError(f"{where}give either 'normal_map' or 'height_map', not both")
-    check_scene_options(width=width, height=height, shading=shading, source=source,
+    _check_scene_options(width=width, height=height, shading=shading, source=source,
                         **options)  # before loading anything big
 
     if "mesh" not in data:
@@ -400,9 +401,9 @@ def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scen
             mesh = mesh.with_tangents()  # MikkTSpace, once, at load
     nm, nm_opts = None, NormalMapOptions()
     if data.get("normal_map") is not None:
-        nm, nm_opts = load_normal_map(data["normal_map"], base_dir=base, where=where)
+        nm, nm_opts = _load_normal_map(data["normal_map"], base_dir=base, where=where)
     if data.get("height_map") is not None:
-        nm, nm_opts = load_height_map(data["height_map"], base_dir=base, where=where)
+        nm, nm_opts = _load_height_map(data["height_map"], base_dir=base, where=where)
     albedo = _albedo(data.get("albedo", [0.8, 0.8, 0.8]), base, where)
     if cull == "auto":
         cull = back_faces_hidden(mesh, camera, model)
@@ -511,7 +512,7 @@ def fit_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> FitJob
         height = _field(v, "height", int, scene.height, w)
         if width <= 0 or height <= 0:
             raise ValueError(f"{w}'width' and 'height' must be positive")
-        views.append((parse_camera(v.get("camera"), aspect=width / height, where=w), width,
+        views.append((_parse_camera(v.get("camera"), aspect=width / height, where=w), width,
                       height))
     if not views:
         views = [(scene.camera, scene.width, scene.height)]
@@ -528,7 +529,7 @@ def fit_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> FitJob
         if color_space not in (None, "srgb", "linear"):
             raise ValueError(f"{w}'color_space' must be 'srgb' or 'linear', got {color_space!r}")
         image_ref = _field(t, "image", str, None, w)
-        lights = parse_lights(t["lights"], where=w)
+        lights = _parse_lights(t["lights"], where=w)
         cam, width, height = views[vi]
         img = _image(base / image_ref, color_space, w)
         mask = None

@@ -61,24 +61,10 @@ from .numerics import dot as _ndot
 from .numerics import eps, safe_norm, safe_normalize, safe_rsqrt, spread, tiny
 
 __all__ = [
-    "FRAMES",
-    "SCREEN_FRAMES",
-    "check_frame",
-    "Frame",
-    "axis_frame",
-    "compute_frame",
-    "cotangent_frame",
-    "exact_frame",
-    "face_forward",
-    "nonperspective_frame",
-    "perturb_normal",
-    "vertex_frame",
-    "vertex_tangents",
-    "mikktspace_frame",
-    "gram_schmidt_frame",
-    "separate_frame",
-    "cross_frame",
-    "surface_gradient_frame",
+    "FRAMES", "SCREEN_FRAMES", "Frame", "axis_frame", "compute_frame", "cotangent_frame",
+    "exact_frame", "face_forward", "nonperspective_frame", "perturb_normal", "vertex_frame",
+    "vertex_tangents", "mikktspace_frame", "gram_schmidt_frame", "separate_frame", "cross_frame",
+    "surface_gradient_frame"
 ]
 
 #: The frame methods (`compute_frame`, the scene key ``frame``, ``--frame``).
@@ -92,7 +78,7 @@ _NORMALIZE_MODES = ("max", "none")
 
 #: A summed per-vertex tangent shorter than this fraction of the summed face weights
 #: (the face tangents around the vertex cancel, e.g. on a mirrored-uv seam) is invalid.
-VERTEX_TANGENT_CANCELLATION = 1e-3
+_VERTEX_TANGENT_CANCELLATION = 1e-3
 
 
 @jax.tree_util.register_dataclass
@@ -469,7 +455,7 @@ def exact_frame(tri_p: Array, tri_uv: Array, N: Array | None = None, *,
 
     **Arguments:**
     - `tri_p`: ``(..., 3, 3)`` the triangle's corner positions
-      (`jaxnm.interpolate.triangle_corners`).
+      (`jaxnm.interpolate._triangle_corners`).
     - `tri_uv`: ``(..., 3, 2)`` the corner uvs.
     - `N`: ``(..., 3)`` unit interpolated normal, or None for the face normal.
       It is the frame's ``N``, and builds the perpendiculars unless
@@ -516,7 +502,7 @@ def vertex_tangents(positions: Array, normals: Array, uv: Array, faces: Array) -
     made orthogonal to the unit vertex normal (Gram-Schmidt) and normalised;
     the handedness is ``w = sign((N x T) . b_sum)`` (``+1`` when that is 0).
 
-    A vertex whose summed tangent is shorter than `VERTEX_TANGENT_CANCELLATION`
+    A vertex whose summed tangent is shorter than `_VERTEX_TANGENT_CANCELLATION`
     times its summed weights (no valid triangle, tangents parallel to ``N``, or
     cancelling tangents on a shared mirrored-uv seam) gets the deterministic
     fallback `axis_frame` tangent of its normal (zero if the normal is zero).
@@ -553,7 +539,7 @@ def vertex_tangents(positions: Array, normals: Array, uv: Array, faces: Array) -
     b_sum = scatter(wgt * b_dir)
     w_sum = scatter(wgt)
     t_perp = t_sum - n * _dot(n, t_sum, True)
-    ok = (safe_norm(t_perp, keepdims=True) > VERTEX_TANGENT_CANCELLATION * w_sum) & (w_sum > 0)
+    ok = (safe_norm(t_perp, keepdims=True) > _VERTEX_TANGENT_CANCELLATION * w_sum) & (w_sum > 0)
     fallback = _axis_tangent(n)
     T = jnp.where(ok, safe_normalize(t_perp, fallback=fallback), fallback)
     hand = jnp.where(_dot(_cross(n, T), b_sum, True) < 0, -1.0, 1.0).astype(T.dtype)
@@ -697,7 +683,7 @@ def _derivs(attr, name: str, frame: str):
     return attr.ddx, attr.ddy
 
 
-def check_frame(frame: str) -> None:
+def _check_frame(frame: str) -> None:
     """Raise a `ValueError` unless ``frame`` is one of `FRAMES`."""
     if frame not in FRAMES:
         raise ValueError(f"unknown frame {frame!r}; expected one of {', '.join(FRAMES)}")
@@ -716,7 +702,7 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
     - `p_attr`, `uv_attr`: position (world or camera-relative) and uv
       `Attribute`s with derivatives: the `SCREEN_FRAMES`.
     - `tri_p`, `tri_uv`: ``(..., 3, 3)``, ``(..., 3, 2)`` corners
-      (`jaxnm.interpolate.triangle_corners`): ``"exact"``, ``"exact_face"``.
+      (`jaxnm.interpolate._triangle_corners`): ``"exact"``, ``"exact_face"``.
     - `tangent`: ``(..., 4)`` interpolated tangent and sign: per-corner MikkTSpace
       tangents (`jaxnm.tangents`) for ``"vertex"``, `vertex_tangents` for
       ``"vertex_area"``.
@@ -731,7 +717,7 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
     zero, e.g. background pixels, every method returns ``T = B = N = 0``, so
     `perturb_normal` gives the zero vector there (not NaN).
     """
-    check_frame(frame)
+    _check_frame(frame)
     if frame == "cotangent_unnormalized":
         frame, normalize = "cotangent", "none"
     use_face_normal = frame == "exact_face"
@@ -754,7 +740,7 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
     elif frame == "exact":
         if tri_p is None or tri_uv is None:
             raise ValueError("compute_frame(frame='exact') needs `tri_p` and `tri_uv` "
-                             "(see jaxnm.interpolate.triangle_corners)")
+                             "(see jaxnm.interpolate._triangle_corners)")
         out = exact_frame(tri_p, tri_uv, n, use_face_normal=use_face_normal, normalize=normalize)
     elif frame == "vertex":
         if tangent is None:

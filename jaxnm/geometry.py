@@ -16,11 +16,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .camera import HIGHEST
+from .camera import _HIGHEST
 from .numerics import angle_between, safe_normalize
 from .numerics import cross as _cross
 
-__all__ = ["Mesh", "face_normals", "vertex_normals", "validate_arrays", "closed_shape"]
+__all__ = ["Mesh", "face_normals", "vertex_normals"]
 
 
 @jax.tree_util.register_dataclass
@@ -85,19 +85,19 @@ class Mesh:
         if abs(np.linalg.det(lin)) < 1e-12:
             raise ValueError("model matrix is singular")
         pos = jnp.matmul(jnp.asarray(self.positions), jnp.asarray(lin.T, jnp.float32),
-                         precision=HIGHEST) + jnp.asarray(m[None, :3, 3], jnp.float32)
+                         precision=_HIGHEST) + jnp.asarray(m[None, :3, 3], jnp.float32)
         normals = self.normals
         faces = self.faces
         if normals is not None:
             nmat = np.linalg.inv(lin).T
             normals = safe_normalize(jnp.matmul(jnp.asarray(normals),
                                                 jnp.asarray(nmat.T, jnp.float32),
-                                                precision=HIGHEST))
+                                                precision=_HIGHEST))
         tangents = self.tangents
         if tangents is not None:  # directions: the linear part; the sign is re-derived below
             t = jnp.asarray(tangents)
             xyz = safe_normalize(jnp.matmul(t[..., :3], jnp.asarray(lin.T, jnp.float32),
-                                            precision=HIGHEST))
+                                            precision=_HIGHEST))
             tangents = jnp.concatenate([xyz, t[..., 3:]], -1)
         if np.linalg.det(lin) < 0:  # a mirror flips the winding; keep CCW = front
             faces = jnp.asarray(faces)[:, ::-1]
@@ -141,7 +141,7 @@ def vertex_normals(positions: Array, faces: Array, *, weighting: str = "angle") 
     return safe_normalize(acc)
 
 
-def validate_arrays(positions, faces, uv=None, normals=None, *, source: str = "mesh",
+def _validate_arrays(positions, faces, uv=None, normals=None, *, source: str = "mesh",
                     values: bool = True) -> None:
     """Raise ``ValueError`` naming ``source`` if the mesh arrays are unusable.
 
@@ -172,7 +172,7 @@ def validate_arrays(positions, faces, uv=None, normals=None, *, source: str = "m
 
 
 def _check_values(positions, faces, uv, normals, num_vertices: int, source: str) -> None:
-    """The value checks of `validate_arrays`, on whichever arrays are concrete."""
+    """The value checks of `_validate_arrays`, on whichever arrays are concrete."""
     if _is_concrete(positions):
         bad = ~np.all(np.isfinite(np.asarray(positions)), axis=1)
         if bad.any():
@@ -193,7 +193,7 @@ def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
-def closed_shape(positions, faces) -> np.ndarray | None:
+def _closed_shape(positions, faces) -> np.ndarray | None:
     """The bounding box (2, 3) float64 (min, max) of a mesh that encloses a volume with its
     counter-clockwise (front) faces outside, else None (also for traced arrays): such a
     mesh, seen from outside, shows only front faces (`jaxnm.scene.back_faces_hidden`).
@@ -205,10 +205,10 @@ def closed_shape(positions, faces) -> np.ndarray | None:
     the host, in float64/int64 (about 0.1 s for 200k triangles)."""
     if not (_is_concrete(positions) and _is_concrete(faces)):
         return None
-    return _closed_shape(np.asarray(positions, np.float64), np.asarray(faces, np.int64))
+    return _closed_shape_host(np.asarray(positions, np.float64), np.asarray(faces, np.int64))
 
 
-def _closed_shape(p: np.ndarray, f: np.ndarray) -> np.ndarray | None:
+def _closed_shape_host(p: np.ndarray, f: np.ndarray) -> np.ndarray | None:
     if p.shape[0] == 0 or f.shape[0] == 0 or not np.all(np.isfinite(p)):
         return None
     # positions equal up to rounding (a seam's copies: cos 2pi vs cos 0) weld together

@@ -24,27 +24,8 @@ from jax import Array
 from jax.typing import ArrayLike
 
 __all__ = [
-    "sum_last",
-    "dot",
-    "spread",
-    "cross",
-    "materialize",
-    "roll_last",
-    "xyw",
-    "eps",
-    "tiny",
-    "safe_div",
-    "safe_sqrt",
-    "safe_rsqrt",
-    "safe_norm",
-    "safe_normalize",
-    "angle_between",
-    "cumsum",
-    "flat_nonzero",
-    "ranked_nonzero",
-    "SumTables",
-    "sum_tables",
-    "sum_by_tables",
+    "sum_last", "dot", "spread", "cross", "eps", "tiny", "safe_div", "safe_sqrt", "safe_rsqrt",
+    "safe_norm", "safe_normalize", "angle_between"
 ]
 
 
@@ -89,14 +70,14 @@ def spread(x: ArrayLike, n: int = 3) -> Array:
     return jnp.concatenate([x] * n, axis=-1)
 
 
-def roll_last(x: ArrayLike, shift: int) -> Array:
+def _roll_last(x: ArrayLike, shift: int) -> Array:
     """``x[..., (i + shift) % n]`` for a short last axis, as slices (tuple indexing is a gather)."""
     x = jnp.asarray(x)
     k = shift % x.shape[-1]
     return x if k == 0 else jnp.concatenate([x[..., k:], x[..., :k]], -1)
 
 
-def xyw(h: ArrayLike) -> Array:
+def _xyw(h: ArrayLike) -> Array:
     """The x, y and w components of homogeneous ``(..., 4)`` points, as slices."""
     h = jnp.asarray(h)
     return jnp.concatenate([h[..., 0:2], h[..., 3:4]], -1)
@@ -110,7 +91,7 @@ def cross(a: ArrayLike, b: ArrayLike) -> Array:
     return jnp.concatenate([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], -1)
 
 
-def cumsum(x: ArrayLike, block: int = 8) -> Array:
+def _cumsum(x: ArrayLike, block: int = 8) -> Array:
     """Inclusive running sum of a 1-D integer array: `jnp.cumsum`, faster on XLA's CPU.
 
     Exact (integer adds in the array's dtype, wrapping as they do). ``jnp.cumsum``
@@ -121,7 +102,7 @@ def cumsum(x: ArrayLike, block: int = 8) -> Array:
     """
     x = jnp.asarray(x)
     if x.ndim != 1 or not jnp.issubdtype(x.dtype, jnp.integer):
-        raise ValueError(f"cumsum: expected a 1-D integer array, got {x.dtype}{x.shape}")
+        raise ValueError(f"_cumsum: expected a 1-D integer array, got {x.dtype}{x.shape}")
     n = x.shape[0]
     if n <= block:
         return jnp.cumsum(x)  # (a reduce-window: also the fusion boundary for the levels above)
@@ -132,11 +113,11 @@ def cumsum(x: ArrayLike, block: int = 8) -> Array:
         run = run + jnp.pad(run[:, :-k], ((0, 0), (k, 0)))
         k *= 2
     total = run[:, -1]
-    before = cumsum(total, block) - total  # the blocks ahead of each block
+    before = _cumsum(total, block) - total  # the blocks ahead of each block
     return (run + before[:, None]).reshape(-1)[:n]
 
 
-def flat_nonzero(mask: ArrayLike, size: int, fill_value: int) -> Array:
+def _flat_nonzero(mask: ArrayLike, size: int, fill_value: int) -> Array:
     """The indices (int32, ascending) of the true entries of a 1-D boolean ``mask``, the
     first ``size`` of them, then ``fill_value``: ``jnp.nonzero(mask, size=size,
     fill_value=fill_value)[0]``.
@@ -145,23 +126,24 @@ def flat_nonzero(mask: ArrayLike, size: int, fill_value: int) -> Array:
     image's pixels, a large mesh's triangles) is packed into 32-bit words, and each *output*
     slot finds its entry: which word by a running count of the words' set bits, which bit
     from the word's bytes and a table; the mask is read once, and the running sum is over a
-    32nd of it. A smaller one takes one running sum (`cumsum`) and one scatter."""
+    32nd of it. A smaller one takes one running sum (`_cumsum`) and one scatter."""
     mask = jnp.asarray(mask)
     if mask.ndim != 1 or mask.dtype != jnp.bool_:
-        raise ValueError(f"flat_nonzero: expected a 1-D boolean mask, got {mask.dtype}{mask.shape}")
-    if mask.shape[0] >= WORDS_FROM:
+        raise ValueError(f"_flat_nonzero: expected a 1-D boolean mask, got "
+                         f"{mask.dtype}{mask.shape}")
+    if mask.shape[0] >= _WORDS_FROM:
         return _nonzero_by_words(mask, size, fill_value)
     return _nonzero_by_scatter(mask, size, fill_value)
 
 
-#: `flat_nonzero` packs masks of at least this many entries into words.
-WORDS_FROM = 1 << 16
+#: `_flat_nonzero` packs masks of at least this many entries into words.
+_WORDS_FROM = 1 << 16
 
 
 def _nonzero_by_scatter(mask: Array, size: int, fill_value: int) -> Array:
-    """`flat_nonzero` by a running sum over the entries and a scatter of each into place."""
+    """`_flat_nonzero` by a running sum over the entries and a scatter of each into place."""
     n = mask.shape[0]
-    slot = cumsum(mask.astype(jnp.int32)) - 1  # each true entry's place in the output
+    slot = _cumsum(mask.astype(jnp.int32)) - 1  # each true entry's place in the output
     # the false entries go to distinct places past the end (dropped), so the scatter's
     # indices are unique, as XLA is told: deterministic GPU ops then leave it alone
     # (a set with repeated indices they sort or serialise)
@@ -184,11 +166,11 @@ _NTH_BIT = _nth_bit_table()
 
 
 def _nonzero_by_words(mask: Array, size: int, fill_value: int) -> Array:
-    """`flat_nonzero` from the output side (`ranked_nonzero`)."""
-    return ranked_nonzero(mask)[1](0, size, fill_value)
+    """`_flat_nonzero` from the output side (`_ranked_nonzero`)."""
+    return _ranked_nonzero(mask)[1](0, size, fill_value)
 
 
-def ranked_nonzero(mask: ArrayLike) -> tuple[Array, Callable[[ArrayLike, int, int], Array]]:
+def _ranked_nonzero(mask: ArrayLike) -> tuple[Array, Callable[[ArrayLike, int, int], Array]]:
     """The true entries of a 1-D boolean ``mask`` by rank: ``(total, window)``, where
     ``total`` is their number and ``window(first, size, fill_value)`` the indices (int32,
     ascending) of those ranked ``first`` to ``first + size - 1`` (``first`` may be traced),
@@ -201,7 +183,7 @@ def ranked_nonzero(mask: ArrayLike) -> tuple[Array, Callable[[ArrayLike, int, in
     start in the window, which bit from the word's bytes and a table."""
     mask = jnp.asarray(mask)
     if mask.ndim != 1 or mask.dtype != jnp.bool_:
-        raise ValueError(f"ranked_nonzero: expected a 1-D boolean mask, got "
+        raise ValueError(f"_ranked_nonzero: expected a 1-D boolean mask, got "
                          f"{mask.dtype}{mask.shape}")
     n = mask.shape[0]
     n_words = -(-n // 32)
@@ -210,9 +192,9 @@ def ranked_nonzero(mask: ArrayLike) -> tuple[Array, Callable[[ArrayLike, int, in
     for i in range(1, 32):  # (slices and ors: one loop over the words)
         words = words | (bits[:, i].astype(jnp.uint32) << i)
     # computed once (fused into the slots' gather, XLA would pack a word again per slot)
-    words = materialize(words)
+    words = _materialize(words)
     counts = jax.lax.population_count(words).astype(jnp.int32)
-    ends = cumsum(counts)
+    ends = _cumsum(counts)
     starts = ends - counts
     total = ends[-1]
     # the words with a true entry, in order
@@ -220,12 +202,12 @@ def ranked_nonzero(mask: ArrayLike) -> tuple[Array, Callable[[ArrayLike, int, in
 
     def window(first, size: int, fill_value: int) -> Array:
         if isinstance(first, int) and first == 0:
-            # from the first entry (`flat_nonzero`): each busy word's first slot marked,
+            # from the first entry (`_flat_nonzero`): each busy word's first slot marked,
             # the running count of marks up to slot s is the rank of the word holding s
             s = jnp.arange(size, dtype=jnp.int32)
             marks = jnp.zeros((size,), jnp.int32).at[jnp.where(counts > 0, starts, size)].add(
                 1, mode="drop")
-            w = busy[jnp.clip(cumsum(marks) - 1, 0, n_words - 1)]
+            w = busy[jnp.clip(_cumsum(marks) - 1, 0, n_words - 1)]
         else:
             first = jnp.asarray(first, jnp.int32)
             s = first + jnp.arange(size, dtype=jnp.int32)
@@ -239,7 +221,7 @@ def ranked_nonzero(mask: ArrayLike) -> tuple[Array, Callable[[ArrayLike, int, in
             after = jnp.where(some, starts[busy], big) - first
             marks = jnp.zeros((size,), jnp.int32).at[
                 jnp.where((after > 0) & (after < size), after, size)].add(1, mode="drop")
-            w = busy[jnp.clip(passed + cumsum(marks), 0, n_words - 1)]
+            w = busy[jnp.clip(passed + _cumsum(marks), 0, n_words - 1)]
         word, j = words[w], s - starts[w]  # the j-th set bit of `word` (0-based)
         # which byte: the first whose end has more than j set bits below it
         below = [jax.lax.population_count(word & jnp.uint32((1 << (8 * k)) - 1)).astype(
@@ -256,13 +238,13 @@ def ranked_nonzero(mask: ArrayLike) -> tuple[Array, Callable[[ArrayLike, int, in
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class SumTables:
+class _SumTables:
     """A fixed sparse sum ``out[d] = sum of values[i] with dest[i] == d`` as fixed-order sums
-    (`sum_tables` builds it, `sum_by_tables` applies it).
+    (`_sum_tables` builds it, `_sum_by_tables` applies it).
 
     - `tables`: per level, (..., R_k, W) int32 rows of indices into the previous level's
       rows (the first level's into the values); the entries of a row share one destination,
-      in the values' order; an index past the end (`SumTables.PAD`) reads 0.
+      in the values' order; an index past the end (`_SumTables.PAD`) reads 0.
     - `targets`: (..., R_1 + R_2 + ...) int32, each row's destination where the row is its
       destination's last (complete) sum, else past ``size`` (each such row its own index,
       so that the targets stay distinct), and dropped.
@@ -280,7 +262,7 @@ class SumTables:
 
 
 def _table_levels(dest: np.ndarray, width: int) -> tuple[list, list]:
-    """`sum_tables` for one destination array: its tables, and per level the destination
+    """`_sum_tables` for one destination array: its tables, and per level the destination
     of each row that completes one (-1 for the rest)."""
     d = dest.ravel()
     ids = np.argsort(d, kind="stable")  # each destination's entries in the values' order
@@ -293,7 +275,7 @@ def _table_levels(dest: np.ndarray, width: int) -> tuple[list, list]:
         first = np.cumsum(rows) - rows
         seg = np.repeat(np.arange(starts.size), lengths)
         pos = np.arange(d.size) - starts[seg]
-        table = np.full((int(rows.sum()), width), SumTables.PAD, np.int32)
+        table = np.full((int(rows.sum()), width), _SumTables.PAD, np.int32)
         table[first[seg] + pos // width, pos % width] = ids
         tables.append(table)
         row_dest = np.repeat(d[starts], rows)
@@ -303,8 +285,8 @@ def _table_levels(dest: np.ndarray, width: int) -> tuple[list, list]:
     return tables, targets
 
 
-def sum_tables(dests, size: int, width: int = 8) -> SumTables:
-    """Host-side (NumPy) construction of the `SumTables` of destination arrays ``dests`` (one
+def _sum_tables(dests, size: int, width: int = 8) -> _SumTables:
+    """Host-side (NumPy) construction of the `_SumTables` of destination arrays ``dests`` (one
     integer array, or a list of them to stack: their sums get common shapes), each entry in
     ``[0, size)``.
 
@@ -320,12 +302,12 @@ def sum_tables(dests, size: int, width: int = 8) -> SumTables:
     dests = [np.asarray(d) for d in (dests if many else [dests])]
     for d in dests:
         if not np.issubdtype(d.dtype, np.integer):
-            raise ValueError(f"sum_tables: destinations must be integers, got {d.dtype}")
+            raise ValueError(f"_sum_tables: destinations must be integers, got {d.dtype}")
         if d.size and (d.min() < 0 or d.max() >= size):
-            raise ValueError(f"sum_tables: destinations must be in [0, {size}), found "
+            raise ValueError(f"_sum_tables: destinations must be in [0, {size}), found "
                              f"{d.min() if d.min() < 0 else d.max()}")
     if width < 2:
-        raise ValueError(f"sum_tables: width must be at least 2, got {width}")
+        raise ValueError(f"_sum_tables: width must be at least 2, got {width}")
     built = [_table_levels(d, width) for d in dests]
     depth = max(len(tables) for tables, _ in built)
     empty = (np.zeros((0, width), np.int32), np.zeros(0, int))
@@ -334,7 +316,7 @@ def sum_tables(dests, size: int, width: int = 8) -> SumTables:
         level = [(b[0][k], b[1][k]) if k < len(b[0]) else empty for b in built]
         rows = max(t.shape[0] for t, _ in level)
         tables.append(np.stack([np.pad(t, ((0, rows - t.shape[0]), (0, 0)),
-                                       constant_values=SumTables.PAD) for t, _ in level]))
+                                       constant_values=_SumTables.PAD) for t, _ in level]))
         targets.append(np.stack([np.pad(g, (0, rows - g.size), constant_values=-1)
                                  for _, g in level]))
     targets = np.concatenate(targets, 1)
@@ -344,12 +326,12 @@ def sum_tables(dests, size: int, width: int = 8) -> SumTables:
         tables, targets = [t[0] for t in tables], targets[0]
     # cut and put on the device from the host: cutting device arrays, or `jnp.asarray` of
     # NumPy arrays, compiles a small program per shape
-    return SumTables(tuple(jax.device_put(t) for t in tables), jax.device_put(targets), size)
+    return _SumTables(tuple(jax.device_put(t) for t in tables), jax.device_put(targets), size)
 
 
-def sum_by_tables(values: ArrayLike, tables: SumTables) -> Array:
+def _sum_by_tables(values: ArrayLike, tables: _SumTables) -> Array:
     """``out[d] = sum of values[i] with dest[i] == d`` for the ``dest`` of ``tables``
-    (`sum_tables`; unstacked): ``values`` (N, ...) -> (size, ...), in a fixed order.
+    (`_sum_tables`; unstacked): ``values`` (N, ...) -> (size, ...), in a fixed order.
 
     Gathers and adds only, then one scatter to distinct destinations (which XLA need not make
     deterministic: it is). Differentiable in ``values`` (the transpose is gathers)."""
@@ -369,7 +351,7 @@ def sum_by_tables(values: ArrayLike, tables: SumTables) -> Array:
 
 
 @jax.custom_jvp
-def materialize(x):
+def _materialize(x):
     """``x`` (an array or a pytree of arrays), computed once into its own buffer.
 
     A fusion barrier that XLA keeps: XLA CPU may fuse a producer (a texture
@@ -399,10 +381,10 @@ def materialize(x):
     return jax.lax.while_loop(lambda c: c[0] < one, body, (jnp.int32(0), x))[1]
 
 
-@materialize.defjvp
+@_materialize.defjvp
 def _materialize_jvp(primals, tangents):
     (x,), (dx,) = primals, tangents
-    return materialize(x), dx
+    return _materialize(x), dx
 
 
 def eps(dtype) -> float:

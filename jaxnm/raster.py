@@ -55,10 +55,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .numerics import cumsum, dot, flat_nonzero, materialize, roll_last, xyw
+from .numerics import _cumsum, _flat_nonzero, _materialize, _roll_last, _xyw, dot
 
-__all__ = ["Fragments", "RasterStrategy", "default_strategy", "rasterize", "triangle_ids",
-           "overdraw", "window_homogeneous", "pixel_centers", "compact", "expand", "TIE_RULE"]
+__all__ = [
+    "Fragments", "RasterStrategy", "default_strategy", "rasterize", "triangle_ids", "overdraw",
+    "compact", "expand", "TIE_RULE", "SUBPIXEL_BITS", "MAX_SLOTS", "MAX_SLOTS_ACCELERATOR"
+]
 
 #: A pixel centre exactly on an edge belongs to the triangle whose inward edge
 #: normal ``n`` (window coordinates, y up) has ``n.x > 0``, or ``n.x == 0`` and
@@ -127,7 +129,7 @@ _NO_TRIANGLE = np.iinfo(np.int32).max
 _ANY_TRIANGLE = np.iinfo(np.int32).min  # below every id: a no-op in a max
 
 
-def pixel_centers(height: int, width: int, dtype=jnp.float32) -> tuple[Array, Array]:
+def _pixel_centers(height: int, width: int, dtype=jnp.float32) -> tuple[Array, Array]:
     """Window coordinates (x, y), each (H, W), of the pixel centres in image layout."""
     x = jnp.arange(width, dtype=dtype) + 0.5
     y = (height - 1 - jnp.arange(height, dtype=dtype)) + 0.5
@@ -151,7 +153,7 @@ class Fragments:
       ``(i + 1/2, j + 1/2)``), and the other per-pixel fields have its leading shape.
     - `packed_from`: static; the ``(height, width)`` of the image packed fragments
       come from (None for a whole image).
-    - `window`: None, or the vertices' window x, y and w, (V, 3) (`window_homogeneous`
+    - `window`: None, or the vertices' window x, y and w, (V, 3) (`_window_homogeneous`
       of ``clip`` less its z), computed once by `compact` so that per-pixel stages run in
       chunks do not redo it for every chunk (the 200k torus: a pass over 100k vertices
       per chunk); None: computed from ``clip`` where needed. (Replacing ``clip`` in
@@ -200,7 +202,7 @@ class Fragments:
     def window_centers(self, dtype=jnp.float32) -> tuple[Array, Array]:
         """Window coordinates (x, y) of each fragment's pixel centre, of `shape`."""
         if self.pixels is None:
-            return pixel_centers(*self.shape, dtype)
+            return _pixel_centers(*self.shape, dtype)
         i, j = self.window_pixels()
         return i.astype(dtype) + 0.5, j.astype(dtype) + 0.5
 
@@ -225,7 +227,7 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
       known; else the facing is computed from each fragment's corners again.
     - `index`: the (capacity,) flat image indices of the pixels to pack, if chosen by the
       caller (``H * W`` for unused slots; e.g. a later window of the covered pixels from
-      `jaxnm.numerics.ranked_nonzero`); by default the first ``capacity`` covered pixels.
+      `jaxnm.numerics._ranked_nonzero`); by default the first ``capacity`` covered pixels.
 
     **Returns:** the packed `Fragments` (per-pixel fields of shape (capacity,); depth and
     facing as `rasterize` computes them) and the (capacity,) flat image index of each
@@ -235,7 +237,7 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
     n = height * width
     ids = triangle_id.reshape(-1)
     if index is None:
-        index = flat_nonzero(ids >= 0, capacity, n)
+        index = _flat_nonzero(ids >= 0, capacity, n)
     used = index < n
     at = jnp.minimum(index, n - 1)
     row = _div(at, width)
@@ -244,7 +246,7 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
     placed = Fragments(triangle_id=tid, depth=None, front_facing=None, clip=clip, faces=faces,
                        pixels=jnp.stack([col, height - 1 - row], -1),
                        packed_from=(height, width),
-                       window=materialize(xyw(window_homogeneous(clip, width, height))))
+                       window=_materialize(_xyw(_window_homogeneous(clip, width, height))))
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     covered = tid >= 0
@@ -277,7 +279,7 @@ def expand(values: Array, index: Array, height: int, width: int, fill=0) -> Arra
         (height, width) + values.shape[1:])
 
 
-def window_homogeneous(clip: Array, width: int, height: int) -> Array:
+def _window_homogeneous(clip: Array, width: int, height: int) -> Array:
     """Homogeneous window coordinates ``((X+W) w/2, (Y+W) h/2, (Z+W)/2, W)`` of clip points.
 
     Dividing the first three by the last gives window x, y (pixels, y up) and
@@ -381,7 +383,7 @@ class _Corners:
         where the same arithmetic on (F, 3, 4) or (F, 6, 4) arrays (minor axes of 3 to 6)
         ran an order of magnitude slower on XLA's CPU backend.
         """
-        return materialize([[self.vertices[:, c][self.faces[:, k]] for c in range(4)]
+        return _materialize([[self.vertices[:, c][self.faces[:, k]] for c in range(4)]
                             for k in range(3)])
 
 
@@ -409,7 +411,7 @@ def _window_box(pts, keep):
             k, py, -big))
     # computed once: XLA would otherwise recompute the box (its divisions) in each fusion
     # that uses it (four at first)
-    return (*materialize((xmin, xmax, ymin, ymax)), bad_w)
+    return (*_materialize((xmin, xmax, ymin, ymax)), bad_w)
 
 
 def _triangle_setup(tri: _Corners, width: int, height: int, block: int, cull_back: bool):
@@ -455,9 +457,9 @@ def _snapped_setup(h: Array, faces: Array, on_grid: Array, *, width, height, blo
     misses (`_misses_centre`): a dense mesh's many sub-pixel triangles cover no pixel at
     all (the 200k torus at 512^2: 28,787 of its 72,897 triangles with a box, 36 % of the
     (triangle, tile) slots), and the test costs less than their slots."""
-    xy = materialize(h[:, :2])
+    xy = _materialize(h[:, :2])
     rows = [xy[faces[:, k]] for k in range(3)]
-    x, y = materialize(([r[:, 0] for r in rows], [r[:, 1] for r in rows]))
+    x, y = _materialize(([r[:, 0] for r in rows], [r[:, 1] for r in rows]))
     one = jnp.ones_like(x[0])
     sigma = jnp.sign(_orientation([[x[k], y[k], None, one] for k in range(3)]))
     valid = (sigma > 0) if cull_back else (sigma != 0)
@@ -626,7 +628,7 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     k0 = jnp.searchsorted(ends, slot0, side="right").astype(jnp.int32)
     ahead = jax.lax.dynamic_slice_in_dim(starts_ahead, k0 + 1, slots)
     marks = jnp.zeros((slots,), jnp.int32).at[ahead - slot0].add(1, mode="drop")
-    k = jnp.minimum(k0 + cumsum(marks), order.shape[0] - 1)
+    k = jnp.minimum(k0 + _cumsum(marks), order.shape[0] - 1)
     t = order[k]
     local = s - starts[k]
     nx = jnp.maximum(nbx[t], 1)
@@ -652,7 +654,7 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     tiles_x = -(-width // block)
     # Per-slot values computed once into their own buffers: fused into the per-pixel kernel,
     # XLA would recompute them for every pixel of the tile.
-    a, b, c, tie, dz_c, dz_a, dz_b, live, bx, by = materialize(
+    a, b, c, tie, dz_c, dz_a, dz_b, live, bx, by = _materialize(
         (a, b, c, tie, dz_c, dz_a, dz_b, live, bx, by))
     fx = jnp.tile(jnp.arange(block, dtype=jnp.int32), block)[None, :]  # (1, block**2):
     fy = jnp.repeat(jnp.arange(block, dtype=jnp.int32), block)[None, :]  # dx, then dy
@@ -665,7 +667,7 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     inside = inside & (depth >= 0.0) & (depth <= 1.0)
     # (the reshape after the barrier: the loop runs over the (S, block**2) shape, whose minor
     # axis of 16 vectorises better than (S, block, block)'s 4)
-    depth = materialize(jnp.where(inside, depth, jnp.inf)).reshape(slots, block, block)
+    depth = _materialize(jnp.where(inside, depth, jnp.inf)).reshape(slots, block, block)
     # (from the materialised bx, by >= 0)
     tile = _div(by, block) * tiles_x + _div(bx, block)
     return tile, depth, t
@@ -674,9 +676,9 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
 def _window_corners(clip, faces, *, width, height, subpixel_bits):
     """The triangles' corners in homogeneous window coordinates (`_Corners`): snapped
     (coverage) and unsnapped (depth)."""
-    h_unsnapped = window_homogeneous(jax.lax.stop_gradient(clip), width, height)
+    h_unsnapped = _window_homogeneous(jax.lax.stop_gradient(clip), width, height)
     h = _snap_vertices(h_unsnapped, subpixel_bits)
-    return _Corners(materialize(h), faces), _Corners(h_unsnapped, faces)
+    return _Corners(_materialize(h), faces), _Corners(h_unsnapped, faces)
 
 
 def _with_slots(counts: Array) -> tuple[Array, Array]:
@@ -684,7 +686,7 @@ def _with_slots(counts: Array) -> tuple[Array, Array]:
     each (F,) (padded with triangle 0 and no slots): a dense mesh has far fewer such
     triangles than triangles, and the slots' bookkeeping runs over this list."""
     n = counts.shape[0]
-    order = flat_nonzero(counts > 0, n, 0)
+    order = _flat_nonzero(counts > 0, n, 0)
     live = jnp.arange(n) < jnp.sum(counts > 0)
     return order, jnp.where(live, counts[order], 0)
 
@@ -694,7 +696,7 @@ def _fragment_source(tri, tri_depth, setup, order, counts, *, width, height, blo
     (coverage), ``tri_depth`` (depth) and `_triangle_setup` result ``setup``, taking
     ``counts`` slots of each triangle ``order`` (`_with_slots`)."""
     sigma, tx0, ty0, nbx, _ = setup  # (the slot counts come as `counts`)
-    ends = cumsum(counts)
+    ends = _cumsum(counts)
     starts = ends - counts
     total = ends[-1]
     # the starts again, padded so that any `slots` of them after one triangle can be sliced
@@ -855,7 +857,7 @@ def _rasterize(clip, faces, *, width, height, cull_back, subpixel_bits, strategy
         subpixel_bits=subpixel_bits, strategy=strategy)
     # facing from the coverage (snapped) orientation, as the rasterizer saw the triangle
     depth, front = _depth_and_facing(tri_depth, sigma, tid,
-                                     *pixel_centers(height, width, tri_depth.dtype))
+                                     *_pixel_centers(height, width, tri_depth.dtype))
     return tid, depth, front
 
 
@@ -912,7 +914,7 @@ def _pixel_depth(tri_depth: _Corners, tid: Array, x: Array, y: Array) -> Array:
     x, y = x[..., None], y[..., None]
     hx = hv[..., 0] - x * hv[..., 3]
     hy = hv[..., 1] - y * hv[..., 3]
-    e = roll_last(hx, 1) * roll_last(hy, 2) - roll_last(hy, 1) * roll_last(hx, 2)
+    e = _roll_last(hx, 1) * _roll_last(hy, 2) - _roll_last(hy, 1) * _roll_last(hx, 2)
     num = dot(e, hv[..., 2])
     den = dot(e, hv[..., 3])
     return num / jnp.where(den == 0, 1.0, den)

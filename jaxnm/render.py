@@ -32,23 +32,24 @@ from .camera import Camera, to_clip
 from .geometry import Mesh
 from .interpolate import (
     Attribute,
+    _check_derivatives,
+    _check_precision,
+    _require_x64,
+    _triangle_corners,
     at_precision,
     barycentrics,
-    check_derivatives,
-    check_precision,
     interpolate,
-    require_x64,
-    triangle_corners,
 )
-from .numerics import materialize, ranked_nonzero, safe_normalize
+from .numerics import _materialize, _ranked_nonzero, safe_normalize
 from .raster import Fragments, compact, rasterize, triangle_ids
-from .scene import Scene, check_scene_shapes, default_lights, default_material
-from .shading import Lights, Material, check_shading_model, shade
+from .scene import Scene, _check_scene_shapes, default_lights, default_material
+from .shading import Lights, Material, _check_shading_model, shade
 from .textures import NormalMapOptions
 
-__all__ = ["OUTPUTS", "PACK_MIN_PIXELS", "PIXEL_CHUNK", "GBuffer", "RenderOptions",
-           "build_gbuffer", "covered_gbuffer", "gbuffer_from_fragments", "shade_gbuffer",
-           "render", "camera_relative"]
+__all__ = [
+    "OUTPUTS", "PACK_MIN_PIXELS", "PIXEL_CHUNK", "GBuffer", "RenderOptions", "build_gbuffer",
+    "covered_gbuffer", "shade_gbuffer", "render", "PASS_SLOTS"
+]
 
 #: Every output `render` can produce (image layout, row 0 = top, float32 (H, W, C)).
 OUTPUTS = ("mask", "triangle_id", "depth", "front_facing", "position", "view", "uv", "normal",
@@ -81,10 +82,10 @@ class RenderOptions:
     outputs: tuple[str, ...] = ("color",)
 
     def __post_init__(self):
-        check_derivatives(self.derivatives, allow_none=False)
-        check_precision(self.precision)
-        _frames.check_frame(self.frame)
-        check_shading_model(self.shading)
+        _check_derivatives(self.derivatives, allow_none=False)
+        _check_precision(self.precision)
+        _frames._check_frame(self.frame)
+        _check_shading_model(self.shading)
         bad = [o for o in self.outputs if o not in OUTPUTS]
         if bad or not isinstance(self.outputs, tuple):
             raise ValueError(f"unknown outputs {bad or self.outputs!r}; expected a tuple of "
@@ -164,7 +165,7 @@ def _needs(opts: RenderOptions):
     return has_map, need_frame, need_tb, need_uv, need_p, need_n
 
 
-def check_mesh(mesh: Mesh, opts: RenderOptions, source: str = "render") -> None:
+def _check_mesh(mesh: Mesh, opts: RenderOptions, source: str = "render") -> None:
     """Raise a clear `ValueError` if ``mesh`` lacks an attribute the requested outputs need."""
     has_map, _, need_tb, need_uv, _, need_n = _needs(opts)
     if need_uv and mesh.uv is None:
@@ -187,8 +188,8 @@ def build_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *, opts: RenderOpti
     - `albedo`: (3,) constant or (H, W, 3) linear texture.
     - `opts`: a `RenderOptions` (static).
     """
-    check_mesh(mesh, opts)
-    return gbuffer_from_fragments(mesh, camera, albedo, _visibility(mesh, camera, opts),
+    _check_mesh(mesh, opts)
+    return _gbuffer_from_fragments(mesh, camera, albedo, _visibility(mesh, camera, opts),
                                   opts=opts)
 
 
@@ -208,7 +209,7 @@ def covered_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *,
     if opts.derivatives == "gbuffer":
         raise ValueError("covered_gbuffer: 'gbuffer' derivatives need the whole image's "
                          "G-buffer (build_gbuffer)")
-    check_mesh(mesh, opts)
+    _check_mesh(mesh, opts)
     # render's visibility program: a fit's targets rendered first leave it compiled
     tid, clip, orientation = _visible_placed(mesh, camera, _NO_SHIFT, width=opts.width,
                                              height=opts.height, cull_back=opts.cull_back,
@@ -223,7 +224,7 @@ def covered_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *,
 def _covered(mesh: Mesh, camera: Camera, albedo, triangle_id, clip, orientation, *, opts,
              capacity):
     packed, index = _compact(mesh, camera, triangle_id, capacity, clip, orientation)
-    return gbuffer_from_fragments(mesh, camera, albedo, packed, opts=opts), index
+    return _gbuffer_from_fragments(mesh, camera, albedo, packed, opts=opts), index
 
 
 def _compact(mesh: Mesh, camera: Camera, triangle_id: Array, capacity: int,
@@ -242,7 +243,7 @@ def _visibility(mesh: Mesh, camera: Camera, opts: RenderOptions):
                      height=opts.height, cull_back=opts.cull_back)
 
 
-def gbuffer_from_fragments(mesh: Mesh, camera: Camera, albedo: Array, frags: Fragments, *,
+def _gbuffer_from_fragments(mesh: Mesh, camera: Camera, albedo: Array, frags: Fragments, *,
                            opts: RenderOptions) -> GBuffer:
     """`build_gbuffer` after visibility: the per-pixel stages for ``frags``, a whole
     image's or packed ones (`jaxnm.raster.compact`; the G-buffer then has their shape)."""
@@ -260,7 +261,7 @@ def gbuffer_from_fragments(mesh: Mesh, camera: Camera, albedo: Array, frags: Fra
     # one evaluation of the barycentrics (the per-pixel corner gather and edge functions)
     # for every attribute interpolated below
     needs_bary = attrs or need_n or (need_tb and opts.frame in ("vertex", "vertex_area"))
-    bary = (materialize(barycentrics(frags, derivatives=mode if attrs else None)) if needs_bary
+    bary = (_materialize(barycentrics(frags, derivatives=mode if attrs else None)) if needs_bary
             else None)
     if attrs:
         out = interpolate(attrs, frags, derivatives=mode, bary=bary)
@@ -272,10 +273,10 @@ def gbuffer_from_fragments(mesh: Mesh, camera: Camera, albedo: Array, frags: Fra
             gb["uv"] = out["uv"]
     if need_n:
         n = interpolate(mesh.normals, frags, derivatives=None, bary=bary).value
-        gb["normal"] = materialize(safe_normalize(n))
+        gb["normal"] = _materialize(safe_normalize(n))
     if need_frame:
         frame_opts = opts if need_tb else dataclasses.replace(opts, frame="none")
-        gb["frame"] = materialize(_tangent_frame(frame_opts, mesh, frags, gb, bary))
+        gb["frame"] = _materialize(_tangent_frame(frame_opts, mesh, frags, gb, bary))
     if has_map:
         nm = opts.normal_map
         gb["plan"] = _tex.plan_sample(gb["uv"], size_hw=opts.normal_map_shape, levels=opts.levels,
@@ -313,8 +314,8 @@ def _tangent_frame(opts: RenderOptions, mesh: Mesh, frags, gb, bary) -> _frames.
                                            pixels=quads),
                       ddy_sign=opts.ddy_sign)
     elif kind in ("exact", "exact_face"):
-        inputs = dict(tri_p=low(triangle_corners(mesh.positions, frags)),
-                      tri_uv=low(triangle_corners(mesh.uv, frags)))
+        inputs = dict(tri_p=low(_triangle_corners(mesh.positions, frags)),
+                      tri_uv=low(_triangle_corners(mesh.uv, frags)))
     elif kind == "vertex":  # MikkTSpace: per-corner tangents, the normal as interpolated
         at = interpolate({"t": mesh.tangents, "n": mesh.normals[mesh.faces]}, frags,
                          derivatives=None, bary=bary)
@@ -329,7 +330,7 @@ def _tangent_frame(opts: RenderOptions, mesh: Mesh, frags, gb, bary) -> _frames.
                                  double_sided=opts.double_sided, **inputs)
 
 
-def perturbed_normal(gb: GBuffer, normal_map: Array, opts: RenderOptions,
+def _perturbed_normal(gb: GBuffer, normal_map: Array, opts: RenderOptions,
                      strength: Array | None = None) -> Array:
     """The normal after applying the map's texels (stored values, image layout)."""
     if gb.plan is None:
@@ -337,7 +338,7 @@ def perturbed_normal(gb: GBuffer, normal_map: Array, opts: RenderOptions,
     nm = opts.normal_map
     mips = (_tex.build_mipmaps(normal_map, levels=opts.levels) if opts.levels > 1
             else (normal_map,))
-    raw = materialize(_tex.apply_plan(gb.plan, mips))  # else refused into each use
+    raw = _materialize(_tex.apply_plan(gb.plan, mips))  # else refused into each use
     if nm.space == "derivative":  # surface-gradient bump mapping (Mikkelsen)
         s = nm.strength if strength is None else strength
         return _maps.derivative_map_normal(gb.frame.N, gb.view.ddx, gb.view.ddy, gb.uv.ddx,
@@ -367,7 +368,7 @@ def shade_gbuffer(gb: GBuffer, normal_map: Array | None, lights: Lights, materia
     want = set(opts.outputs)
     if gb.frame is None:
         return out
-    n = perturbed_normal(gb, normal_map, opts) if normal_map is not None else gb.frame.N
+    n = _perturbed_normal(gb, normal_map, opts) if normal_map is not None else gb.frame.N
     n = n.astype(jnp.float32)  # lighting is float32 whatever the frame's precision
     mask = gb.mask[..., None]
     if "tangent" in want:
@@ -396,7 +397,7 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     background; ``dpdx``/``dpdy`` are derivatives of the world position per
     pixel step in window x (right) and y (**up**).
 
-    **How a frame runs.** The scene is made camera-relative (`camera_relative`: in float64
+    **How a frame runs.** The scene is made camera-relative (`_camera_relative`: in float64
     on the host where the camera and model are concrete), the rasterizer finds each
     pixel's triangle (`jaxnm.raster`), and the per-pixel stages (interpolation,
     derivatives, frame, texture, shading) run either on the whole image, in one compiled
@@ -424,11 +425,11 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     """
     opts = RenderOptions.of(scene, outputs=outputs, derivatives=derivatives, frame=frame,
                             precision=precision)
-    check_scene_shapes(scene)
-    check_mesh(scene.mesh, opts, scene.source)
+    _check_scene_shapes(scene)
+    _check_mesh(scene.mesh, opts, scene.source)
     if opts.precision == "float64":
         try:
-            require_x64("precision 'float64'")
+            _require_x64("precision 'float64'")
         except ValueError as e:
             raise ValueError(f"{scene.source}: {e}") from None
     camera, lights, origin, placement, affine = _relative_inputs(scene)
@@ -518,7 +519,7 @@ def _frame(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, ori
     (`_place`) relative to ``camera`` (at the origin), ``origin`` is the camera's world
     position."""
     mesh = _place(mesh, placement, affine)
-    clip = materialize(to_clip(mesh.positions, camera))
+    clip = _materialize(to_clip(mesh.positions, camera))
     frags = rasterize(clip, mesh.faces.astype(jnp.int32), width=opts.width, height=opts.height,
                       cull_back=opts.cull_back)
     result = {"mask": frags.mask, "triangle_id": frags.triangle_id, "depth": frags.depth,
@@ -539,7 +540,7 @@ def _visible_placed(mesh: Mesh, camera: Camera, placement, *, width: int, height
     per-pixel stages: each keeps its own temporary buffers, which for a 200k-triangle mesh
     together passed glibc's 32 MiB threshold (`_packed_passes`)."""
     mesh = _place(mesh, placement, affine)
-    clip = materialize(to_clip(mesh.positions, camera))
+    clip = _materialize(to_clip(mesh.positions, camera))
     tid, orientation = triangle_ids(clip, mesh.faces.astype(jnp.int32), width=width,
                                     height=height, cull_back=cull_back)
     return tid, clip, orientation
@@ -567,7 +568,7 @@ def _per_pixel(mesh, camera, normal_map, albedo, lights, material, origin, opts)
     wanted = [n for n in opts.outputs if n not in _GEOMETRY_OUTPUTS]
 
     def per_pixel(frags):
-        gb = gbuffer_from_fragments(mesh, camera, albedo, frags, opts=opts)
+        gb = _gbuffer_from_fragments(mesh, camera, albedo, frags, opts=opts)
         res = {}
         if set(wanted) & _NEEDS_FRAME:
             res.update(shade_gbuffer(gb, normal_map, lights, material, opts=opts))
@@ -597,7 +598,7 @@ def _packed_passes(per_pixel, tid: Array, clip: Array, faces: Array, orientation
                    opts: RenderOptions) -> dict[str, Array]:
     """``opts.outputs`` of the image whose triangle ids are ``tid``, with ``per_pixel`` run on
     its covered pixels only: in passes of a quarter of the image's pixels (the covered
-    pixels ranked ``p * Q`` to ``(p + 1) * Q - 1`` in pass ``p``, `ranked_nonzero`), each
+    pixels ranked ``p * Q`` to ``(p + 1) * Q - 1`` in pass ``p``, `_ranked_nonzero`), each
     packed (`compact`) and evaluated in chunks (`_over_chunks`), its results written into
     the images; the passes past the covered pixels are skipped. A frame with at most a
     quarter of the image covered runs one pass, and every pass's buffers are a quarter of
@@ -607,7 +608,7 @@ def _packed_passes(per_pixel, tid: Array, clip: Array, faces: Array, orientation
     height, width = opts.height, opts.width
     pixels = height * width
     slots = min(-(-pixels // 4), PASS_SLOTS)
-    total, window = ranked_nonzero(tid.reshape(-1) >= 0)
+    total, window = _ranked_nonzero(tid.reshape(-1) >= 0)
     names = [n for n in opts.outputs if n not in ("mask", "triangle_id")]
     shapes = jax.eval_shape(
         lambda: per_pixel(compact(tid, clip, faces, slots, orientation=orientation)[0]))
@@ -711,7 +712,7 @@ def _concrete(*xs) -> bool:
                for x in jax.tree_util.tree_leaves(xs))
 
 
-def camera_relative(scene: Scene) -> tuple[Scene, Array]:
+def _camera_relative(scene: Scene) -> tuple[Scene, Array]:
     """``scene`` with its model matrix applied and everything moved so that the camera sits
     at the origin, and that origin (the camera's world position), as `render` sees it.
 

@@ -17,18 +17,18 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .camera import Camera, clip_float64
-from .frames import check_frame
-from .geometry import Mesh, closed_shape, validate_arrays
-from .interpolate import check_derivatives, check_precision
+from .camera import Camera, _clip_float64
+from .frames import _check_frame
+from .geometry import Mesh, _closed_shape, _validate_arrays
+from .interpolate import _check_derivatives, _check_precision
 from .numerics import safe_normalize
-from .shading import DirectionalLight, Lights, Material, check_shading_model, stack_lights
+from .shading import DirectionalLight, Lights, Material, _check_shading_model, stack_lights
 from .textures import NormalMapOptions
 
-__all__ = ["Scene", "validate_scene", "check_scene_options", "check_scene_shapes",
-           "default_lights", "default_material", "back_faces_hidden", "box_in_front",
-           "MAX_IMAGE_SIZE",
-           "DDY_CONVENTIONS"]
+__all__ = [
+    "Scene", "validate_scene", "default_lights", "default_material", "back_faces_hidden",
+    "MAX_IMAGE_SIZE", "DDY_CONVENTIONS"
+]
 
 #: The largest image width or height a scene may ask for.
 MAX_IMAGE_SIZE = 16384
@@ -99,8 +99,8 @@ class Scene:
     def __post_init__(self):
         # Only the static options are checked here: a pytree is rebuilt with placeholder or
         # traced leaves inside JAX transformations, so array shapes are checked by `render`
-        # (`check_scene_shapes`) and array values by `validate_scene`.
-        check_scene_options(width=self.width, height=self.height,
+        # (`_check_scene_shapes`) and array values by `validate_scene`.
+        _check_scene_options(width=self.width, height=self.height,
                             normal_map_options=self.normal_map_options, shading=self.shading,
                             frame=self.frame, derivatives=self.derivatives,
                             precision=self.precision,
@@ -113,7 +113,7 @@ class Scene:
         return dataclasses.replace(self, **changes)
 
 
-def check_scene_options(*, width=512, height=512, normal_map_options=NormalMapOptions(),
+def _check_scene_options(*, width=512, height=512, normal_map_options=NormalMapOptions(),
                         shading="blinn_phong", frame="cotangent", derivatives="fine",
                         precision="float32",
                         double_sided=True, cull_back=False, ddy="up", source="<scene>") -> None:
@@ -130,10 +130,10 @@ def check_scene_options(*, width=512, height=512, normal_map_options=NormalMapOp
         raise ValueError(f"{src}: `normal_map_options` must be a NormalMapOptions, got "
                          f"{type(normal_map_options).__name__}")
     try:
-        check_frame(frame)
-        check_derivatives(derivatives, allow_none=False)
-        check_precision(precision)
-        check_shading_model(shading)
+        _check_frame(frame)
+        _check_derivatives(derivatives, allow_none=False)
+        _check_precision(precision)
+        _check_shading_model(shading)
     except ValueError as e:
         raise ValueError(f"{src}: {e}") from None
     if ddy not in DDY_CONVENTIONS:
@@ -148,14 +148,14 @@ def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
-def check_scene_shapes(scene: Scene) -> None:
+def _check_scene_shapes(scene: Scene) -> None:
     """Raise a `ValueError` naming ``scene.source`` unless the scene's arrays have usable
     shapes and dtypes: the mesh's, a normal map (H, W, C) of floats with enough channels, an
     albedo (3,) or (H, W, 3), a 4x4 model, and uvs where a map or texture needs them.
     Shapes only (known for traced arrays too), so `render` runs this on every call."""
     src = scene.source
     m = scene.mesh
-    validate_arrays(m.positions, m.faces, m.uv, m.normals, source=src, values=False)
+    _validate_arrays(m.positions, m.faces, m.uv, m.normals, source=src, values=False)
     opts = scene.normal_map_options
     if scene.normal_map is not None:
         shape = jnp.shape(scene.normal_map)
@@ -195,10 +195,10 @@ def validate_scene(scene: Scene) -> Scene:
     (`jaxnm.config.load_scene`) and the built-in scenes are checked so when they are made;
     `render` itself checks shapes, and vertex values at run time.
     """
-    check_scene_shapes(scene)
+    _check_scene_shapes(scene)
     src = scene.source
     m = scene.mesh
-    validate_arrays(m.positions, m.faces, m.uv, m.normals, source=src)
+    _validate_arrays(m.positions, m.faces, m.uv, m.normals, source=src)
     if scene.model is not None and _is_concrete(scene.model):
         m64 = np.asarray(scene.model, np.float64)
         if not np.all(np.isfinite(m64)) or not np.allclose(m64[3], [0, 0, 0, 1]):
@@ -217,7 +217,7 @@ def validate_scene(scene: Scene) -> Scene:
 def back_faces_hidden(mesh: Mesh, camera: Camera, model=None) -> bool:
     """Whether ``camera`` can see none of ``mesh``'s back faces, so that a `Scene` may set
     ``cull_back`` and still show every pixel's nearest triangle: the mesh encloses a volume
-    with its front faces outside (`jaxnm.geometry.closed_shape`), ``model`` (object to
+    with its front faces outside (`jaxnm.geometry._closed_shape`), ``model`` (object to
     world, or None) does not mirror it, and the corners of its bounding box are all in
     front of the near plane (so no part is clipped open and the camera is outside). Every
     ray from the eye then meets the surface first where it enters the volume, through a
@@ -226,17 +226,17 @@ def back_faces_hidden(mesh: Mesh, camera: Camera, model=None) -> bool:
     same triangles win as without culling, except where a back face had tied with the
     front face before it at a silhouette (0-3 pixels a frame on the benchmark's tori and
     sphere at 512^2 and 1024^2)."""
-    box = closed_shape(mesh.positions, mesh.faces)
-    return box is not None and box_in_front(box, camera, model)
+    box = _closed_shape(mesh.positions, mesh.faces)
+    return box is not None and _box_in_front(box, camera, model)
 
 
-def box_in_front(box: np.ndarray, camera: Camera, model=None) -> bool:
+def _box_in_front(box: np.ndarray, camera: Camera, model=None) -> bool:
     """Whether the (2, 3) (min, max) box, moved by ``model`` (None: identity; it must not
     mirror), lies wholly in front of ``camera``'s near plane (host, float64)."""
     if model is not None and not np.linalg.det(np.asarray(model, np.float64)[:3, :3]) > 0:
         return False
     corners = [[box[i, 0], box[j, 1], box[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
-    clip = clip_float64(corners, camera, model)
+    clip = _clip_float64(corners, camera, model)
     w = clip[:, 3]
     return bool(np.all(w > 0) and np.all(clip[:, 2] + w > 1e-6 * w))
 
@@ -251,7 +251,7 @@ def _check_near_plane(scene: Scene) -> None:
     positions = np.asarray(scene.mesh.positions)
 
     def any_in_front(p):  # float64 NumPy (no traced op inside jit)
-        clip = clip_float64(p, scene.camera, scene.model)
+        clip = _clip_float64(p, scene.camera, scene.model)
         return bool(np.any(clip[:, 2] >= -clip[:, 3]))
 
     # a few hundred vertices usually settle it; all of them only when none of those is seen

@@ -64,20 +64,9 @@ from .numerics import dot as _ndot
 from .numerics import safe_div, safe_normalize, spread, tiny
 
 __all__ = [
-    "DirectionalLight",
-    "PointLight",
-    "Lights",
-    "Material",
-    "FALLOFFS",
-    "SHADING_MODELS",
-    "check_shading_model",
-    "directional_light",
-    "stack_lights",
-    "lambert",
-    "blinn_phong",
-    "phong",
-    "shade",
-    "to_display",
+    "DirectionalLight", "PointLight", "Lights", "Material", "FALLOFFS", "SHADING_MODELS",
+    "directional_light", "stack_lights", "lambert", "blinn_phong", "phong", "shade", "to_display",
+    "AnyLights"
 ]
 
 SHADING_MODELS = ("lambert", "blinn_phong", "phong")
@@ -230,7 +219,7 @@ def _pos_pow(x: Array, n: Array) -> Array:
     return jnp.where(ok, y, jnp.where(n == 0, 1.0, 0.0).astype(y.dtype))
 
 
-def check_shading_model(model: str) -> None:
+def _check_shading_model(model: str) -> None:
     """Raise a `ValueError` unless ``model`` is one of `SHADING_MODELS`."""
     if model not in SHADING_MODELS:
         raise ValueError(f"shade: unknown shading model {model!r}; expected one of "
@@ -290,7 +279,7 @@ def _flatten_stack(light):
 
 
 def _shade(model: str, N, p, eye, lights, material: Material, albedo) -> Array:
-    check_shading_model(model)
+    _check_shading_model(model)
     N, p = jnp.asarray(N), jnp.asarray(p)
     dtype = jnp.result_type(N, p)
     if not jnp.issubdtype(dtype, jnp.floating):

@@ -116,10 +116,51 @@ def _private_imports(path: Path) -> list[str]:
     return bad
 
 
-def test_no_module_uses_another_modules_private_names():
-    files = sorted((ROOT / "jaxnm").rglob("*.py")) + sorted((ROOT / "scripts").rglob("*.py"))
-    bad = [b for f in files for b in _private_imports(f)]
+def test_scripts_use_only_the_public_api():
+    """A ``_`` name is private to the jaxnm package: its modules share such names, but the
+    scripts (examples, studies, benchmarks) use only what users may rely on."""
+    bad = [b for f in sorted((ROOT / "scripts").rglob("*.py")) for b in _private_imports(f)]
     assert not bad, bad
+
+
+def _module_level_names(path: Path) -> tuple[list[str] | None, list[str]]:
+    """(``__all__`` or None, the names a module defines at its top level)."""
+    tree = ast.parse(path.read_text())
+    exported, defined = None, []
+    for node in tree.body:
+        targets = ([node.target] if isinstance(node, ast.AnnAssign)
+                   else node.targets if isinstance(node, ast.Assign) else [])
+        if any(isinstance(t, ast.Name) and t.id == "__all__" for t in targets):
+            exported = list(ast.literal_eval(node.value))
+        elif isinstance(node, (ast.FunctionDef, ast.ClassDef)):
+            defined.append(node.name)
+        else:
+            defined += [t.id for t in targets if isinstance(t, ast.Name)]
+    return exported, defined
+
+
+def _unlisted_public_names(path: Path) -> list[str]:
+    exported, defined = _module_level_names(path)
+    return [n for n in defined if not n.startswith("_") and n not in (exported or [])]
+
+
+@pytest.mark.parametrize("path", [p for p in sorted((ROOT / "jaxnm").rglob("*.py"))
+                                  if p.name != "__init__.py"],
+                         ids=lambda p: str(p.relative_to(ROOT)))
+def test_internals_are_named_private(path):
+    """Each module's ``__all__`` is what a user may rely on: every other name the module
+    defines starts with ``_``, and ``__all__`` lists no ``_`` name."""
+    exported, _ = _module_level_names(path)
+    assert exported is not None, f"{path.name} has no __all__"
+    assert not [n for n in exported if n.startswith("_")]
+    assert _unlisted_public_names(path) == []
+
+
+def test_the_naming_check_can_fail(tmp_path):
+    f = tmp_path / "x.py"
+    f.write_text('__all__ = ["render"]\nLIMIT = 3\ndef render(): pass\ndef helper(): pass\n'
+                 "def _private(): pass\n")
+    assert _unlisted_public_names(f) == ["LIMIT", "helper"]
 
 
 def test_the_private_name_check_can_fail(tmp_path):

@@ -571,7 +571,7 @@ def test_stops_when_the_loss_stops_falling(small):
     the recorded history (the loss changed by less than ftol over the last `patience` steps
     and the solver's model promised no more), not one step earlier; ftol=0 runs every
     step."""
-    from jaxnm.fit.solve import promised, stop_test
+    from jaxnm.fit.solve import _promised, _stop_test
 
     problem, _, _, prep, _ = small
     opts = F.FitOptions(max_steps=40, ftol=0.3, patience=2)
@@ -580,9 +580,9 @@ def test_stops_when_the_loss_stops_falling(small):
     assert len(res.history) - 1 < 40
     loss = [h["loss"] for h in res.history]
     assert abs(loss[-3] - loss[-1]) <= 0.3 * loss[-3]
-    assert all(promised(h) <= 0.3 * before["loss"]
+    assert all(_promised(h) <= 0.3 * before["loss"]
                for before, h in zip(res.history[-3:], res.history[-2:]))
-    assert stop_test(res.history, opts) == "ftol" and stop_test(res.history[:-1], opts) is None
+    assert _stop_test(res.history, opts) == "ftol" and _stop_test(res.history[:-1], opts) is None
     full = F.fit_normal_map(problem, F.FitOptions(max_steps=6, ftol=0.0, rtol=0.0, atol=0.0),
                             prepared=prep, progress=False)
     assert full.stopped == "max_steps" and len(full.history) == 7
@@ -656,14 +656,14 @@ def test_the_fit_follows_optimistix_own_steps(small):
     ``init`` and ``step`` on the whole state, from the same start, for as many steps."""
     import equinox as eqx
 
-    from jaxnm.fit.solve import start_slopes
+    from jaxnm.fit.solve import _start_slopes
 
     problem, _, _, prep, _ = small
     opts = F.FitOptions(solver="lm", max_steps=4, lsmr_steps=5, ftol=0.0, init_noise=0.05)
     res = F.fit_normal_map(problem, opts, prepared=prep, progress=False)
     scale = F.preconditioner(prep)
     args = F.ModelArgs.create(prep, scale=scale, reduce=True)
-    z = jnp.asarray(start_slopes(problem.map_size, opts)) / scale
+    z = jnp.asarray(_start_slopes(problem.map_size, opts)) / scale
     solver = F.make_solver(opts)
     fn = lambda z, a: (F.residuals(z, a), None)  # noqa: E731
     state = solver.init(fn, z, args, {}, jax.eval_shape(F.residuals, z, args), None,

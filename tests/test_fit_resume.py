@@ -19,7 +19,7 @@ import pytest
 
 import jaxnm.fit.solve as S
 from jaxnm import fit as F
-from jaxnm.cli import CHECKPOINT_NAME, main
+from jaxnm.cli import _CHECKPOINT_NAME, main
 from jaxnm.fit.texel_lm import TexelLM
 from jaxnm.io import atomic_write, load_texture
 from jaxnm.procedural import default_problem
@@ -80,7 +80,7 @@ def _damped_start(solver: str, problem, monkeypatch):
         monkeypatch.setattr(S, "make_solver", lambda o: TexelLM(
             cg_steps=o.lsmr_steps, rtol=o.rtol, atol=o.atol, lam0=1e6))
     if solver == "gn":
-        monkeypatch.setattr(S, "start_slopes", lambda size, o: np.broadcast_to(
+        monkeypatch.setattr(S, "_start_slopes", lambda size, o: np.broadcast_to(
             np.float32([-4.0, -2.0]), tuple(size) + (2,)).copy())
     return problem
 
@@ -122,9 +122,9 @@ def test_stops_when_done_and_says_which_test_stopped_it(small):
     if res.stop_test == "ftol":
         floor = res.noise_floor / res.history[0]["loss"]  # (relative to the start: tiny)
         assert floor < 1e-3
-        assert S.stop_test(res.history, opts, lambda x: S.noise_floor(
+        assert S._stop_test(res.history, opts, lambda x: S._noise_floor(
             x, *S._loss_terms(prep))) == "ftol"
-        assert S.stop_test(res.history[:-1], opts, lambda x: S.noise_floor(
+        assert S._stop_test(res.history[:-1], opts, lambda x: S._noise_floor(
             x, *S._loss_terms(prep))) is None
 
 
@@ -306,7 +306,7 @@ def test_ctrl_c_during_the_fit_then_resume(tmp_path, monkeypatch, sigint):
     path = _fit_file(tmp_path / "job")
     ref = tmp_path / "ref"
     assert _run(path, "-o", ref, "--checkpoint-every", "0") == 0
-    assert not (ref / CHECKPOINT_NAME).exists() and (ref / "render_00.png").exists()
+    assert not (ref / _CHECKPOINT_NAME).exists() and (ref / "render_00.png").exists()
     update = S._Progress.update
 
     def interrupted(self, rec):
@@ -321,12 +321,12 @@ def test_ctrl_c_during_the_fit_then_resume(tmp_path, monkeypatch, sigint):
     assert rep["stopped"] == "interrupted" and rep["stop_test"] == "should_stop"
     assert rep["interrupted"] is True and rep["interrupted_phase"] == "fit"
     assert rep["steps"] == 2 and rep["skipped"] == ["held_out", "renders", "loss_plot"]
-    assert (out / CHECKPOINT_NAME).exists()
+    assert (out / _CHECKPOINT_NAME).exists()
     monkeypatch.setattr(S._Progress, "update", update)
     assert _run(path, "-o", out, "--resume") == 0
     rep = _readable(out)
     assert rep["stopped"] == "max_steps" and rep["steps"] == 6 and not rep["interrupted"]
-    assert rep["checkpoint"] == {"file": CHECKPOINT_NAME, "resumed": True}
+    assert rep["checkpoint"] == {"file": _CHECKPOINT_NAME, "resumed": True}
     with np.load(out / "normal_map.npz") as a, np.load(ref / "normal_map.npz") as b:
         np.testing.assert_array_equal(a["slopes"], b["slopes"])
         np.testing.assert_array_equal(a["normals"], b["normals"])
@@ -350,7 +350,7 @@ def test_a_resume_of_another_fit_is_refused_in_one_line(tmp_path, capsys, change
     assert _run(other, "-o", out, "--resume", *args) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith("jaxnm fit: error: ")
-    assert str(out / CHECKPOINT_NAME) in err
+    assert str(out / _CHECKPOINT_NAME) in err
     assert re.search(match, err), err
 
 
@@ -374,7 +374,7 @@ def test_a_killed_fit_resumes_to_the_uninterrupted_map(tmp_path):
         env={**os.environ, "PYTHONWARNINGS": "ignore"})
     try:
         deadline = time.monotonic() + 300
-        while not (out / CHECKPOINT_NAME).exists():
+        while not (out / _CHECKPOINT_NAME).exists():
             assert proc.poll() is None, proc.stderr.read().decode()
             assert time.monotonic() < deadline
             time.sleep(0.01)
@@ -383,7 +383,7 @@ def test_a_killed_fit_resumes_to_the_uninterrupted_map(tmp_path):
     finally:
         proc.kill()
         proc.stderr.close()
-    saved = F.load_checkpoint(out / CHECKPOINT_NAME).meta
+    saved = F.load_checkpoint(out / _CHECKPOINT_NAME).meta
     assert 0 < saved["next_step"] <= 300 and not (out / "normal_map.npz").exists()
     assert _run(path, "-o", out, "--resume") == 0
     with np.load(out / "normal_map.npz") as a, np.load(ref / "normal_map.npz") as b:

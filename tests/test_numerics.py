@@ -9,14 +9,14 @@ import pytest
 from helpers import jaxpr_equations
 
 from jaxnm.numerics import (
-    SumTables,
-    cumsum,
-    flat_nonzero,
-    materialize,
+    _cumsum,
+    _flat_nonzero,
+    _materialize,
+    _sum_by_tables,
+    _sum_tables,
+    _SumTables,
     safe_normalize,
     spread,
-    sum_by_tables,
-    sum_tables,
 )
 
 
@@ -33,7 +33,7 @@ def test_materialize_is_an_identity_that_keeps_every_leaf_in_its_own_buffer():
 
     def f(x):
         a, i, b = x * 2.0, jnp.arange(64, dtype=jnp.int32) * 3, x > 0.5
-        a, i, b = materialize((a, i, b))
+        a, i, b = _materialize((a, i, b))
         return a[:, None] + i[:, None] + b[:, None] * jnp.arange(4.0)[None, :]
 
     def g(x):
@@ -55,21 +55,21 @@ def test_cumsum_equals_the_sequential_running_sum_wrapping_included(n):
     small = rng.integers(-5, 6, n).astype(np.int32)
     # values near the int32 range: the running sum wraps, as integer adds (and NumPy's) do
     big = rng.integers(-(2**31), 2**31 - 1, n, dtype=np.int64).astype(np.int32)
-    f = jax.jit(cumsum)
+    f = jax.jit(_cumsum)
     for x in (small, big):
         with np.errstate(over="ignore"):
             want = np.cumsum(x, dtype=np.int32)
         got = f(jnp.asarray(x))
         assert got.dtype == jnp.int32
         np.testing.assert_array_equal(np.asarray(got), want)
-    np.testing.assert_array_equal(np.asarray(cumsum(jnp.asarray(small), block=2)),
+    np.testing.assert_array_equal(np.asarray(_cumsum(jnp.asarray(small), block=2)),
                                   np.cumsum(small))
 
 
 @pytest.mark.parametrize("n", [1, 1000])
 def test_flat_nonzero_equals_numpys_indices_cut_or_filled_to_size(n):
     rng = np.random.default_rng(n)
-    f = jax.jit(flat_nonzero, static_argnums=(1, 2))
+    f = jax.jit(_flat_nonzero, static_argnums=(1, 2))
     for mask in (rng.random(n) < 0.3, np.zeros(n, bool), np.ones(n, bool)):
         count = int(mask.sum())
         for size in sorted({1, max(count - 1, 1), count + 5}):
@@ -83,7 +83,7 @@ def test_flat_nonzero_equals_numpys_indices_cut_or_filled_to_size(n):
 @pytest.mark.parametrize("n", [32, 4099])
 def test_both_ways_of_flat_nonzero_give_numpys_indices(n):
     """The word-packed way (each output slot finds its entry) and the running-sum way
-    (each entry is scattered into its slot), whichever `flat_nonzero` picks: runs of true
+    (each entry is scattered into its slot), whichever `_flat_nonzero` picks: runs of true
     entries across word boundaries, words with every bit set or none, a tail word, and
     sizes below, at and above the count."""
     from jaxnm.numerics import _nonzero_by_scatter, _nonzero_by_words
@@ -107,17 +107,17 @@ def test_both_ways_of_flat_nonzero_give_numpys_indices(n):
 
 @pytest.mark.parametrize("n", [32, 4099])
 def test_ranked_nonzero_windows_are_numpys_indices(n):
-    """`ranked_nonzero`'s windows are the slices of NumPy's indices from any first rank
+    """`_ranked_nonzero`'s windows are the slices of NumPy's indices from any first rank
     (traced, so one compiled program serves them all): at word boundaries, inside runs
     that span words, at and past the last entry, and filled past it."""
-    from jaxnm.numerics import ranked_nonzero
+    from jaxnm.numerics import _ranked_nonzero
 
     rng = np.random.default_rng(n + 1)
     runs = np.zeros(n, bool)
     runs[5:n // 2] = True
     size = 37
-    window = jax.jit(lambda m, first: ranked_nonzero(m)[1](first, size, -1))
-    total = jax.jit(lambda m: ranked_nonzero(m)[0])
+    window = jax.jit(lambda m, first: _ranked_nonzero(m)[1](first, size, -1))
+    total = jax.jit(lambda m: _ranked_nonzero(m)[0])
     for mask in (rng.random(n) < 0.3, rng.random(n) < 0.97, runs, np.zeros(n, bool)):
         ref = np.flatnonzero(mask)
         assert int(total(jnp.asarray(mask))) == len(ref)
@@ -128,16 +128,16 @@ def test_ranked_nonzero_windows_are_numpys_indices(n):
             want[:len(part)] = part
             np.testing.assert_array_equal(np.asarray(window(jnp.asarray(mask), first)), want)
     with pytest.raises(ValueError, match="1-D boolean"):
-        ranked_nonzero(jnp.ones((3,), jnp.int32))
+        _ranked_nonzero(jnp.ones((3,), jnp.int32))
 
 
 def test_cumsum_and_flat_nonzero_reject_what_they_do_not_handle():
     with pytest.raises(ValueError, match="1-D integer"):
-        cumsum(jnp.ones((3,), jnp.float32))
+        _cumsum(jnp.ones((3,), jnp.float32))
     with pytest.raises(ValueError, match="1-D integer"):
-        cumsum(jnp.ones((2, 3), jnp.int32))
+        _cumsum(jnp.ones((2, 3), jnp.int32))
     with pytest.raises(ValueError, match="1-D boolean"):
-        flat_nonzero(jnp.ones((3,), jnp.int32), 3, 0)
+        _flat_nonzero(jnp.ones((3,), jnp.int32), 3, 0)
 
 
 def _sums_in_float64(dest, values, size):
@@ -148,7 +148,7 @@ def _sums_in_float64(dest, values, size):
 
 @pytest.mark.parametrize("width", [2, 8])
 def test_sum_tables_sum_each_destination_once_in_a_fixed_order(width):
-    """`sum_by_tables` equals the float64 sums per destination (within float32 rounding of
+    """`_sum_by_tables` equals the float64 sums per destination (within float32 rounding of
     each term's partial sums), for destinations with no entries, one, a row's worth, and
     700 (several levels); the same tables give the same bits every call; stacked tables
     (common shapes, different depths) equal each array's own; the final scatter writes
@@ -158,45 +158,45 @@ def test_sum_tables_sum_each_destination_once_in_a_fixed_order(width):
     dest = np.r_[rng.integers(0, 40, 300), np.full(700, 7), [45] * width, [50]]
     rng.shuffle(dest)
     values = rng.normal(size=(dest.size, 3)).astype(np.float32)
-    tables = sum_tables(dest, size, width)
+    tables = _sum_tables(dest, size, width)
     most, levels = np.bincount(dest).max(), 1  # dest 7's entries: ceil(log_width) levels
     while width ** levels < most:
         levels += 1
     assert len(tables.tables) == levels
-    got = np.asarray(jax.jit(sum_by_tables)(values, tables))
+    got = np.asarray(jax.jit(_sum_by_tables)(values, tables))
     ref = _sums_in_float64(dest, values, size)
     bound = 8 * np.finfo(np.float32).eps * _sums_in_float64(dest, np.abs(values), size)
     assert np.all(np.abs(got - ref) <= bound + 1e-30)
     assert np.all(got[ref == 0] == 0) and not got[np.setdiff1d(np.arange(size), dest)].any()
-    np.testing.assert_array_equal(np.asarray(jax.jit(sum_by_tables)(values, tables)), got)
+    np.testing.assert_array_equal(np.asarray(jax.jit(_sum_by_tables)(values, tables)), got)
     # a 1-D value array too; the transpose is gathers: d sum(c * out) / d values = c[dest]
     c = rng.normal(size=size).astype(np.float32)
-    grad = jax.grad(lambda v: jnp.sum(jnp.asarray(c) * sum_by_tables(v, tables)))(
+    grad = jax.grad(lambda v: jnp.sum(jnp.asarray(c) * _sum_by_tables(v, tables)))(
         jnp.asarray(values[:, 0]))
     np.testing.assert_array_equal(np.asarray(grad), c[dest])
-    hlo = jax.jit(sum_by_tables).lower(values, tables).as_text()
+    hlo = jax.jit(_sum_by_tables).lower(values, tables).as_text()
     assert re.search(r"scatter.*unique_indices = true", hlo), "the final scatter is not unique"
     # stacked: one short array (one level) and an empty one beside the deep one
     parts = [dest, dest[:5], np.zeros(0, np.int64)]
-    stacked = sum_tables(parts, size, width)
+    stacked = _sum_tables(parts, size, width)
     assert stacked.tables[0].shape[0] == 3 and len(stacked.tables) == len(tables.tables)
     for k, d in enumerate(parts):
         one = jax.tree_util.tree_map(lambda x, k=k: x[k], stacked)
-        out = np.asarray(sum_by_tables(values[:d.size], one))
+        out = np.asarray(_sum_by_tables(values[:d.size], one))
         np.testing.assert_allclose(out, _sums_in_float64(d, values[:d.size], size),
                                    rtol=1e-5, atol=1e-5)
-    assert SumTables.PAD > dest.size
+    assert _SumTables.PAD > dest.size
 
 
 def test_sum_tables_refuse_what_they_cannot_sum():
     with pytest.raises(ValueError, match="integers"):
-        sum_tables(np.zeros(3), 4)
+        _sum_tables(np.zeros(3), 4)
     with pytest.raises(ValueError, match=r"in \[0, 4\), found 4"):
-        sum_tables(np.array([0, 4]), 4)
+        _sum_tables(np.array([0, 4]), 4)
     with pytest.raises(ValueError, match="found -1"):
-        sum_tables([np.array([0]), np.array([-1])], 4)
+        _sum_tables([np.array([0]), np.array([-1])], 4)
     with pytest.raises(ValueError, match="width"):
-        sum_tables(np.array([0, 1]), 4, width=1)
+        _sum_tables(np.array([0, 1]), 4, width=1)
 
 
 def _minor_axis_sums(closed) -> list:

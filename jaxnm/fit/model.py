@@ -28,14 +28,15 @@ from jax.custom_derivatives import SymbolicZero
 
 from .. import textures as _tex
 from ..frames import perturb_normal
-from ..numerics import materialize, safe_normalize, safe_sqrt, tiny
+from ..numerics import _materialize, safe_normalize, safe_sqrt, tiny
 from ..render import GBuffer, RenderOptions
 from ..shading import Lights, Material, shade
 from .prepare import Prepared, ViewBatch
 
-__all__ = ["ModelArgs", "slopes_to_normals", "normals_to_slopes", "residuals", "loss",
-           "render_with_map", "sample_split", "reduced_pixel_residuals", "smoothness_residuals",
-           "GRAM_REGULARISATION"]
+__all__ = [
+    "ModelArgs", "slopes_to_normals", "normals_to_slopes", "residuals", "loss", "render_with_map",
+    "sample_split"
+]
 
 
 @jax.tree_util.register_dataclass
@@ -50,9 +51,9 @@ class ModelArgs:
     - `strength`: () scale of the map's x and y (1 for the map as fitted).
     - `scale`: (h, w, 1) per-texel preconditioner: the slopes are ``z * scale``.
     - `reduce` (static): return each pixel's residuals in the reduced form of
-      `reduced_pixel_residuals` (4 numbers per pixel instead of 3 per target);
+      `_reduced_pixel_residuals` (4 numbers per pixel instead of 3 per target);
       the loss and the Gauss-Newton model are the same.
-    - `texel_sums`: the fixed-order texel sums of `jaxnm.fit.texel_lm.texel_sum_tables`
+    - `texel_sums`: the fixed-order texel sums of `jaxnm.fit.texel_lm._texel_sum_tables`
       (per batch, per pixel group), or None: the ``"lm-texel"`` solver then sums into the
       texels by scatter-adds (see `FitOptions.texel_sums`).
     """
@@ -93,7 +94,7 @@ def normals_to_slopes(normals: Array, max_slope: float = 1e3) -> Array:
     return jnp.clip(n[..., :2] / z, -max_slope, max_slope)
 
 
-def mip_chain(normals: Array, opts: RenderOptions) -> tuple[Array, ...]:
+def _mip_chain(normals: Array, opts: RenderOptions) -> tuple[Array, ...]:
     """The mip chain a fit samples: ``normals`` (h, w, 3) box-filtered into ``opts.levels``
     levels, not renormalised (as `jaxnm.render` filters a normal map)."""
     return _tex.build_mipmaps(normals, levels=opts.levels)
@@ -155,12 +156,12 @@ def _pixel_model_jvp(shading, primals, tangents):
 _pixel_model.defjvp(_pixel_model_jvp, symbolic_zeros=True)
 
 
-#: Relative regularisation of the per-pixel Gram matrix in `reduced_pixel_residuals`.
-GRAM_REGULARISATION = 1e-6
+#: Relative regularisation of the per-pixel Gram matrix in `_reduced_pixel_residuals`.
+_GRAM_REGULARISATION = 1e-6
 
 
-def reduce_pixels(m, gb, lights, material, shading, strength, images, weights):
-    """(rho, e, L) of one view's pixels: see `reduced_pixel_residuals`; ``L`` (K, 6) as the
+def _reduce_pixels(m, gb, lights, material, shading, strength, images, weights):
+    """(rho, e, L) of one view's pixels: see `_reduced_pixel_residuals`; ``L`` (K, 6) as the
     lower triangle (l00, l10, l20, l11, l21, l22) of each pixel's Gram factor."""
     def r_of(m_):  # (T, K, 3) weighted residuals of every target at every pixel
         return (_pixel_colors(m_, gb, lights, material, shading, strength) - images) * weights
@@ -178,7 +179,7 @@ def reduce_pixels(m, gb, lights, material, shading, strength, images, weights):
     # Cholesky of G + delta I, written out for 3 x 3 (delta keeps it positive definite
     # where fewer than three independent directions are observed, e.g. in shadow)
     tiny_ = tiny(m.dtype)
-    delta = GRAM_REGULARISATION * (g00 + g11 + g22) + tiny_
+    delta = _GRAM_REGULARISATION * (g00 + g11 + g22) + tiny_
     l00 = jnp.sqrt(g00 + delta)
     l10, l20 = g10 / l00, g20 / l00
     l11 = jnp.sqrt(jnp.maximum(g11 + delta - l10 * l10, delta))
@@ -193,14 +194,14 @@ def reduce_pixels(m, gb, lights, material, shading, strength, images, weights):
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
-def reduced_pixel_residuals(m, gb, lights, material, shading, strength, images, weights):
+def _reduced_pixel_residuals(m, gb, lights, material, shading, strength, images, weights):
     r"""The residuals of one view's pixels in reduced form: 4 numbers per pixel, whatever the
     number of targets, with the same sum of squares and the same Gauss-Newton model.
 
     A pixel's weighted residuals ``r = (colour(m) - target) * weight`` over its ``T``
     targets (``3T`` numbers) depend only on its sampled map vector ``m`` (3 numbers).
     With the Jacobian ``B = dr/dm`` (``3T x 3``) and ``G = B^T B = L L^T`` (Cholesky of
-    ``G + delta I``, ``delta`` = `GRAM_REGULARISATION` times its trace), the reduced
+    ``G + delta I``, ``delta`` = `_GRAM_REGULARISATION` times its trace), the reduced
     residuals are
 
     .. math:: 
@@ -216,7 +217,7 @@ ho|^2},
     **Returns:** ``(rho, e)``, (K, 3) and (K,). Differentiable w.r.t. ``m`` only (the
     JVP is the Gauss-Newton Jacobian above, which is also the exact gradient of the loss).
     """
-    rho, e, _ = reduce_pixels(m, gb, lights, material, shading, strength, images, weights)
+    rho, e, _ = _reduce_pixels(m, gb, lights, material, shading, strength, images, weights)
     return rho, e
 
 
@@ -224,9 +225,9 @@ def _reduced_jvp(shading, primals, tangents):
     dm = tangents[0]
     others = jax.tree_util.tree_leaves(tangents[1:], is_leaf=_is_zero)
     if not all(_is_zero(t) for t in others):
-        raise NotImplementedError("reduced_pixel_residuals is differentiable w.r.t. the map "
+        raise NotImplementedError("_reduced_pixel_residuals is differentiable w.r.t. the map "
                                   "only; use ModelArgs(reduce=False) for other derivatives")
-    rho, e, L = reduce_pixels(*primals[:4], shading, *primals[4:])
+    rho, e, L = _reduce_pixels(*primals[:4], shading, *primals[4:])
     if _is_zero(dm):
         return (rho, e), (jnp.zeros_like(rho), jnp.zeros_like(e))
     l00, l10, l20, l11, l21, l22 = (L[:, i] for i in range(6))
@@ -235,10 +236,10 @@ def _reduced_jvp(shading, primals, tangents):
     return (rho, e), (drho, jnp.zeros_like(e))
 
 
-reduced_pixel_residuals.defjvp(_reduced_jvp, symbolic_zeros=True)
+_reduced_pixel_residuals.defjvp(_reduced_jvp, symbolic_zeros=True)
 
 
-def first_taps(plan: _tex.SamplePlan, taps: int | None) -> _tex.SamplePlan:
+def _first_taps(plan: _tex.SamplePlan, taps: int | None) -> _tex.SamplePlan:
     """``plan`` with only its first ``taps`` filter taps (None: all of them)."""
     if taps is None:
         return plan
@@ -248,7 +249,7 @@ def first_taps(plan: _tex.SamplePlan, taps: int | None) -> _tex.SamplePlan:
 def sample_split(plan: _tex.SamplePlan, mips, split: int) -> Array:
     """`jaxnm.textures.apply_plan` of the texels of ``mips``, with the first ``split`` pixels
     gathered from their 4 non-zero taps (see `ViewBatch.split`)."""
-    head = jax.tree_util.tree_map(lambda x: x[:split], first_taps(plan, 4))
+    head = jax.tree_util.tree_map(lambda x: x[:split], _first_taps(plan, 4))
     tail = jax.tree_util.tree_map(lambda x: x[split:], plan)
     parts = [_tex.apply_plan(p, mips) for p in (head, tail) if p.index.shape[0]]
     return parts[0] if len(parts) == 1 else jnp.concatenate(parts, 0)
@@ -288,7 +289,7 @@ def _over_chunks(batch: ViewBatch, fn, pixel_axis: int) -> Array:
 def _sample(plan: _tex.SamplePlan, mips, taps: int | None) -> Array:
     """The pixels' map vectors (K, 3) from the first ``taps`` taps of ``plan`` (None: all),
     materialised: fused into the shading, the gather would be recomputed per use."""
-    return materialize(_tex.apply_plan(first_taps(plan, taps), mips))
+    return _materialize(_tex.apply_plan(_first_taps(plan, taps), mips))
 
 
 def _shade_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions,
@@ -321,15 +322,15 @@ def render_with_map(prep: Prepared, normals: Array, *, strength: float = 1.0,
 
 @functools.partial(jax.jit, static_argnames=("opts",))
 def _render_view(gb, normals, lights, material, strength, *, opts):
-    return _shade_view(gb, mip_chain(normals, opts), lights, material, opts, strength)
+    return _shade_view(gb, _mip_chain(normals, opts), lights, material, opts, strength)
 
 
 def _reduced_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions,
                    strength) -> Array:
-    """Every view of ``batch`` as `reduced_pixel_residuals`, flat."""
+    """Every view of ``batch`` as `_reduced_pixel_residuals`, flat."""
     def one(gb, lights, images, weights, taps):
         m = _sample(gb.plan, mips, taps)
-        rho, e = reduced_pixel_residuals(m, gb, lights, material, opts.shading,
+        rho, e = _reduced_pixel_residuals(m, gb, lights, material, opts.shading,
                                          jnp.asarray(strength, m.dtype), images, weights)
         return jnp.concatenate([rho, e[:, None]], -1)
 
@@ -341,12 +342,12 @@ def residuals(z: Array, args: ModelArgs) -> tuple[Array, ...]:
     """The weighted differences between the renders and the targets, one flat array per
     `ViewBatch`, and the smoothness residuals (if any); ``z`` (h, w, 2) are the
     preconditioned slopes (``slopes = z * args.scale``). With ``args.reduce``, a batch
-    whose views have more than one target returns `reduced_pixel_residuals` instead
+    whose views have more than one target returns `_reduced_pixel_residuals` instead
     (same sum of squares, same Gauss-Newton model, 4 numbers per pixel)."""
     prep, smooth, strength = args.prepared, args.smoothness, args.strength
     slopes = z * args.scale
     opts = prep.options[0]
-    mips = mip_chain(slopes_to_normals(slopes), opts)  # shared by every view
+    mips = _mip_chain(slopes_to_normals(slopes), opts)  # shared by every view
     res = []
     for batch in prep.batches:
         if args.reduce and 3 * batch.images.shape[1] > 4:
@@ -355,11 +356,11 @@ def residuals(z: Array, args: ModelArgs) -> tuple[Array, ...]:
         img = _shade_batch(batch, mips, prep.material, opts, strength)
         res.append(((img - batch.images) * batch.weights).reshape(-1))
     if smooth is not None:
-        res.append(smoothness_residuals(slopes, smooth))
+        res.append(_smoothness_residuals(slopes, smooth))
     return tuple(res)
 
 
-def smoothness_residuals(slopes: Array, weight: Array) -> Array:
+def _smoothness_residuals(slopes: Array, weight: Array) -> Array:
     """The first-difference penalty's residuals: ``sqrt(weight)`` times the differences of
     horizontally and vertically adjacent slopes, flat."""
     dx = slopes[:, 1:] - slopes[:, :-1]

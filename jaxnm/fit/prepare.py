@@ -19,9 +19,9 @@ import numpy as np
 from jax import Array
 
 from .. import textures as _tex
-from ..geometry import closed_shape
-from ..render import GBuffer, RenderOptions, build_gbuffer, check_mesh, covered_gbuffer
-from ..scene import box_in_front
+from ..geometry import _closed_shape
+from ..render import GBuffer, RenderOptions, _check_mesh, build_gbuffer, covered_gbuffer
+from ..scene import _box_in_front
 from ..shading import Lights, Material
 from .problem import FitProblem, FitTarget, validate_problem
 
@@ -92,7 +92,7 @@ class ViewBatch:
         def cut(x, axis):
             return jax.lax.dynamic_slice_in_dim(x, start + c * size, size, axis)
 
-        return (map_pixels(self.gbuffer, lambda x: cut(x, 1)), self.lights,
+        return (_map_pixels(self.gbuffer, lambda x: cut(x, 1)), self.lights,
                 cut(self.images, 2), cut(self.weights, 2))
 
 
@@ -126,7 +126,7 @@ class Prepared:
                 pixels = np.asarray(b.pixels)[i]
                 keep = np.flatnonzero(pixels >= 0)
                 t = b.targets[i]
-                gb = map_pixels(_host(b.gbuffer), lambda x: x[i][keep], eye=lambda x: x[i])
+                gb = _map_pixels(_host(b.gbuffer), lambda x: x[i][keep], eye=lambda x: x[i])
                 return View(gb, pixels[keep], np.asarray(b.images)[i, :t][:, keep],
                             np.asarray(b.weights)[i, :t][:, keep],
                             jax.tree_util.tree_map(lambda x: np.asarray(x)[i, :t], b.lights))
@@ -201,20 +201,20 @@ def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
     views, opts_all = [], []
     nm = dataclasses.replace(problem.sampling, encoding="signed", channels=3)
     # a closed mesh seen from outside shows no back face: those views skip them
-    box = closed_shape(problem.mesh.positions, problem.mesh.faces)
+    box = _closed_shape(problem.mesh.positions, problem.mesh.faces)
     for ts in groups.values():
         t0 = ts[0]
         opts = RenderOptions(width=t0.width, height=t0.height, derivatives=problem.derivatives,
                              precision=problem.precision,
                              frame=problem.frame, shading=problem.shading,
                              double_sided=problem.double_sided,
-                             cull_back=box is not None and box_in_front(box, t0.camera),
+                             cull_back=box is not None and _box_in_front(box, t0.camera),
                              normal_map=nm,
                              normal_map_shape=tuple(problem.map_size),
                              albedo_shape=(tuple(jnp.shape(problem.albedo)[:2])
                                            if jnp.ndim(problem.albedo) == 3 else None),
                              outputs=("color",))
-        check_mesh(problem.mesh, opts, problem.source)
+        _check_mesh(problem.mesh, opts, problem.source)
         albedo = jax.device_put(problem.albedo)  # (jnp.asarray of NumPy compiles per shape)
 
         def flat(x):  # an image-layout array's covered pixels
@@ -242,7 +242,7 @@ def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
                 raise ValueError(f"{problem.source}: {t.name or 'a target'}: the mask and the "
                                  "mesh's silhouette do not overlap")
             ws.append(m[..., None].astype(np.float32))
-        views.append(View(map_pixels(gb, covered), pix,
+        views.append(View(_map_pixels(gb, covered), pix,
                           np.stack([flat(np.asarray(t.image, np.float32)) for t in ts]),
                           np.stack([flat(w) for w in ws]),
                           _host(_stack_lights([t.lights for t in ts]))))
@@ -264,7 +264,7 @@ def _host(tree):
     return jax.tree_util.tree_map(np.asarray, tree)
 
 
-def map_pixels(gb: GBuffer, fn, eye=lambda x: x) -> GBuffer:
+def _map_pixels(gb: GBuffer, fn, eye=lambda x: x) -> GBuffer:
     """Apply ``fn`` to every per-pixel field of ``gb`` and ``eye`` to the eye position."""
     out = jax.tree_util.tree_map(fn, dataclasses.replace(gb, eye=None))
     return dataclasses.replace(out, eye=None if gb.eye is None else eye(gb.eye))
@@ -337,7 +337,7 @@ def _assemble(views: list[View], options: tuple[RenderOptions, ...],
             t = targets[i]
             tsel = np.minimum(np.arange(t_max), t - 1)  # padded targets repeat the last one
             used = real[None, :, None] & (np.arange(t_max) < t)[:, None, None]
-            row = dict(gbuffer=map_pixels(view.gbuffer, lambda x: x[order]),
+            row = dict(gbuffer=_map_pixels(view.gbuffer, lambda x: x[order]),
                        pixels=np.where(real, view.pixels[order], -1).astype(np.int32),
                        images=view.images[np.ix_(tsel, order)],
                        weights=view.weights[np.ix_(tsel, order)] * used.astype(np.float32),

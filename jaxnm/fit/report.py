@@ -14,7 +14,7 @@ from .diagnostics import angular_error, error_report, psnr, seen_texels
 from .model import render_with_map
 from .prepare import Prepared, prepare
 from .problem import FitJob, FitResult
-from .solve import FULL_STEP_DAMPING, STOP_TESTS
+from .solve import _FULL_STEP_DAMPING, STOP_TESTS
 
 __all__ = ["FitOutputs", "fit_outputs", "fit_renders", "prepare_held_out", "score_held_out",
            "ERROR_MAP_RANGE_DEG"]
@@ -88,14 +88,14 @@ def fit_renders(prep: Prepared, normals: np.ndarray) -> list:
     return rows
 
 
-def convergence_rule(options) -> str:
-    """The stopping rule of ``options`` in words (``report.json``'s ``convergence_rule``)."""
+def _convergence_rule(options) -> str:
+    """The stopping rule of ``options`` in words (``report.json``'s ``_convergence_rule``)."""
     o = options
     solver = (f"the solver's step test (rtol {o.rtol:g}, atol {o.atol:g}) on a full step")
     if o.ftol <= 0:
         return solver
     return (f"the loss changed by less than {o.ftol:g} (relative) over the last "
-            f"{o.patience} full steps (accepted, damped less than {FULL_STEP_DAMPING:g}, "
+            f"{o.patience} full steps (accepted, damped less than {_FULL_STEP_DAMPING:g}, "
             f"the loss not raised by more than {o.ftol:g}), or {solver}")
 
 
@@ -113,7 +113,7 @@ def fit_outputs(job: FitJob, prep: Prepared, result: FitResult, *,
                                                    green=enc.green, bits=enc.bits), enc.bits))
     report = {"stopped": result.stopped, "stop_test": result.stop_test,
               "stop_test_meaning": STOP_TESTS.get(result.stop_test, ""),
-              "convergence_rule": convergence_rule(job.options),
+              "convergence_rule": _convergence_rule(job.options),
               "steps": sum(1 for h in result.history if h["step"] > 0),
               "fit_seconds": round(result.seconds, 2), "prepare_seconds": round(prepare_seconds, 2),
               "start_loss": result.history[0]["loss"] if result.history else None,

@@ -19,7 +19,7 @@ progress bar, Ctrl-C (return the best map so far), a time limit, a caller's requ
 (``should_stop``), checkpoints (`jaxnm.fit.checkpoint`), and a history with the angular
 error against a ground truth.
 
-**When a fit stops** (`stop_test`; the test that ended a fit is `FitResult.stop_test`).
+**When a fit stops** (`_stop_test`; the test that ended a fit is `FitResult.stop_test`).
 From step 1 on, every step records whether the solver *accepted* the point it evaluated,
 how *damped* the move to that point was (the share of the move the solver held back, in
 [0, 1]) and the decrease of the loss its model *predicted* for it. For Levenberg–Marquardt
@@ -28,12 +28,12 @@ move ``d``, ``lambda |d|^2 / (d.H d + lambda |d|^2)`` (1: a short gradient step,
 Gauss–Newton step), and the prediction the Gauss–Newton model's; for L-BFGS, how much the
 backtracking line search shortened its first trial, and the gradient's linear
 prediction; Gauss–Newton takes every step at full length. What the model *promised*
-(`promised`) is the prediction undamped: ``predicted / (1 - damping)``.
+(`_promised`) is the prediction undamped: ``predicted / (1 - damping)``.
 
 The fit has **converged** (``"ftol"``) when over the level's last ``patience`` steps the
 loss changed by less than ``ftol`` (relative) *and* at none of them did the solver's model
 promise a larger decrease. The solver's own test (``rtol``/``atol``: a tiny accepted move
-and loss change) counts only on an accepted step damped less than `FULL_STEP_DAMPING`.
+and loss change) counts only on an accepted step damped less than `_FULL_STEP_DAMPING`.
 
 Why: a damped or backtracking solver moves the loss little because it holds its steps
 back, not because little is left to gain. Levenberg–Marquardt from a start whose
@@ -48,7 +48,7 @@ both are small — also when the solver rejects every step because float32 canno
 a smaller loss (a rejected step changes nothing; its model promised next to nothing) — so
 the fit stops.
 
-Changes and promises below the loss's **noise floor** (`noise_floor`: the float32
+Changes and promises below the loss's **noise floor** (`_noise_floor`: the float32
 rounding of its sum and of the residuals it sums) count as nothing: at the end of a
 noise-free fit, float32 cannot resolve anything smaller. A fit that ends on its own
 (converged, the solver's test, or ``max_steps``) without lowering the loss below its
@@ -73,8 +73,8 @@ from jax import Array
 
 from .checkpoint import (
     Checkpoint,
-    check_fingerprint,
-    fit_fingerprint,
+    _check_fingerprint,
+    _fit_fingerprint,
     load_checkpoint,
     save_checkpoint,
 )
@@ -82,15 +82,14 @@ from .diagnostics import angular_error, check_identifiability, seen_texels, texe
 from .model import ModelArgs, loss, residuals
 from .prepare import Prepared, prepare, shard_views, with_map_size
 from .problem import FitOptions, FitProblem, FitResult
-from .texel_lm import TexelLM, texel_sum_tables
+from .texel_lm import TexelLM, _texel_sum_tables
 
 __all__ = ["fit_normal_map", "compile_fit", "make_solver", "preconditioner", "level_sizes",
-           "start_slopes", "texel_sums_for", "stop_test", "noise_floor", "FULL_STEP_DAMPING",
-           "STOP_TESTS"]
+           "texel_sums_for", "STOP_TESTS"]
 
 #: The solver's own tolerance test (a tiny move and loss change) counts only on an accepted
 #: step damped less than this: a damped step is tiny because it is damped.
-FULL_STEP_DAMPING = 0.5
+_FULL_STEP_DAMPING = 0.5
 
 #: The tests that can end a fit (`FitResult.stop_test`), with what they mean.
 STOP_TESTS = {
@@ -99,7 +98,7 @@ STOP_TESTS = {
             "any of them",
     "solver_tolerance": "the solver's own test (rtol, atol on the step's move and loss "
                         "change) passed on an accepted step damped less than "
-                        "FULL_STEP_DAMPING",
+                        f"{_FULL_STEP_DAMPING:g}",
     "solver_failure": "the solver reported a failure",
     "max_steps": "every step of every level was taken",
     "time_limit": "the time limit passed",
@@ -123,7 +122,7 @@ def make_solver(options: FitOptions):
 def texel_sums_for(prep: Prepared, options: FitOptions, backend: str | None = None,
                    deterministic: bool | None = None) -> str:
     """What ``options.texel_sums`` means for ``prep`` on ``backend`` (JAX's default if None)
-    with or without deterministic GPU ops (`deterministic_ops` if None):
+    with or without deterministic GPU ops (`_deterministic_ops` if None):
     ``"tables"`` or ``"scatter"``.
 
     ``"auto"`` is tables on an accelerator with deterministic ops (as the command line
@@ -141,12 +140,12 @@ def texel_sums_for(prep: Prepared, options: FitOptions, backend: str | None = No
         return "scatter"
     if options.texel_sums == "auto":
         backend = jax.default_backend() if backend is None else backend
-        deterministic = deterministic_ops() if deterministic is None else deterministic
+        deterministic = _deterministic_ops() if deterministic is None else deterministic
         return "tables" if backend != "cpu" and deterministic else "scatter"
     return options.texel_sums
 
 
-def deterministic_ops() -> bool:
+def _deterministic_ops() -> bool:
     """Whether XLA was asked for deterministic GPU arithmetic (``--xla_gpu_deterministic_ops``
     in ``XLA_FLAGS``, as the command line sets it unless ``--nondeterministic``)."""
     return "--xla_gpu_deterministic_ops=true" in os.environ.get("XLA_FLAGS", "").split()
@@ -326,7 +325,7 @@ def _host_preconditioner(prep: Prepared) -> np.ndarray:
     return np.sqrt(c_ref / (c + 0.01 * c_ref))[..., None].astype(np.float32)
 
 
-def start_slopes(size: tuple[int, int], options: FitOptions) -> np.ndarray:
+def _start_slopes(size: tuple[int, int], options: FitOptions) -> np.ndarray:
     """The slopes a fit starts from, (h, w, 2) float32: the flat map, jittered by
     ``options.init_noise`` (standard deviation) from NumPy's generator seeded with
     ``options.seed`` — on the host, so no XLA program is compiled for it."""
@@ -343,7 +342,7 @@ def level_sizes(map_size: tuple[int, int], coarse_to_fine: int) -> list[tuple[in
     return [(max(2, h >> k), max(2, w >> k)) for k in range(coarse_to_fine, -1, -1)]
 
 
-def promised(rec: dict) -> float:
+def _promised(rec: dict) -> float:
     """The decrease of the loss the solver's model promised for the step of ``rec`` (a
     history record from step 1 on) had the solver not damped it: ``predicted / (1 -
     damping)`` (infinite for a move damped to nothing). For a line search's shortened step
@@ -354,14 +353,14 @@ def promised(rec: dict) -> float:
     return rec["predicted"] / held if held > 0 else math.inf
 
 
-def stop_test(records: list[dict], options: FitOptions,
+def _stop_test(records: list[dict], options: FitOptions,
               floor: Callable[[float], float] | None = None) -> str | None:
     """The convergence test (the module's "When a fit stops") on one level's ``records``
     (history entries, the level's start first): ``"ftol"`` when over the last
     ``options.patience`` steps the loss changed by less than ``options.ftol`` (relative)
-    and at none of them did the solver's model, undamped (`promised`), predict a larger
+    and at none of them did the solver's model, undamped (`_promised`), predict a larger
     decrease; None otherwise, and always with ``ftol`` 0. ``floor``: the loss's noise floor
-    as a function of the loss (`noise_floor`): changes and promises below it count as
+    as a function of the loss (`_noise_floor`): changes and promises below it count as
     nothing."""
     ftol, patience = options.ftol, options.patience
     if ftol <= 0 or len(records) <= patience:
@@ -373,12 +372,12 @@ def stop_test(records: list[dict], options: FitOptions,
     window = records[-1 - patience:]
     before = window[0]["loss"]
     if (small(abs(before - window[-1]["loss"]), before)
-            and all(small(promised(rec), prev["loss"]) for prev, rec in zip(window, window[1:]))):
+            and all(small(_promised(rec), prev["loss"]) for prev, rec in zip(window, window[1:]))):
         return "ftol"
     return None
 
 
-def noise_floor(loss_value: float, terms: int, mean_square: float) -> float:
+def _noise_floor(loss_value: float, terms: int, mean_square: float) -> float:
     """The rounding in a float32 loss ``0.5 |r|^2`` of ``terms`` residuals, whose targets'
     values have the mean square ``mean_square``: ``eps32 (sqrt(terms) |loss| + 8 sqrt(2
     |loss| mean_square))``. The first term is the float32 sum's (``terms`` roundings of
@@ -393,7 +392,7 @@ def noise_floor(loss_value: float, terms: int, mean_square: float) -> float:
 
 def _loss_terms(prep: Prepared) -> tuple[int, float]:
     """The number of residuals of ``prep``'s loss and the mean square of its targets' values
-    (for `noise_floor`; on the host, so no XLA program is compiled for it)."""
+    (for `_noise_floor`; on the host, so no XLA program is compiled for it)."""
     terms = sum(b.images.size for b in prep.batches)
     square = sum(float(np.sum(np.square(np.asarray(b.images, np.float64))))
                  for b in prep.batches)
@@ -457,7 +456,7 @@ def _level_args(prep: Prepared, size: tuple[int, int], options: FitOptions,
     scale_host = _host_preconditioner(lp)
     # least squares on reduced residuals (same loss and Gauss-Newton steps, fewer numbers
     # per pixel); L-BFGS only needs the loss and its gradient
-    sums = texel_sum_tables(lp) if texel_sums_for(lp, options) == "tables" else None
+    sums = _texel_sum_tables(lp) if texel_sums_for(lp, options) == "tables" else None
     args = ModelArgs.create(lp, smoothness=options.smoothness, strength=strength,
                             scale=jax.device_put(scale_host), reduce=options.solver != "lbfgs",
                             texel_sums=sums)
@@ -484,7 +483,7 @@ def compile_fit(problem: FitProblem, options: FitOptions = FitOptions(), *,
     size = level_sizes(tuple(problem.map_size), options.coarse_to_fine)[0]
     args, scale_host = _level_args(prep, size, options, strength)
     solver = make_solver(options)
-    z = jax.device_put((start_slopes(size, options) / scale_host).astype(np.float32))
+    z = jax.device_put((_start_slopes(size, options) / scale_host).astype(np.float32))
     state = _fresh_state(solver, z, args)
     _step.lower((args, solver), z, _unaliased(state, (args, solver))).compile()
     return time.perf_counter() - t0
@@ -551,7 +550,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
       (which must then exist). The same steps, history and result as if the fit had
       never stopped (bitwise on the CPU); new checkpoints go to `checkpoint` (None: none
       are written). The checkpoint must come from the same problem, map size, solver,
-      arithmetic options (`jaxnm.fit.checkpoint.ARITHMETIC_OPTIONS`) and `strength`, else
+      arithmetic options (`jaxnm.fit.checkpoint._ARITHMETIC_OPTIONS`) and `strength`, else
       a one-line `ValueError` names the file and what differs; the stopping rule and the
       time limit (counted over the whole fit) may change. A checkpoint of a fit that had
       converged returns its result without a step.
@@ -583,7 +582,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
         raise ValueError(f"{problem.source}: `prepared` was made for a "
                          f"{prep.options[0].normal_map_shape} map, not {(h, w)}")
     sizes = level_sizes((h, w), options.coarse_to_fine)
-    slopes = start_slopes(sizes[0], options)  # (host; the device gets z below)
+    slopes = _start_slopes(sizes[0], options)  # (host; the device gets z below)
     seen = gt = None
     if ground_truth is not None:
         gt = np.asarray(ground_truth, np.float64)
@@ -594,10 +593,10 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                              f"{seen.shape} must match the map size {(h, w)}")
     fingerprint = saved = None
     if checkpoint is not None or source is not None:
-        fingerprint = fit_fingerprint(problem, options, strength=strength, layout=_layout(prep))
+        fingerprint = _fit_fingerprint(problem, options, strength=strength, layout=_layout(prep))
     if source is not None:
         saved = load_checkpoint(source)
-        check_fingerprint(source, saved.meta.get("fingerprint", {}), fingerprint)
+        _check_fingerprint(source, saved.meta.get("fingerprint", {}), fingerprint)
     solver = make_solver(options)
     history: list = []
     stopped, test = "max_steps", "max_steps"
@@ -612,7 +611,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     terms = _loss_terms(prep)
 
     def floor(loss_value: float) -> float:
-        return noise_floor(loss_value, *terms)
+        return _noise_floor(loss_value, *terms)
 
     bar = _Progress(options.max_steps * len(sizes), progress,
                     done=sum(1 for rec in history if rec["step"] > 0))
@@ -672,9 +671,9 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                 elif k > 0 and bool(done) and result != optx.RESULTS.successful:
                     stopped, test = str(result), "solver_failure"
                 elif (k > 0 and bool(done) and rec["accepted"]
-                      and rec["damping"] < FULL_STEP_DAMPING):
+                      and rec["damping"] < _FULL_STEP_DAMPING):
                     stopped, test = "converged", "solver_tolerance"
-                elif stop_test(records, options, floor) is not None:
+                elif _stop_test(records, options, floor) is not None:
                     stopped, test = "converged", "ftol"
                 elif should_stop is not None and should_stop(rec):
                     stopped, test = "interrupted", "should_stop"
