@@ -266,26 +266,10 @@ def _checked_files() -> list[Path]:
             + sorted((ROOT / "jaxnm").rglob("*.py")))
 
 
-# Files of jaxnm/ that still quote one machine's or one work session's figures, to be cleaned
-# in place (docstrings and comments stating facts about the code, the timings moved to a
-# benchmark's output or the documentation), e.g. "jaxnm/raster.py". Empty it as each is
-# cleaned: the test below fails for a file listed here that no longer has such words, so the
-# list cannot go stale. (jaxnm/numerics.py and jaxnm/raster.py were its last entries.)
-PENDING: set[str] = set()
-
-
 @pytest.mark.parametrize("path", _checked_files(), ids=lambda p: str(p.relative_to(ROOT)))
 def test_no_process_words(path):
-    rel = str(path.relative_to(ROOT))
     hits = process_words(path.read_text(encoding="utf-8"))
-    if rel in PENDING:
-        assert hits, f"{rel} is clean now: remove it from PENDING in tests/test_docs.py"
-    else:
-        assert not hits, f"{rel}: " + "; ".join(hits)
-
-
-def test_pending_files_exist():
-    assert all((ROOT / p).exists() for p in PENDING), PENDING
+    assert not hits, f"{path.relative_to(ROOT)}: " + "; ".join(hits)
 
 
 @pytest.mark.slow
