@@ -236,6 +236,11 @@ def _add_fit(sub) -> None:
                    metavar="SECONDS",
                    help=f"save the fit to OUTDIR/{_CHECKPOINT_NAME} every SECONDS of fitting and "
                    "when it ends (default: %(default)s; 0: no checkpoints)")
+    p.add_argument("--store", choices=("bc5",),
+                   help="then fit the map through BC5 blocks to the same targets and write it "
+                   "as normal_map.dds (needs the storage extra; the map's size a multiple of "
+                   "4); report.json compares its loss as stored with the fitted map "
+                   "compressed by quicktex")
     p.add_argument("--resume", action="store_true",
                    help=f"carry on from OUTDIR/{_CHECKPOINT_NAME}: the same fit file and options "
                    "give the map an uninterrupted fit gives (--max-steps, --ftol, --patience "
@@ -296,6 +301,10 @@ def _fit(args, ctrl_c: _CtrlC) -> int:
             raise ValueError(f"command line: {str(e).removeprefix('FitOptions: ')}") from None
     if args.time_limit is not None:
         job = dataclasses.replace(job, time_limit=args.time_limit)
+    if args.store:
+        from .fit.stored import check_storage
+
+        check_storage(job.problem, args.store)  # before anything is fitted
     say(f"preparing {len(job.problem.targets)} targets (rasterizing each view once) ...")
     t0 = time.perf_counter()
     prep = prepare(job.problem)
@@ -323,6 +332,8 @@ def _fit(args, ctrl_c: _CtrlC) -> int:
         out, job, prep, result, t_prep, held_out, ctrl_c,
         checkpoint={"file": _CHECKPOINT_NAME if args.checkpoint_every > 0 else None,
                     "resumed": args.resume})
+    if args.store and not rep["interrupted"]:
+        written.append(_store(out, job, prep, result, args.store, say, not args.no_progress))
     line = f"fit {rep['stopped']} after {rep['steps']} steps in {rep['fit_seconds']:.1f} s"
     if rep["interrupted"]:
         when = "during the fit" if rep["interrupted_phase"] == "fit" else "while writing"
@@ -336,6 +347,28 @@ def _fit(args, ctrl_c: _CtrlC) -> int:
     print(line)
     print(f"outputs in {out}/ ({', '.join(written)})")
     return 130 if rep["interrupted"] else 0
+
+
+def _store(out: Path, job, prep, result, storage: str, say, progress: bool) -> str:
+    """``jaxnm fit --store``: the fitted map fitted again through ``storage``, written as
+    ``normal_map.dds``, its losses added to ``report.json``; returns the file's name."""
+    from . import io
+    from .fit.stored import fit_stored_map
+
+    say(f"fitting the map through {storage} ...")
+    sf = fit_stored_map(job.problem, job.options, storage=storage, start=result,
+                        green=job.output.green, ground_truth=job.ground_truth, prepared=prep,
+                        progress=progress)
+    sf.save(out / "normal_map.dds")
+    report = io.load_json(out / "report.json")
+    report["stored"] = {"file": "normal_map.dds", "storage": storage, "loss": sf.loss,
+                        "loss_compressed_afterwards": sf.start_loss,
+                        "loss_float": sf.float_loss, "mean_angular_error_deg": sf.errors,
+                        "seconds": sf.seconds}
+    io.save_json(out / "report.json", report)
+    print(f"stored as {storage}: loss {sf.loss:.4g} (the fitted map compressed by quicktex: "
+          f"{sf.start_loss:.4g}; unstored: {sf.float_loss:.4g})")
+    return "normal_map.dds"
 
 
 def _write_fit_outputs(out: Path, job, prep, result, prepare_seconds: float, held_out,

@@ -43,7 +43,8 @@ levels), are weakly determined; the optional smoothness term regularises them.
 
 The package, by stage: `problem` (what to fit: `FitProblem`, `FitTarget`,
 `FitOptions`, `FitResult`), `prepare` (the fixed geometry, once), `model`
-(`residuals` and `loss` over `ModelArgs`), `solve` (`fit_normal_map`),
+(`residuals` and `loss` over `ModelArgs`), `solve` (`fit_normal_map`), `stored` (a map
+fitted through its storage, BC5 blocks or 8-bit codes: `fit_stored_map`),
 `diagnostics` (seen texels, identifiability, errors), `report` (what
 ``jaxnm fit`` writes) and `checkpoint` (a running fit saved, to resume it). The
 built-in problem is `jaxnm.procedural.default_problem`.
@@ -94,6 +95,9 @@ from .solve import level_sizes as level_sizes
 from .solve import make_solver as make_solver
 from .solve import preconditioner as preconditioner
 from .solve import texel_sums_for as texel_sums_for
+from .stored import STORAGES as STORAGES
+from .stored import StoredFit as StoredFit
+from .stored import fit_stored_map as fit_stored_map
 
 __all__ = [
     "SOLVERS", "TEXEL_SUMS", "FitOptions", "FitProblem", "FitResult", "FitTarget",
@@ -104,5 +108,5 @@ __all__ = [
     "sample_split", "seen_texels", "slopes_to_normals", "texel_influence", "validate_problem",
     "view_key", "with_map_size", "shard_views", "FitJob", "FitOutputs", "fit_outputs",
     "prepare_held_out", "score_held_out", "CHUNK", "texel_sums_for", "STOP_TESTS",
-    "Checkpoint", "load_checkpoint", "fit_renders",
+    "Checkpoint", "load_checkpoint", "fit_renders", "STORAGES", "StoredFit", "fit_stored_map",
 ]

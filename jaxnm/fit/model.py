@@ -34,8 +34,8 @@ from ..shading import Lights, Material, shade
 from .prepare import Prepared, ViewBatch
 
 __all__ = [
-    "ModelArgs", "slopes_to_normals", "normals_to_slopes", "residuals", "loss", "render_with_map",
-    "sample_split"
+    "ModelArgs", "slopes_to_normals", "normals_to_slopes", "residuals", "map_residuals", "loss",
+    "render_with_map", "sample_split"
 ]
 
 
@@ -344,10 +344,17 @@ def residuals(z: Array, args: ModelArgs) -> tuple[Array, ...]:
     preconditioned slopes (``slopes = z * args.scale``). With ``args.reduce``, a batch
     whose views have more than one target returns `_reduced_pixel_residuals` instead
     (same sum of squares, same Gauss-Newton model, 4 numbers per pixel)."""
-    prep, smooth, strength = args.prepared, args.smoothness, args.strength
     slopes = z * args.scale
+    res = _map_residuals(slopes_to_normals(slopes), args)
+    if args.smoothness is not None:
+        res = res + (_smoothness_residuals(slopes, args.smoothness),)
+    return res
+
+
+def _map_residuals(normals: Array, args: ModelArgs) -> tuple[Array, ...]:
+    prep, strength = args.prepared, args.strength
     opts = prep.options[0]
-    mips = _mip_chain(slopes_to_normals(slopes), opts)  # shared by every view
+    mips = _mip_chain(normals, opts)  # shared by every view
     res = []
     for batch in prep.batches:
         if args.reduce and 3 * batch.images.shape[1] > 4:
@@ -355,9 +362,17 @@ def residuals(z: Array, args: ModelArgs) -> tuple[Array, ...]:
             continue
         img = _shade_batch(batch, mips, prep.material, opts, strength)
         res.append(((img - batch.images) * batch.weights).reshape(-1))
-    if smooth is not None:
-        res.append(_smoothness_residuals(slopes, smooth))
     return tuple(res)
+
+
+@jax.jit
+def map_residuals(normals: Array, args: ModelArgs) -> tuple[Array, ...]:
+    """The image residuals of `residuals` for a map given as its texels' vectors ``normals``
+    (h, w, 3), not necessarily unit (e.g. a stored map's decoded codes): mip-mapped,
+    sampled and shaded as the fit does, one flat array per `ViewBatch`; no smoothness
+    term. Differentiable in ``normals`` (a fit through a map's storage,
+    `jaxnm.fit.stored`)."""
+    return _map_residuals(normals, args)
 
 
 def _smoothness_residuals(slopes: Array, weight: Array) -> Array:

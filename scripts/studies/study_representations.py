@@ -21,11 +21,17 @@ The surface is a plane seen head-on carrying a tileable height field made of sin
 - **specular aliasing**: Blinn-Phong highlights of the map at distances, each filtering choice
   (no mip-maps, renormalised and shortened mips, Toksvig, LEAN) against a supersampled
   reference (at least 4x4 level-0 samples a pixel, two a texel);
-- **speed**: the median ms of sampling and decoding one 256x256 view with each (CPU).
+- **speed**: the median ms of sampling and decoding one 256x256 view with each (CPU);
+- **a fit through storage**: on the built-in fitting problem, a map fitted through BC5
+  blocks (and through 8-bit codes) by `jaxnm.fit.fit_stored_map` against the float map
+  compressed afterwards by quicktex (or rounded): the shading loss and the angular error of
+  each *as stored*.
 
 Writes ``representations.json`` and the figures ``fig_magnification.png``,
-``fig_minification.png``, ``fig_blend.png``, ``fig_storage.png`` and ``fig_specular.png``
-into ``--out``. ``--quick`` (CI) runs a 128-texel map, smaller views and fewer distances.
+``fig_minification.png``, ``fig_blend.png``, ``fig_storage.png``, ``fig_specular.png`` and
+``fig_stored.png`` into ``--out``. ``--quick`` (CI) runs a 128-texel map, smaller views and
+fewer distances, and leaves out the fit through storage (``tests/test_stored_fit.py`` runs
+a small one).
 ``--map PNG`` adds a tangent-space normal map of yours (8-bit RGB, a multiple of 4 texels on
 each side) to the encoder comparison.
 """
@@ -359,6 +365,60 @@ def encoders(size: int, extra_map: np.ndarray | None = None, *, repeats: int = 3
     return rows
 
 
+#: The fitting problems of `stored_fits`: (render size, map size); the rivets of the built-in
+#: map are 4 texels apart at 32 texels, 8 at 64 and 16 at 128.
+STORED_PROBLEMS = ((128, 64), (256, 128))
+
+
+def stored_fits(problems=STORED_PROBLEMS, *, fit_steps: int = 40) -> dict:
+    """A fit through BC5 (and 8-bit codes) against a float map compressed afterwards, on the
+    built-in fitting problem (the torus and its rivet map, 2 views x 6 lights, noise-free
+    targets) at each (render size, map size) of ``problems``: the shading loss and the mean
+    angular error of each map *as stored* (the stored bytes decoded by texture2ddecoder).
+    Two float maps start it: the exact map (what a perfect float fit would find) and a float
+    fit of ``fit_steps`` steps. The residual images are the first problem's (view 0, mean
+    over its lights)."""
+    from jaxnm import storage as st
+    from jaxnm.fit import FitOptions, fit_normal_map, prepare, render_with_map
+    from jaxnm.fit.stored import fit_stored_map
+    from jaxnm.procedural import default_problem
+
+    rows, fits, images = [], [], {}
+    for render_size, map_size in problems:
+        problem, gt, _ = default_problem(render_size=render_size, map_size=map_size,
+                                         n_lights=6, views=2)
+        prep = prepare(problem)
+        t0 = time.perf_counter()
+        fit = fit_normal_map(problem, FitOptions(max_steps=fit_steps), prepared=prep,
+                             progress=False)
+        fits.append({"render_size": render_size, "map_size": map_size, "steps": fit_steps,
+                     "stopped": fit.stopped, "loss": fit.best_loss,
+                     "seconds": time.perf_counter() - t0})
+        for start_name, start in (("exact map", gt), ("float fit", fit)):
+            for storage in ("bc5", "rgb8"):
+                sf = fit_stored_map(problem, storage=storage, start=start, prepared=prep,
+                                    ground_truth=gt)
+                rows.append({"render_size": render_size, "map_size": map_size,
+                             "start": start_name, "storage": storage,
+                             "loss_float": sf.float_loss,
+                             "loss_compressed_afterwards": sf.start_loss,
+                             "loss_stored": sf.loss, "error_float": sf.errors["float"],
+                             "error_compressed_afterwards": sf.errors["start_stored"],
+                             "error_stored": sf.errors["stored"], "seconds": sf.seconds,
+                             "steps": len([h for h in sf.history if h["phase"] != "reindex"])})
+                if start_name == "exact map" and storage == "bc5" and not images:
+                    codes = np.round(np.asarray(encode_normal_map(gt, channels=2)) * 255)
+                    after = st.decode_blocks(st.encode_blocks(codes.astype(np.uint8)),
+                                             gt.shape[:2]).astype(np.float32) / 255
+                    target = prep.target_images(0)
+                    for name, texels in (("compressed afterwards", after),
+                                         ("fitted through BC5", sf.texels)):
+                        n = np.asarray(decode_normal_map(texels, channels=2))
+                        img = render_with_map(prep, n)[0]
+                        images[name] = np.abs(img - target).mean((0, -1))
+    return {"views": 2, "lights": 6, "float_fits": fits, "rows": rows, "images": images}
+
+
 def _lobe_of(n, h):
     return FL.blinn_phong_lobe(n, jnp.broadcast_to(jnp.asarray(h, n.dtype), n.shape),
                                SHININESS)
@@ -526,6 +586,31 @@ def _figures(res: dict, out: Path) -> list[str]:
              fontsize=8)
     fig.subplots_adjust(bottom=0.2, wspace=0.1)
     save(fig, "fig_specular.png")
+
+    st = res.get("stored_fit")
+    if st:
+        fig = Figure(figsize=(10, 3.4), dpi=80)
+        ax = fig.add_subplot(1, 3, 1)
+        rows = [r for r in st["rows"] if r["storage"] == "bc5"]
+        kinds = (("loss_float", "float (unstored)"),
+                 ("loss_compressed_afterwards", "quicktex afterwards"),
+                 ("loss_stored", "fitted through BC5"))
+        x = np.arange(len(rows))
+        for i, (key, label) in enumerate(kinds):
+            ax.bar(x + (i - 1) * 0.27, [max(r[key], 1e-12) for r in rows], 0.27, label=label)
+        ax.set_xticks(x, [f"{r['start']}\n{r['map_size']}²" for r in rows], fontsize=7)
+        ax.set(yscale="log", ylabel="shading loss as stored", title="BC5: loss as stored")
+        ax.legend(fontsize=6, loc="center")
+        imgs = st["images"]
+        vmax = float(max(np.percentile(v, 99.5) for v in imgs.values())) or 1.0
+        for i, (name, img) in enumerate(imgs.items()):
+            a = fig.add_subplot(1, 3, 2 + i)
+            a.imshow(img, cmap="magma", vmin=0, vmax=vmax, interpolation="nearest")
+            a.set_title(f"|render - target|, {name}\n({st['rows'][0]['map_size']}² map, exact "
+                        "start)", fontsize=8)
+            a.set_axis_off()
+        fig.subplots_adjust(bottom=0.2, wspace=0.15)
+        save(fig, "fig_stored.png")
     return written
 
 
@@ -568,6 +653,8 @@ def run(*, quick: bool = False, extra_map: np.ndarray | None = None) -> dict:
         "specular": specular(size, spec_distances, pixels=24 if quick else 48),
         "speed_ms": speeds(reps, size, pixels=128 if quick else 256,
                            repeats=5 if quick else 20),
+        # (--quick leaves the fits out: tests/test_stored_fit.py runs a small one)
+        "stored_fit": None if quick else stored_fits(),
     }
     res["meta"] = {"size": size, "quick": quick, "seconds": time.perf_counter() - t0,
                    "jaxnm": jaxnm.__version__, "jax": jax.__version__,
