@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jaxtyping import ArrayLike, Float
 
 #: Matrix products of geometry are computed in full float32 on every backend.
 _HIGHEST = jax.lax.Precision.HIGHEST
@@ -37,9 +38,9 @@ class Camera:
       the model's positions in float64 on the host).
     """
 
-    view: Array
-    projection: Array
-    eye: Array
+    view: Float[ArrayLike, "*batch 4 4"]
+    projection: Float[ArrayLike, "*batch 4 4"]
+    eye: Float[ArrayLike, "*batch 3"]
 
     @staticmethod
     def from_matrices(view, projection) -> Camera:
@@ -135,7 +136,7 @@ def orthographic(left, right, bottom, top, near, far) -> np.ndarray:
     return m
 
 
-def to_clip(positions: Array, camera: Camera) -> Array:
+def to_clip(positions: Float[ArrayLike, "V 3"], camera: Camera) -> Float[Array, "V 4"]:
     """Clip-space coordinates ``(V, 4)`` of world-space ``positions`` ``(V, 3)``.
 
     Computed as ``projection @ A @ (p - eye)``, where ``A`` is the linear part of

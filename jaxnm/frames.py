@@ -54,6 +54,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 from jax import Array
+from jaxtyping import ArrayLike, Float
 
 from .interpolate import Attribute
 from .numerics import cross as _cross
@@ -211,7 +212,9 @@ def _axis_tangent(n: Array) -> Array:
 # --------------------------------------------------------------------------------------
 
 
-def cotangent_frame(N: Array, dp1: Array, dp2: Array, duv1: Array, duv2: Array, *,
+def cotangent_frame(N: Float[ArrayLike, "*#batch 3"], dp1: Float[ArrayLike, "*#batch 3"],
+                    dp2: Float[ArrayLike, "*#batch 3"], duv1: Float[ArrayLike, "*#batch 2"],
+                    duv2: Float[ArrayLike, "*#batch 2"], *,
                     normalize: str = "max", ddy_sign: int = 1) -> Frame:
     r"""Schüler's cotangent frame from screen-space derivatives (exactly as published).
 
@@ -619,7 +622,8 @@ def axis_frame(N: Array) -> Frame:
 # --------------------------------------------------------------------------------------
 
 
-def perturb_normal(frame: Frame, m: Array, *, fallback: Array | None = None) -> Array:
+def perturb_normal(frame: Frame, m: Float[ArrayLike, "*#batch 3"], *,
+                   fallback: Float[ArrayLike, "*#batch 3"] | None = None) -> Float[Array, ...]:
     r"""``normalize(T m.x + B m.y + N m.z)`` (GLSL ``normalize(TBN * map)``).
 
     **Arguments:**

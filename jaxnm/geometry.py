@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jaxtyping import ArrayLike, Float, Integer
 
 from .camera import _HIGHEST
 from .numerics import angle_between, safe_normalize
@@ -107,7 +108,8 @@ class Mesh:
                                    tangents=tangents)
 
 
-def face_normals(positions: Array, faces: Array, *, normalize: bool = True) -> Array:
+def face_normals(positions: Float[ArrayLike, "V 3"], faces: Integer[ArrayLike, "F 3"], *,
+                 normalize: bool = True) -> Float[Array, "F 3"]:
     """(F, 3) face normals ``(p1 - p0) x (p2 - p0)``; unit length (zero for degenerate faces)
     if ``normalize``, else with length twice the face area."""
     p = jnp.asarray(positions)[jnp.asarray(faces)]
@@ -115,7 +117,8 @@ def face_normals(positions: Array, faces: Array, *, normalize: bool = True) -> A
     return safe_normalize(n) if normalize else n
 
 
-def vertex_normals(positions: Array, faces: Array, *, weighting: str = "angle") -> Array:
+def vertex_normals(positions: Float[ArrayLike, "V 3"], faces: Integer[ArrayLike, "F 3"], *,
+                   weighting: str = "angle") -> Float[Array, "V 3"]:
     """(V, 3) unit vertex normals from the faces around each vertex.
 
     ``weighting="angle"`` weights each face normal by the corner angle at the

@@ -54,6 +54,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jaxtyping import ArrayLike, Float, Int, Integer
 
 from .numerics import _cumsum, _flat_nonzero, _materialize, _roll_last, _xyw, dot
 
@@ -387,7 +388,7 @@ class _Corners:
                             for k in range(3)])
 
 
-def _orientation(v: list[list[Array]]) -> Array:
+def _orientation(v: list[list[Array | None]]) -> Array:
     """``det M`` of each triangle (rows ``(x, y, w)`` of its corners), as
     ``dot(h0, cross(h1, h2))`` term by term."""
     (x0, y0, _, w0), (x1, y1, _, w1), (x2, y2, _, w2) = v
@@ -879,8 +880,9 @@ def _visible_triangles(clip, faces, *, width, height, cull_back, subpixel_bits,
     return jnp.where(ids != _NO_TRIANGLE, ids, -1), setup[0], tri_depth
 
 
-def triangle_ids(clip: Array, faces: Array, *, width: int, height: int,
-                 cull_back: bool = False, subpixel_bits: int | None = SUBPIXEL_BITS,
+def triangle_ids(clip: Float[ArrayLike, "V 4"], faces: Integer[ArrayLike, "F 3"], *,
+                 width: int, height: int, cull_back: bool = False,
+                 subpixel_bits: int | None = SUBPIXEL_BITS,
                  strategy: RasterStrategy | None = None) -> tuple[Array, Array]:
     """`rasterize`'s triangle ids alone, (H, W) int32 (-1: background), and each triangle's
     orientation in the window (F,) (+1: counter-clockwise, front-facing; -1: clockwise; 0:
@@ -946,9 +948,9 @@ def _overdraw(clip, faces, *, width, height, cull_back, subpixel_bits, strategy)
     return _tiles_to_image(count, width, height)
 
 
-def overdraw(clip: Array, faces: Array, *, width: int, height: int, cull_back: bool = False,
-             subpixel_bits: int | None = SUBPIXEL_BITS,
-             strategy: RasterStrategy | None = None) -> Array:
+def overdraw(clip: Float[ArrayLike, "V 4"], faces: Integer[ArrayLike, "F 3"], *, width: int,
+             height: int, cull_back: bool = False, subpixel_bits: int | None = SUBPIXEL_BITS,
+             strategy: RasterStrategy | None = None) -> Int[Array, "{height} {width}"]:
     """(H, W) int32: how many triangles cover each pixel, before the depth test.
 
     Same coverage rules as `rasterize` (fill rule, clipping, culling). Useful to
@@ -962,8 +964,8 @@ def overdraw(clip: Array, faces: Array, *, width: int, height: int, cull_back: b
     return _overdraw(clip, faces, **kw)
 
 
-def rasterize(clip: Array, faces: Array, *, width: int, height: int, cull_back: bool = False,
-              subpixel_bits: int | None = SUBPIXEL_BITS,
+def rasterize(clip: Float[ArrayLike, "V 4"], faces: Integer[ArrayLike, "F 3"], *, width: int,
+              height: int, cull_back: bool = False, subpixel_bits: int | None = SUBPIXEL_BITS,
               strategy: RasterStrategy | None = None) -> Fragments:
     """Rasterize triangles given in clip space (see the module docstring for the conventions).
 

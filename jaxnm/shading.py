@@ -59,6 +59,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
+from jaxtyping import Float
 
 from .numerics import dot as _ndot
 from .numerics import safe_div, safe_normalize, spread, tiny
@@ -360,8 +361,9 @@ def phong(N: ArrayLike, p: ArrayLike, eye: ArrayLike, lights: AnyLights, materia
     return _shade("phong", N, p, eye, lights, material, albedo)
 
 
-def shade(model: str, N: ArrayLike, p: ArrayLike, eye: ArrayLike, lights: AnyLights,
-          material: Material, *, albedo: ArrayLike | None = None) -> Array:
+def shade(model: str, N: Float[ArrayLike, "*#batch 3"], p: Float[ArrayLike, "*#batch 3"],
+          eye: Float[ArrayLike, "*#batch 3"], lights: AnyLights, material: Material, *,
+          albedo: Float[ArrayLike, "*#batch 3"] | None = None) -> Float[Array, "... 3"]:
     """Shade with `model`, a static string in `SHADING_MODELS` (see the module docstring).
 
     **Arguments:**

@@ -42,6 +42,7 @@ import numpy as np
 from jax import Array
 from jax.custom_derivatives import SymbolicZero
 from jax.typing import ArrayLike
+from jaxtyping import Float, Real
 
 from .interpolate import Attribute
 from .numerics import _sum_by_tables, _sum_tables, _SumTables, safe_normalize, safe_sqrt, tiny
@@ -206,8 +207,8 @@ def _renormalize(x: Array) -> Array:
     return jnp.concatenate([xyz, x[..., 3:]], -1) if x.shape[-1] > 3 else xyz
 
 
-def build_mipmaps(tex: ArrayLike, *, levels: int | None = None,
-                  renormalize: bool = False) -> tuple[Array, ...]:
+def build_mipmaps(tex: Float[ArrayLike, "H W C"], *, levels: int | None = None,
+                  renormalize: bool = False) -> tuple[Float[Array, "_ _ C"], ...]:
     r"""Mip chain of a texture by repeated exact box filtering.
 
     Level ``k + 1`` has size ``max(1, floor(size_k / 2))`` per axis (GL) and is
@@ -605,9 +606,10 @@ def _check_normal_options(func: str, encoding: str, channels: int, green: str, b
         raise ValueError(f"{func}: bits must be an integer between 2 and 16, got {bits!r}")
 
 
-def decode_normal_map(raw: ArrayLike, *, encoding: str = "unsigned", channels: int = 3,
-                      green: str = "up", strength: ArrayLike = 1.0, bits: int = 8,
-                      uv_origin: str = "bottom_left") -> Array:
+def decode_normal_map(raw: Real[ArrayLike, "*batch C"], *, encoding: str = "unsigned",
+                      channels: int = 3, green: str = "up", strength: ArrayLike = 1.0,
+                      bits: int = 8,
+                      uv_origin: str = "bottom_left") -> Float[Array, "*batch 3"]:
     r"""Decode (filtered) normal-map values into a tangent-space vector ``(x, y, z)``.
 
     Apply this *after* filtering, as a shader does after the texture fetch. The
@@ -696,9 +698,9 @@ def _snap_to_codes_jvp(top, primals, tangents):
     return _snap_to_codes(primals[0], top), tangents[0]
 
 
-def encode_normal_map(n: ArrayLike, *, encoding: str = "unsigned", channels: int = 3,
-                      green: str = "up", bits: int = 8,
-                      uv_origin: str = "bottom_left") -> Array:
+def encode_normal_map(n: Float[ArrayLike, "*batch 3"], *, encoding: str = "unsigned",
+                      channels: int = 3, green: str = "up", bits: int = 8,
+                      uv_origin: str = "bottom_left") -> Float[Array, "*batch {channels}"]:
     """Inverse of `decode_normal_map` (with strength 1): vectors to storable values.
 
     **Arguments:**
