@@ -3,6 +3,8 @@
     jaxnm render [SCENE.json] [-o out.png] [--aovs out.npz] [--derivatives MODE]
                  [--frame FRAME] [--normal-map PATH] [--width W --height H]
     jaxnm fit [FIT.json] [-o OUTDIR] [--checkpoint-every SECONDS] [--resume] ...
+    jaxnm fit FIT.json --distributed [--coordinator HOST:PORT --num-processes N
+                                      --process-id I] [--timeout SECONDS] ...
 
 Options override the scene (or fit) file; with no file the built-in scene or
 problem (a rivet-mapped torus, generated in code) is used. Errors in the
@@ -15,12 +17,21 @@ optional ones (held-out scores, renders, the loss plot): either way ``normal_map
 ``normal_map.npz`` and ``report.json`` are written, the report saying what was
 interrupted, and the exit code is 130. A second Ctrl-C stops at once; every file is written
 atomically, so none is ever left half-written.
+
+``jaxnm fit --distributed`` is one process of a fit across processes (one per host): it joins
+the others through ``jax.distributed.initialize`` (found from SLURM, Open MPI or a cloud TPU
+or GPU cluster, or given by ``--coordinator``, ``--num-processes`` and ``--process-id``),
+with gloo for the CPU's collectives, reads and prepares only its own views
+(`jaxnm.fit.prepare_processes`), and process 0 writes the outputs and the checkpoints. The
+processes first check that they run the same fit (fit file, options, process count) and
+refuse in one line if not; a process that stops makes the others stop with one line.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import inspect
 import math
 import os
 import signal
@@ -236,6 +247,18 @@ def _add_fit(sub) -> None:
                    metavar="SECONDS",
                    help=f"save the fit to OUTDIR/{_CHECKPOINT_NAME} every SECONDS of fitting and "
                    "when it ends (default: %(default)s; 0: no checkpoints)")
+    p.add_argument("--distributed", action="store_true",
+                   help="one process of a fit across processes (jax.distributed): joins the "
+                   "others (SLURM, Open MPI and cloud clusters are detected, or give "
+                   "--coordinator, --num-processes, --process-id); process 0 writes OUTDIR")
+    p.add_argument("--coordinator", metavar="HOST:PORT",
+                   help="with --distributed: the address of process 0's coordinator")
+    p.add_argument("--num-processes", type=int, dest="num_processes", metavar="N")
+    p.add_argument("--process-id", type=int, dest="process_id", metavar="I")
+    p.add_argument("--timeout", type=float, default=300.0, metavar="SECONDS",
+                   help="with --distributed: how long to wait for the other processes to "
+                   "join, and after how long without a heartbeat a process counts as lost "
+                   "(default: %(default)s)")
     p.add_argument("--store", choices=("bc5",),
                    help="then fit the map through BC5 blocks to the same targets and write it "
                    "as normal_map.dds (needs the storage extra; the map's size a multiple of "
@@ -267,10 +290,78 @@ class _CtrlC:
         os.write(2, f"\njaxnm fit: Ctrl-C: {what} (Ctrl-C again to stop at once)\n".encode())
 
 
+def _join(args) -> None:
+    """Join a fit across processes (``--distributed``): gloo for the CPU's collectives (the
+    command line's choice, made before JAX starts a backend), then
+    ``jax.distributed.initialize`` with what the command line gives (else auto-detected)."""
+    explicit = (args.coordinator, args.num_processes, args.process_id)
+    if not args.distributed:
+        raise ValueError("--coordinator, --num-processes and --process-id need --distributed")
+    if any(v is not None for v in explicit) and not all(v is not None for v in explicit):
+        raise ValueError("--coordinator, --num-processes and --process-id go together")
+    if args.num_processes is not None and not 0 <= args.process_id < args.num_processes:
+        raise ValueError(f"--process-id must be 0 to {args.num_processes - 1}, got "
+                         f"{args.process_id}")
+    if not (math.isfinite(args.timeout) and args.timeout >= 1):
+        raise ValueError(f"--timeout must be a number of seconds >= 1, got {args.timeout}")
+    if args.store:
+        raise ValueError("--store is not available with --distributed (it fits the map through "
+                         "its storage on one process: run it without --distributed)")
+    import jax
+
+    if "jax_cpu_collectives_implementation" in jax.config.values:
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    t = max(1, int(args.timeout))
+    timeouts = {"initialization_timeout": t, "heartbeat_timeout_seconds": t}
+    if "shutdown_timeout_seconds" in inspect.signature(jax.distributed.initialize).parameters:
+        timeouts["shutdown_timeout_seconds"] = t  # (not in the oldest JAX jaxnm supports)
+    try:
+        jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id,
+                                   **timeouts)
+    except Exception as e:  # noqa: BLE001 (one line, whatever the runtime raised)
+        where = args.coordinator or "the detected cluster"
+        raise _Lost(f"could not join the other processes through {where} within {t} s: "
+                    f"{_first_line(e)}") from None
+
+
+class _Lost(RuntimeError):
+    """A fit across processes lost (or never reached) another process."""
+
+
+def _first_line(e: BaseException) -> str:
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    return f"{type(e).__name__}: {lines[0] if lines else ''}"
+
+
+def _fit_identity(args, overrides: dict) -> dict:
+    """What every process of a fit across processes must agree on: the fit file (a hash of
+    its bytes), the options the command line changes, the output folder and the process
+    count each was told."""
+    import hashlib
+
+    import jax
+
+    fit = (hashlib.sha256(Path(args.config).read_bytes()).hexdigest()[:16] if args.config
+           else f"built-in (quick {args.quick})")
+    return {"the fit file": fit, "the options": sorted(overrides.items()),
+            "the time limit": args.time_limit, "the output folder": str(args.output),
+            "--resume": args.resume, "--checkpoint-every": args.checkpoint_every,
+            "the process count": (args.num_processes if args.num_processes is not None
+                                  else jax.process_count())}
+
+
 def _fit(args, ctrl_c: _CtrlC) -> int:
     from .config import load_fit
     from .fit import compile_fit, fit_normal_map, prepare, prepare_held_out
     from .procedural import default_fit_job
+
+    if args.distributed:
+        import jax
+
+        from .fit import check_same_across_processes, prepare_processes, process_targets
+        me, count = jax.process_index(), jax.process_count()
+    else:
+        me, count = 0, 1
 
     say = (lambda msg: None) if args.no_progress else (  # noqa: E731
         lambda msg: print(msg, file=sys.stderr, flush=True))
@@ -286,9 +377,26 @@ def _fit(args, ctrl_c: _CtrlC) -> int:
                          f"{args.checkpoint_every}")
     out = Path(args.output)
     checkpoint = out / _CHECKPOINT_NAME
+    if args.distributed:  # the same fit everywhere, before anything is read
+        if args.config and not Path(args.config).is_file():
+            raise FileNotFoundError(f"{args.config}: no such fit file")
+        identity = _fit_identity(args, overrides)
+        if args.resume:
+            identity["a checkpoint to resume from"] = checkpoint.is_file()
+        check_same_across_processes(identity, what="jaxnm fit --distributed")
+        say = say if me == 0 else (lambda msg: None)  # noqa: E731
     if args.resume and not checkpoint.is_file():
         raise FileNotFoundError(f"{checkpoint}: no checkpoint to resume from (--resume)")
-    if args.config:
+    if args.config and args.distributed:
+        say(f"reading {args.config} (each process its own views) ...")
+
+        def images(key, targets):  # this process's views; the held-out ones on process 0
+            if key == "held_out":
+                return range(len(targets)) if me == 0 else ()
+            return process_targets(targets, count)[me]
+
+        job = load_fit(args.config, images=images)
+    elif args.config:
         say(f"reading {args.config} ...")
         job = load_fit(args.config)
     else:
@@ -307,10 +415,11 @@ def _fit(args, ctrl_c: _CtrlC) -> int:
         check_storage(job.problem, args.store)  # before anything is fitted
     say(f"preparing {len(job.problem.targets)} targets (rasterizing each view once) ...")
     t0 = time.perf_counter()
-    prep = prepare(job.problem)
+    prep = prepare_processes(job.problem) if args.distributed else prepare(job.problem)
     t_prep = time.perf_counter() - t0
-    held_out = prepare_held_out(job)  # with the same compiled G-buffer program
-    if not args.resume:
+    # with the same compiled G-buffer program; across processes, process 0 scores them
+    held_out = prepare_held_out(job) if me == 0 else ()
+    if not args.resume and me == 0:
         checkpoint.unlink(missing_ok=True)  # a new fit: an old checkpoint is not its own
     _release_freed_memory()
     if not args.resume:
@@ -320,18 +429,27 @@ def _fit(args, ctrl_c: _CtrlC) -> int:
     say(f"resuming from {checkpoint} ..." if args.resume else "fitting ...")
     ctrl_c.phase = "fit"
     result = fit_normal_map(job.problem, job.options, ground_truth=job.ground_truth,
-                            progress=not args.no_progress, prepared=prep,
+                            progress=not args.no_progress and me == 0, prepared=prep,
                             time_limit=job.time_limit,
                             should_stop=lambda rec: ctrl_c.requested is not None,
                             checkpoint=checkpoint if args.checkpoint_every > 0 else None,
                             checkpoint_every=args.checkpoint_every,
                             resume=checkpoint if args.resume else False)
     ctrl_c.phase = "writing"
+    seen = None
+    if args.distributed:
+        from .fit import local_prepared, seen_texels
+
+        if job.ground_truth is not None:  # (a collective: every process's views)
+            seen = seen_texels(prep, job.problem.map_size)
+        if me != 0:
+            return 0  # process 0 writes the outputs
+        prep = local_prepared(prep)[0]  # its renders: its own views
     say("writing outputs ...")
     rep, written = _write_fit_outputs(
         out, job, prep, result, t_prep, held_out, ctrl_c,
         checkpoint={"file": _CHECKPOINT_NAME if args.checkpoint_every > 0 else None,
-                    "resumed": args.resume})
+                    "resumed": args.resume}, seen=seen, processes=count)
     if args.store and not rep["interrupted"]:
         written.append(_store(out, job, prep, result, args.store, say, not args.no_progress))
     line = f"fit {rep['stopped']} after {rep['steps']} steps in {rep['fit_seconds']:.1f} s"
@@ -372,7 +490,8 @@ def _store(out: Path, job, prep, result, storage: str, say, progress: bool) -> s
 
 
 def _write_fit_outputs(out: Path, job, prep, result, prepare_seconds: float, held_out,
-                       ctrl_c: _CtrlC, checkpoint: dict) -> tuple[dict, list]:
+                       ctrl_c: _CtrlC, checkpoint: dict, seen=None,
+                       processes: int = 1) -> tuple[dict, list]:
     """Write the outputs of ``result`` to ``out``: the map and a report listing what is
     ``"pending"`` first, then what is optional (held-out scores, renders, the loss plot) as
     long as Ctrl-C was not pressed (`_CtrlC`; what was left out is ``"skipped"``), then the
@@ -381,8 +500,10 @@ def _write_fit_outputs(out: Path, job, prep, result, prepare_seconds: float, hel
     from . import io
     from .fit import fit_outputs, fit_renders, score_held_out
 
-    outputs = fit_outputs(job, prep, result, prepare_seconds=prepare_seconds, optional=False)
+    outputs = fit_outputs(job, prep, result, prepare_seconds=prepare_seconds, optional=False,
+                          seen=seen)
     report = outputs.report
+    report["processes"] = processes
     report["checkpoint"] = checkpoint
 
     def mark() -> None:
@@ -435,6 +556,10 @@ def main(argv=None) -> int:
         _add_xla_flag(_DETERMINISTIC_FLAG)  # before JAX starts a backend
     if not args.no_compile_cache:
         _use_compilation_cache()
+    if args.command == "fit" and (args.distributed or args.coordinator is not None
+                                  or args.num_processes is not None
+                                  or args.process_id is not None):
+        return _distributed_fit(args)
     ctrl_c, previous = _CtrlC(), None
     if (args.command == "fit" and threading.current_thread() is threading.main_thread()
             and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN):
@@ -450,6 +575,50 @@ def main(argv=None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGINT, previous)
+
+
+def _distributed_fit(args) -> int:
+    """``jaxnm fit --distributed``: `_fit` in a fit across processes. Any error ends the
+    process at once with one line naming it (``jaxnm fit: error: process I of N: ...``;
+    exit code 2 for bad input, 1 for a lost process), without the runtime's shutdown
+    (whose barrier would wait for, and then report, the processes that are gone)."""
+    where = "jaxnm fit: error"
+    try:
+        _join(args)
+        import jax
+
+        where = f"jaxnm fit: error: process {jax.process_index()} of {jax.process_count()}"
+        # no Ctrl-C handler: a stop must reach every process (the scheduler signals them all)
+        code = _fit(args, _CtrlC())
+    except (ValueError, FileNotFoundError, ImportError) as e:
+        lost = _is_lost(e)
+        msg = (f"lost another process ({_first_line(e)})" if lost
+               else str(e).splitlines()[0] if str(e) else type(e).__name__)
+        return _exit_now(f"{where}: {msg}", 1 if lost else 2)
+    except _Lost as e:
+        return _exit_now(f"{where}: {e}", 1)
+    except KeyboardInterrupt:
+        return _exit_now(f"{where}: interrupted", 130)
+    except Exception as e:  # noqa: BLE001 (the runtime's errors: one line, not a trace)
+        what = "lost another process" if _is_lost(e) else "failed"
+        return _exit_now(f"{where}: {what} ({_first_line(e)})", 1)
+    return code
+
+
+def _is_lost(e: BaseException) -> bool:
+    """Whether ``e`` is a collective or the coordination service failing for want of another
+    process (gloo's, or the distributed runtime's, error)."""
+    text = str(e)
+    return any(k in text for k in ("Gloo", "gloo", "Connection closed", "coordination",
+                                   "heartbeat", "DEADLINE_EXCEEDED", "UNAVAILABLE"))
+
+
+def _exit_now(line: str, code: int) -> int:
+    """Print ``line`` and end the process with ``code`` at once (no interpreter shutdown:
+    `jax.distributed`'s would wait at a barrier for the processes that are gone)."""
+    print(line, file=sys.stderr, flush=True)
+    sys.stdout.flush()
+    os._exit(code)
 
 
 if __name__ == "__main__":

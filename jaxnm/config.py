@@ -470,15 +470,23 @@ def _output_map(spec: Any, where: str) -> tuple[tuple[int, int], NormalMapOption
     return (size[0], size[1]), opts
 
 
-def load_fit(path) -> FitJob:
+def load_fit(path, *, images=None) -> FitJob:
     """Read a fit file (see the module docstring) into a `FitJob`; every field is checked
-    before anything is rendered or compiled."""
+    before anything is rendered or compiled. ``images``: see `fit_from_dict`."""
     path = Path(path)
-    return fit_from_dict(io.load_json(path), base_dir=path.parent, source=str(path))
+    return fit_from_dict(io.load_json(path), base_dir=path.parent, source=str(path),
+                         images=images)
 
 
-def fit_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> FitJob:
-    """Build a `FitJob` from a parsed fit JSON object; errors start with ``source``."""
+def fit_from_dict(data: dict, *, base_dir=".", source: str = "<dict>",
+                  images=None) -> FitJob:
+    """Build a `FitJob` from a parsed fit JSON object; errors start with ``source``.
+
+    ``images``: None (read every image), or a function ``images(key, targets)`` given
+    ``"targets"`` or ``"held_out"`` and those targets without their images (``image`` and
+    ``mask`` None), returning the indices of the ones whose image and mask to read (the
+    others keep None): a process of a fit across processes reads its own views only
+    (`jaxnm.fit.process_targets`)."""
     where = f"{source}: "
     base = Path(base_dir)
     if not isinstance(data, dict):
@@ -517,7 +525,7 @@ def fit_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> FitJob
     if not views:
         views = [(scene.camera, scene.width, scene.height)]
 
-    def target(t, i, key):
+    def target(t, i, key, load=True):
         w = f"{where}{key}[{i}]: "
         if not isinstance(t, dict) or "image" not in t or "lights" not in t:
             raise ValueError(f"{w}needs 'image' and 'lights'")
@@ -531,15 +539,24 @@ def fit_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> FitJob
         image_ref = _field(t, "image", str, None, w)
         lights = _parse_lights(t["lights"], where=w)
         cam, width, height = views[vi]
-        img = _image(base / image_ref, color_space, w)
+        img = _image(base / image_ref, color_space, w) if load else None
         mask = None
-        if "mask" in t:
+        if "mask" in t and load:
             m, _ = io.load_texture(base / _field(t, "mask", str, None, w))
             mask = m[..., 0] > 0.5
         return FitTarget(cam, width, height, lights, img, mask, name=f"{key}[{i}] ({image_ref})")
 
-    targets = tuple(target(t, i, "targets") for i, t in enumerate(data["targets"]))
-    held = tuple(target(t, i, "held_out") for i, t in enumerate(data.get("held_out", [])))
+    def read(key):
+        specs = data.get(key, [])
+        if images is None:
+            return tuple(target(t, i, key) for i, t in enumerate(specs))
+        bare = tuple(target(t, i, key, load=False) for i, t in enumerate(specs))
+        wanted = set(images(key, bare))
+        return tuple(target(t, i, key) if i in wanted else bare[i]
+                     for i, t in enumerate(specs))
+
+    targets = read("targets")
+    held = read("held_out")
     problem = problem_from_scene(scene, targets, map_size, source=source)
     gt = None
     if gt_spec is not None:

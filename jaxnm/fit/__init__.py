@@ -46,7 +46,8 @@ The package, by stage: `problem` (what to fit: `FitProblem`, `FitTarget`,
 (`residuals` and `loss` over `ModelArgs`), `solve` (`fit_normal_map`), `stored` (a map
 fitted through its storage, BC5 blocks or 8-bit codes: `fit_stored_map`),
 `diagnostics` (seen texels, identifiability, errors), `report` (what
-``jaxnm fit`` writes) and `checkpoint` (a running fit saved, to resume it). The
+``jaxnm fit`` writes), `checkpoint` (a running fit saved, to resume it) and `distributed`
+(a fit across processes, `prepare_processes`). The
 built-in problem is `jaxnm.procedural.default_problem`.
 """
 
@@ -58,6 +59,11 @@ from .diagnostics import error_report as error_report
 from .diagnostics import psnr as psnr
 from .diagnostics import seen_texels as seen_texels
 from .diagnostics import texel_influence as texel_influence
+from .distributed import check_same_across_processes as check_same_across_processes
+from .distributed import local_prepared as local_prepared
+from .distributed import prepare_processes as prepare_processes
+from .distributed import process_targets as process_targets
+from .distributed import spread_over_processes as spread_over_processes
 from .model import ModelArgs as ModelArgs
 from .model import loss as loss
 from .model import normals_to_slopes as normals_to_slopes
@@ -109,4 +115,6 @@ __all__ = [
     "view_key", "with_map_size", "shard_views", "FitJob", "FitOutputs", "fit_outputs",
     "prepare_held_out", "score_held_out", "CHUNK", "texel_sums_for", "STOP_TESTS",
     "Checkpoint", "load_checkpoint", "fit_renders", "STORAGES", "StoredFit", "fit_stored_map",
+    "process_targets", "prepare_processes",
+    "spread_over_processes", "local_prepared", "check_same_across_processes",
 ]

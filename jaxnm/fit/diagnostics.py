@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 
 from .. import textures as _tex
-from .prepare import Prepared
+from .prepare import Prepared, _local_rows
 from .problem import FitWarning
 
 __all__ = ["seen_texels", "texel_influence", "angular_error", "check_identifiability",
@@ -23,11 +23,18 @@ def seen_texels(prep: Prepared, map_size: tuple[int, int], *,
     h, w = map_size
     acc = np.zeros(h * w)
     for b in prep.batches:
-        used = (np.asarray(b.weights).max(1)[..., 0] > 0)[..., None]  # (V, K, 1)
-        idx, wt = np.asarray(b.gbuffer.plan.index), np.asarray(b.gbuffer.plan.weight)
+        used = (_local_rows(b.weights)[1].max(1)[..., 0] > 0)[..., None]  # (V, K, 1)
+        idx, wt = _local_rows(b.gbuffer.plan.index)[1], _local_rows(b.gbuffer.plan.weight)[1]
         keep = (idx < h * w) & used  # level 0 texels come first in the flat index
         acc += np.bincount(idx[keep], weights=wt[keep], minlength=h * w)
-    return acc.reshape(h, w) >= min_weight
+    return _summed(prep, acc).reshape(h, w) >= min_weight
+
+
+def _summed(prep: Prepared, acc: np.ndarray) -> np.ndarray:
+    """``acc`` summed over the processes ``prep``'s views are spread over (itself if none)."""
+    from .distributed import _sum_over_processes, spread_over_processes
+
+    return _sum_over_processes(acc) if spread_over_processes(prep) else acc
 
 
 #: Pixels per piece of `texel_influence`'s sums.
@@ -49,10 +56,10 @@ def texel_influence(prep: Prepared) -> np.ndarray:
     sizes = [a * b for a, b in shapes]
     acc = np.zeros(sum(sizes))
     for b in prep.batches:
-        used = np.asarray(b.weights).sum(1, dtype=np.float64)[..., 0].reshape(-1)
-        idx = np.asarray(b.gbuffer.plan.index)
+        used = _local_rows(b.weights)[1].sum(1, dtype=np.float64)[..., 0].reshape(-1)
+        idx = _local_rows(b.gbuffer.plan.index)[1]
         idx = idx.reshape(-1, idx.shape[-1])  # (pixels of every view, taps)
-        weight = np.asarray(b.gbuffer.plan.weight).reshape(idx.shape)
+        weight = _local_rows(b.gbuffer.plan.weight)[1].reshape(idx.shape)
         # in pieces: float64 copies of a 64-view batch's taps at once (~1M pixels x 8
         # taps) held ~200 MB for a moment, the fit's peak. Each piece's count is as long as
         # the levels, so a piece is never much shorter
@@ -61,7 +68,7 @@ def texel_influence(prep: Prepared) -> np.ndarray:
             wt = weight[k:k + rows].astype(np.float64) * used[k:k + rows, None]
             acc += np.bincount(idx[k:k + rows].ravel(), weights=wt.ravel(),
                                minlength=acc.size)
-    levels = np.split(acc, np.cumsum(sizes)[:-1])
+    levels = np.split(_summed(prep, acc), np.cumsum(sizes)[:-1])
     grad = levels[-1].reshape(shapes[-1])
     for k in range(len(shapes) - 2, -1, -1):  # coarse to fine: through each filter
         hk, wk = shapes[k]
@@ -87,7 +94,8 @@ def check_identifiability(prep: Prepared, *, warn: bool = True) -> dict:
     """
     report = {"views": []}
     ok_any = False
-    for v in range(prep.num_views):
+    per_view = {}
+    for v in prep.local_views():
         view = prep.view(v)
         centre = np.asarray(view.gbuffer.position).mean(0)
         dirs = []
@@ -101,10 +109,16 @@ def check_identifiability(prep: Prepared, *, warn: bool = True) -> dict:
         dirs = np.asarray(dirs)
         unique = np.unique(np.round(dirs, 6), axis=0) if len(dirs) else dirs
         rank = int(np.linalg.matrix_rank(unique, tol=1e-3)) if len(unique) else 0
-        report["views"].append({"targets": int(view.images.shape[0]),
-                                "distinct_light_directions": int(len(unique)),
-                                "direction_rank": rank})
-        ok_any |= rank >= 3
+        per_view[v] = {"targets": int(view.images.shape[0]),
+                       "distinct_light_directions": int(len(unique)), "direction_rank": rank}
+    from .distributed import _allgather_json, spread_over_processes
+
+    if spread_over_processes(prep):  # every process's views
+        for part in _allgather_json({str(v): rec for v, rec in per_view.items()}):
+            per_view.update({int(v): rec for v, rec in part.items()})
+    for v in sorted(per_view):
+        report["views"].append(per_view[v])
+        ok_any |= per_view[v]["direction_rank"] >= 3
     report["identifiable"] = bool(ok_any)
     if warn and not ok_any:
         warnings.warn(

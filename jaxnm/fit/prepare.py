@@ -119,18 +119,35 @@ class Prepared:
 
     def view(self, v: int) -> View:
         """View ``v`` unpadded, as host (NumPy) arrays: its G-buffer (K_v, ...), pixels,
-        targets and lights."""
+        targets and lights (across processes, `jaxnm.fit.prepare_processes`: a view this
+        process holds, `local_views`)."""
         for b in self.batches:
             if v in b.views:
                 i = b.views.index(v)
-                pixels = np.asarray(b.pixels)[i]
+                if not b.pixels.is_fully_addressable and i not in _held_rows(b.pixels):
+                    raise IndexError(f"fit: view {v} is held by another process")
+
+                def row(x, i=i):
+                    return _row(x, i)
+
+                pixels = row(b.pixels)
                 keep = np.flatnonzero(pixels >= 0)
                 t = b.targets[i]
-                gb = _map_pixels(_host(b.gbuffer), lambda x: x[i][keep], eye=lambda x: x[i])
-                return View(gb, pixels[keep], np.asarray(b.images)[i, :t][:, keep],
-                            np.asarray(b.weights)[i, :t][:, keep],
-                            jax.tree_util.tree_map(lambda x: np.asarray(x)[i, :t], b.lights))
+                gb = _map_pixels(b.gbuffer, lambda x: row(x)[keep], eye=row)
+                return View(gb, pixels[keep], row(b.images)[:t][:, keep],
+                            row(b.weights)[:t][:, keep],
+                            jax.tree_util.tree_map(lambda x: row(x)[:t], b.lights))
         raise IndexError(f"fit: no view {v} (the problem has {self.num_views})")
+
+    def local_views(self) -> tuple[int, ...]:
+        """The views this process holds: all of them, but for a problem spread over
+        processes (`jaxnm.fit.prepare_processes`)."""
+        out = set()
+        for b in self.batches:
+            held = (range(len(b.views)) if b.pixels.is_fully_addressable
+                    else _held_rows(b.pixels))
+            out |= {b.views[i] for i in held if b.views[i] >= 0}
+        return tuple(sorted(out))
 
     def to_image(self, v: int, values) -> np.ndarray:
         """Per-pixel ``values`` (..., K_v, C) of `view` ``v`` in image layout (..., H, W, C),
@@ -189,9 +206,41 @@ def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
     memory for its prepared G-buffers and targets (~0.2 KB per pixel-target) plus a bounded
     working set. None evaluates every pixel at once (fewer, larger kernels: on a GPU with
     memory to spare)."""
+    _check_chunk(chunk)
+    views, opts_all, problem = _rasterize_views(problem)
+    return _assemble(views, tuple(opts_all), problem.material, chunk)
+
+
+def _check_chunk(chunk) -> None:
     if chunk is not None and chunk < 1:
         raise ValueError(f"prepare: chunk must be a positive number of pixel-targets or None, "
                          f"got {chunk}")
+
+
+def _view_options(problem: FitProblem) -> list[RenderOptions]:
+    """The render options of each view of ``problem`` (its targets grouped by `view_key`, in
+    the order of their first target), from the cameras alone: nothing is rasterized."""
+    groups: dict = {}
+    for t in problem.targets:
+        groups.setdefault(view_key(t), t)
+    nm = dataclasses.replace(problem.sampling, encoding="signed", channels=3)
+    # a closed mesh seen from outside shows no back face: those views skip them
+    box = _closed_shape(problem.mesh.positions, problem.mesh.faces)
+    return [RenderOptions(width=t0.width, height=t0.height, derivatives=problem.derivatives,
+                          precision=problem.precision, frame=problem.frame,
+                          shading=problem.shading, double_sided=problem.double_sided,
+                          cull_back=box is not None and _box_in_front(box, t0.camera),
+                          normal_map=nm, normal_map_shape=tuple(problem.map_size),
+                          albedo_shape=(tuple(jnp.shape(problem.albedo)[:2])
+                                        if jnp.ndim(problem.albedo) == 3 else None),
+                          outputs=("color",))
+            for t0 in groups.values()]
+
+
+def _rasterize_views(problem: FitProblem) -> tuple[list[View], list[RenderOptions], FitProblem]:
+    """Every view of ``problem`` rasterized once: its covered pixels' G-buffer, targets and
+    lights (`View`, in `_view_options`' order), its options, and the problem (with
+    MikkTSpace tangents where its frame needs them)."""
     validate_problem(problem)
     if problem.frame == "vertex" and problem.mesh.tangents is None:  # MikkTSpace, once
         problem = dataclasses.replace(problem, mesh=problem.mesh.with_tangents())
@@ -199,21 +248,8 @@ def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
     for t in problem.targets:
         groups.setdefault(view_key(t), []).append(t)
     views, opts_all = [], []
-    nm = dataclasses.replace(problem.sampling, encoding="signed", channels=3)
-    # a closed mesh seen from outside shows no back face: those views skip them
-    box = _closed_shape(problem.mesh.positions, problem.mesh.faces)
-    for ts in groups.values():
+    for ts, opts in zip(groups.values(), _view_options(problem), strict=True):
         t0 = ts[0]
-        opts = RenderOptions(width=t0.width, height=t0.height, derivatives=problem.derivatives,
-                             precision=problem.precision,
-                             frame=problem.frame, shading=problem.shading,
-                             double_sided=problem.double_sided,
-                             cull_back=box is not None and _box_in_front(box, t0.camera),
-                             normal_map=nm,
-                             normal_map_shape=tuple(problem.map_size),
-                             albedo_shape=(tuple(jnp.shape(problem.albedo)[:2])
-                                           if jnp.ndim(problem.albedo) == 3 else None),
-                             outputs=("color",))
         _check_mesh(problem.mesh, opts, problem.source)
         albedo = jax.device_put(problem.albedo)  # (jnp.asarray of NumPy compiles per shape)
 
@@ -248,7 +284,7 @@ def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
                           _host(_stack_lights([t.lights for t in ts]))))
         opts_all.append(opts)
         del gb  # the whole image's G-buffer: only the covered pixels are kept
-    return _assemble(views, tuple(opts_all), problem.material, chunk)
+    return views, opts_all, problem
 
 
 def _fit_fields(gb: GBuffer) -> GBuffer:
@@ -257,6 +293,38 @@ def _fit_fields(gb: GBuffer) -> GBuffer:
     return GBuffer(mask=None, triangle_id=None, depth=None, front_facing=None,
                    position=gb.position, uv=gb.uv, frame=gb.frame, plan=gb.plan,
                    albedo=gb.albedo, eye=gb.eye)
+
+
+def _held_rows(x) -> dict:
+    """``{row: (shard data, row within it)}`` of the leading-axis rows of ``x`` held here."""
+    out = {}
+    for shard in x.addressable_shards:
+        start = (shard.index[0].start or 0) if shard.index else 0
+        for j in range(shard.data.shape[0] if shard.index else 0):
+            out.setdefault(start + j, (shard.data, j))
+    return out
+
+
+def _row(x, i: int) -> np.ndarray:
+    """Row ``i`` (leading axis) of ``x`` on the host, also of an array spread over
+    processes whose row is held here."""
+    if not isinstance(x, jax.Array) or x.is_fully_addressable:
+        return np.asarray(x)[i]
+    data, j = _held_rows(x)[i]
+    return np.asarray(data)[j]
+
+
+def _local_rows(x) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows, data)``: the indices of the leading-axis rows of ``x`` held by this process
+    and their host copy (every row where ``x`` is not spread over processes)."""
+    if not isinstance(x, jax.Array) or x.is_fully_addressable:
+        x = np.asarray(x)
+        return np.arange(x.shape[0]), x
+    held = _held_rows(x)
+    rows = np.array(sorted(held), np.int64)
+    if not len(rows):
+        return rows, np.zeros((0,) + x.shape[1:], x.dtype)
+    return rows, np.stack([np.asarray(held[i][0])[held[i][1]] for i in rows])
 
 
 def _host(tree):
@@ -316,38 +384,13 @@ def _assemble(views: list[View], options: tuple[RenderOptions, ...],
         groups.append(batch)
     batches = []
     for members in groups:
+        parts = [_tap_groups(views[v]) for v in members]
         eight = views[members[0]].gbuffer.plan.num_taps == 8
-        parts = []  # per view: (indices of its one-level pixels, of the others)
-        for v in members:
-            w = np.asarray(views[v].gbuffer.plan.weight)
-            one = np.all(w[:, 4:] == 0, axis=-1) if eight else np.zeros(len(w), bool)
-            parts.append((np.flatnonzero(one), np.flatnonzero(~one)))
         targets = tuple(views[v].images.shape[0] for v in members)
-        t_max = max(targets)
-        per_chunk = None if chunk is None else max(256, chunk // (len(members) * t_max))
+        per_chunk = None if chunk is None else max(256, chunk // (len(members) * max(targets)))
         na, ka = _chunking(max(len(a) for a, _ in parts), per_chunk)
         nb, kb = _chunking(max(len(b) for _, b in parts), per_chunk)
-        stacked = None  # filled view by view, each view released once copied
-        for i, (v, (a, b)) in enumerate(zip(members, parts)):
-            view, views[v] = views[v], None
-            fill = int(a[0] if len(a) else b[0])  # a real pixel, copied into the padding
-            order = np.concatenate([a, np.full(ka - len(a), fill), b, np.full(kb - len(b), fill)])
-            real = np.concatenate([np.ones(len(a), bool), np.zeros(ka - len(a), bool),
-                                   np.ones(len(b), bool), np.zeros(kb - len(b), bool)])
-            t = targets[i]
-            tsel = np.minimum(np.arange(t_max), t - 1)  # padded targets repeat the last one
-            used = real[None, :, None] & (np.arange(t_max) < t)[:, None, None]
-            row = dict(gbuffer=_map_pixels(view.gbuffer, lambda x: x[order]),
-                       pixels=np.where(real, view.pixels[order], -1).astype(np.int32),
-                       images=view.images[np.ix_(tsel, order)],
-                       weights=view.weights[np.ix_(tsel, order)] * used.astype(np.float32),
-                       lights=jax.tree_util.tree_map(lambda x: x[tsel], view.lights))
-            del view
-            if stacked is None:
-                stacked = jax.tree_util.tree_map(
-                    lambda x: np.empty((len(members),) + x.shape, x.dtype), row)
-            jax.tree_util.tree_map(lambda out, x: out.__setitem__(i, x), stacked, row)
-            del row
+        stacked = _stack_rows(views, members, parts, ka, kb, max(targets))
         # moved to the device one array at a time, each host copy dropped once moved: the
         # peak holds the batch about twice, not four times (views, rows, stack, device)
         leaves, tree = jax.tree_util.tree_flatten(stacked)
@@ -359,6 +402,44 @@ def _assemble(views: list[View], options: tuple[RenderOptions, ...],
         batches.append(ViewBatch(**stacked, views=tuple(members), targets=targets,
                                  split=ka if eight else 0, chunks=(na, nb)))
     return Prepared(tuple(batches), material, options, chunk)
+
+
+def _tap_groups(view: View) -> tuple[np.ndarray, np.ndarray]:
+    """The indices of ``view``'s pixels that read one mip level (4 non-zero taps) and of the
+    others (see `_assemble`)."""
+    w = np.asarray(view.gbuffer.plan.weight)
+    one = (np.all(w[:, 4:] == 0, axis=-1) if view.gbuffer.plan.num_taps == 8
+           else np.zeros(len(w), bool))
+    return np.flatnonzero(one), np.flatnonzero(~one)
+
+
+def _stack_rows(views: list, members: Sequence[int], parts: Sequence, ka: int, kb: int,
+                t_max: int) -> dict:
+    """The host arrays of a `ViewBatch` whose rows are ``views[v]`` for ``v`` in ``members``:
+    each view's pixels ordered by `_tap_groups` (``parts``) and padded to ``ka`` + ``kb``, its
+    targets to ``t_max``. Takes the views over (each entry is set to None once copied)."""
+    stacked = None  # filled view by view, each view released once copied
+    for i, (v, (a, b)) in enumerate(zip(members, parts)):
+        view, views[v] = views[v], None
+        fill = int(a[0] if len(a) else b[0])  # a real pixel, copied into the padding
+        order = np.concatenate([a, np.full(ka - len(a), fill), b, np.full(kb - len(b), fill)])
+        real = np.concatenate([np.ones(len(a), bool), np.zeros(ka - len(a), bool),
+                               np.ones(len(b), bool), np.zeros(kb - len(b), bool)])
+        t = view.images.shape[0]
+        tsel = np.minimum(np.arange(t_max), t - 1)  # padded targets repeat the last one
+        used = real[None, :, None] & (np.arange(t_max) < t)[:, None, None]
+        row = dict(gbuffer=_map_pixels(view.gbuffer, lambda x: x[order]),
+                   pixels=np.where(real, view.pixels[order], -1).astype(np.int32),
+                   images=view.images[np.ix_(tsel, order)],
+                   weights=view.weights[np.ix_(tsel, order)] * used.astype(np.float32),
+                   lights=jax.tree_util.tree_map(lambda x: x[tsel], view.lights))
+        del view
+        if stacked is None:
+            stacked = jax.tree_util.tree_map(
+                lambda x: np.empty((len(members),) + x.shape, x.dtype), row)
+        jax.tree_util.tree_map(lambda out, x: out.__setitem__(i, x), stacked, row)
+        del row
+    return stacked
 
 
 def with_map_size(prep: Prepared, size) -> Prepared:

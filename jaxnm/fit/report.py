@@ -102,11 +102,13 @@ def _convergence_rule(options) -> str:
 def fit_outputs(job: FitJob, prep: Prepared, result: FitResult, *,
                 prepare_seconds: float = 0.0,
                 held_out: tuple[Prepared, ...] | None = None,
-                optional: bool = True) -> FitOutputs:
+                optional: bool = True, seen: np.ndarray | None = None) -> FitOutputs:
     """The outputs of a finished fit (see `FitOutputs`); ``held_out``: the held-out
-    targets' `prepare_held_out`, if already made. With ``optional`` False the slow parts
-    are left out: no `renders` (`fit_renders`) and no held-out scores (`score_held_out`),
-    the report listing them under ``"skipped"``."""
+    targets' `prepare_held_out`, if already made; ``seen``: the `seen_texels` the error is
+    measured over, if already known (default: ``prep``'s; for a fit across processes, made
+    on every process, while ``prep`` is the writing process's `local_prepared`). With
+    ``optional`` False the slow parts are left out: no `renders` (`fit_renders`) and no
+    held-out scores (`score_held_out`), the report listing them under ``"skipped"``."""
     problem, enc = job.problem, job.output
     n = result.normals
     texels = np.asarray(quantize(encode_normal_map(jnp.asarray(n), encoding=enc.encoding,
@@ -128,7 +130,8 @@ def fit_outputs(job: FitJob, prep: Prepared, result: FitResult, *,
                                "uv_origin": problem.sampling.uv_origin}}
     error_map = None
     if job.ground_truth is not None:
-        seen = seen_texels(prep, problem.map_size)
+        if seen is None:
+            seen = seen_texels(prep, problem.map_size)
         report["error"] = error_report(n, job.ground_truth, seen)
         err = angular_error(n, job.ground_truth)
         error_map = np.where(seen, np.clip(err / ERROR_MAP_RANGE_DEG, 0, 1), 0.25)

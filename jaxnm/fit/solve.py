@@ -79,8 +79,15 @@ from .checkpoint import (
     save_checkpoint,
 )
 from .diagnostics import angular_error, check_identifiability, seen_texels, texel_influence
+from .distributed import (
+    _allgather_json,
+    _fingerprint_across_processes,
+    _sum_over_processes,
+    _to_host,
+    spread_over_processes,
+)
 from .model import ModelArgs, loss, residuals
-from .prepare import Prepared, prepare, shard_views, with_map_size
+from .prepare import Prepared, _local_rows, prepare, shard_views, with_map_size
 from .problem import FitOptions, FitProblem, FitResult
 from .texel_lm import TexelLM, _texel_sum_tables
 
@@ -306,7 +313,8 @@ def _unit_normals(slopes) -> np.ndarray:
 def _copy(x):
     """A copy of ``x`` in new buffers, made without compiling anything (``jnp.copy`` is an
     XLA program per shape and dtype: 20 small compilations for an LM state)."""
-    return jax.device_put(x, may_alias=False)
+    # (an array spread over processes is copied where it lies)
+    return jax.device_put(x, None if x.is_fully_addressable else x.sharding, may_alias=False)
 
 
 def preconditioner(prep: Prepared) -> Array:
@@ -394,9 +402,11 @@ def _loss_terms(prep: Prepared) -> tuple[int, float]:
     """The number of residuals of ``prep``'s loss and the mean square of its targets' values
     (for `_noise_floor`; on the host, so no XLA program is compiled for it)."""
     terms = sum(b.images.size for b in prep.batches)
-    square = sum(float(np.sum(np.square(np.asarray(b.images, np.float64))))
-                 for b in prep.batches)
-    return terms, square / max(terms, 1)
+    square = np.array([sum(float(np.sum(np.square(_local_rows(b.images)[1], dtype=np.float64)))
+                           for b in prep.batches)])
+    if spread_over_processes(prep):
+        square = _sum_over_processes(square)
+    return terms, float(square[0]) / max(terms, 1)
 
 
 def _like(level: Prepared, prep: Prepared) -> Prepared:
@@ -507,8 +517,17 @@ def _saved_state(path, fresh, leaves: list):
     if [(a.shape, a.dtype) for a in now] != [(a.shape, a.dtype) for a in leaves]:
         raise ValueError(f"{path}: cannot resume this fit: the checkpoint's solver state does "
                          "not fit this solver and problem")
-    arrays = [jax.device_put(a, b.sharding) for a, b in zip(leaves, now, strict=True)]
+    # (an uncommitted fresh array stays uncommitted: jit places it beside the others, e.g.
+    # on every process's devices for a problem spread over processes)
+    arrays = [jax.device_put(a, b.sharding if b.committed else None)
+              for a, b in zip(leaves, now, strict=True)]
     return eqx.combine(treedef.unflatten(arrays), static)
+
+
+def _agreed(*flags: bool) -> tuple[bool, ...]:
+    """``flags`` or-ed over every process (a collective)."""
+    every = _allgather_json([bool(f) for f in flags])
+    return tuple(any(p[i] for p in every) for i in range(len(flags)))
 
 
 def _layout(prep: Prepared) -> list:
@@ -576,6 +595,11 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     if resume is True and checkpoint is None:
         raise ValueError("resume=True needs the `checkpoint` to resume from")
     prep = prepared if prepared is not None else prepare(problem)
+    spread = spread_over_processes(prep)
+    if spread and options.coarse_to_fine:
+        raise ValueError(f"{problem.source}: coarse_to_fine is not available for a fit across "
+                         "processes (solve.coarse_to_fine must be 0)")
+    writer = not spread or jax.process_index() == 0  # who writes the checkpoints
     identifiability = check_identifiability(prep)  # warns when the lights cannot determine it
     h, w = problem.map_size
     if prep.options[0].normal_map_shape != (h, w):
@@ -594,6 +618,8 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     fingerprint = saved = None
     if checkpoint is not None or source is not None:
         fingerprint = _fit_fingerprint(problem, options, strength=strength, layout=_layout(prep))
+        if spread:  # each process hashed its own targets' images
+            fingerprint = _fingerprint_across_processes(fingerprint)
     if source is not None:
         saved = load_checkpoint(source)
         _check_fingerprint(source, saved.meta.get("fingerprint", {}), fingerprint)
@@ -620,8 +646,11 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
 
     def save(level_done: bool) -> None:
         level, k, z, state = last
-        leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(eqx.filter(state,
-                                                                               eqx.is_array))]
+        # (across processes a collective: every process takes part, process 0 writes)
+        leaves = [_to_host(x) for x in jax.tree_util.tree_leaves(eqx.filter(state,
+                                                                             eqx.is_array))]
+        if not writer:
+            return
         meta = {"fingerprint": fingerprint, "level": level, "next_step": k + 1,
                 "level_done": level_done, "stopped": stopped, "stop_test": test,
                 "best_loss": best[0], "seconds": time.perf_counter() - t_start,
@@ -666,7 +695,13 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                 last = (level, k, z, state)
                 if k > 0:
                     bar.update(rec)
-                if time_limit is not None and rec["seconds"] > time_limit:
+                late = time_limit is not None and rec["seconds"] > time_limit
+                if spread:  # what is not a function of the loss, agreed by every process
+                    late, asked, due = _agreed(
+                        late, should_stop is not None and bool(should_stop(rec)),
+                        checkpoint is not None and k < options.max_steps
+                        and time.perf_counter() - last_save >= checkpoint_every)
+                if late:
                     stopped, test = "time_limit", "time_limit"
                 elif k > 0 and bool(done) and result != optx.RESULTS.successful:
                     stopped, test = str(result), "solver_failure"
@@ -675,11 +710,11 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                     stopped, test = "converged", "solver_tolerance"
                 elif _stop_test(records, options, floor) is not None:
                     stopped, test = "converged", "ftol"
-                elif should_stop is not None and should_stop(rec):
+                elif (asked if spread else should_stop is not None and should_stop(rec)):
                     stopped, test = "interrupted", "should_stop"
                 if test != "max_steps":
                     break
-                if (checkpoint is not None and k < options.max_steps
+                if (due if spread else checkpoint is not None and k < options.max_steps
                         and time.perf_counter() - last_save >= checkpoint_every):
                     save(level_done=False)
                     last_save = time.perf_counter()
