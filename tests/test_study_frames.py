@@ -108,7 +108,8 @@ def test_the_worst_case_over_the_hemisphere_measures_the_frame():
     n = np.tile([0.0, 0.0, 1.0], (4, 1))
     t, b = np.tile([1.0, 0.0, 0.0], (4, 1)), np.tile([0.0, 1.0, 0.0], (4, 1))
     worst, op = S.frame_measures(-t, b, n, t, b, n)
-    assert np.all(worst > 170.0) and np.allclose(op, 2.0)  # 256 directions: near 180
+    # the rim of the hemisphere is sampled, +x among its points: exactly 180 degrees
+    assert np.all(worst > 179.999) and np.allclose(op, 2.0)
     tilt = np.tile([np.cos(0.1), np.sin(0.1), 0.0], (4, 1))
     worst, op = S.frame_measures(tilt, b, n, t, b, n)
     fixed = S.angle(S.perturbed(tilt, b, n), S.perturbed(t, b, n))
@@ -146,7 +147,7 @@ def test_mirrored_halves_need_the_handedness(sheared_plane):
                              methods=("cross", "surface_gradient", "cotangent")))
     assert r["surface_gradient"]["worst_max"] < 1e-3 and r["cotangent"]["worst_max"] < 1e-3
     # the cross-product frame reverses T on the mirrored half: about half the pixels
-    assert r["cross"]["worst_max"] > 170.0 and r["cross"]["T_p95"] > 179.0
+    assert r["cross"]["worst_max"] > 179.0 and r["cross"]["T_p95"] > 179.0
     assert r["cross"]["T_mean"] > 45.0
 
 

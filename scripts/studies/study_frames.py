@@ -46,11 +46,16 @@ The fixed-axis approximation (``axis``) ignores the uv mapping: it is right only
 uv happens to run along its axes (the ``axis-aligned`` layout: on a +z plane ``T = -x``,
 ``B = -y``) and wrong by tens of degrees elsewhere, which the uv sweep shows.
 
-Writes ``frames.json`` (one record per configuration and method), ``frames.csv``, plots
-(``error_vs_fov.png``, ``error_vs_view_angle.png``, ``error_vs_distance.png``,
-``error_vs_precision.png``, ``error_vs_uv.png``, ``error_vs_tessellation.png``) and error
-maps of one configuration (``error_map_<frame>.png``) into ``--out``; ``--sweeps`` picks a
-subset.
+Writes ``frames.json`` (one record per configuration and method), ``frames.csv``,
+``frames_summary.json``, plots (``error_vs_fov.png``, ``error_vs_view_angle.png``,
+``error_vs_distance.png``, ``error_vs_tilt_orthographic.png``, ``error_vs_uv.png``,
+``cost_vs_error_real.png``, and with their sweeps ``error_vs_precision.png``,
+``error_vs_tessellation.png``) and per-pixel error images of every frame on Suzanne
+(``real_error_maps.png``) and of the derivative modes on the torus
+(``torus_error_maps.png``) into ``--out``; ``--sweeps`` picks a subset. Render programs
+are compiled once per image size, mesh shape and static option set and shared by every
+sweep point (the camera is an argument, not a constant), which is what keeps the default
+run to minutes.
 """
 
 from __future__ import annotations
@@ -71,7 +76,7 @@ import numpy as np
 
 import jaxnm
 from jaxnm.camera import Camera, look_at, orthographic, perspective
-from jaxnm.frames import FRAMES
+from jaxnm.frames import FRAMES, SCREEN_FRAMES
 from jaxnm.interpolate import DERIVATIVE_MODES
 from jaxnm.scene import Scene
 from jaxnm.textures import NormalMapOptions, decode_normal_map, sample
@@ -80,8 +85,10 @@ MAP_VALUE = np.array([0.35, -0.25, 0.9]) / np.linalg.norm([0.35, -0.25, 0.9])
 METHODS = [f for f in FRAMES if f != "none"]
 GRADIENT_METHODS = ("cotangent", "cotangent_unnormalized", "nonperspective", "exact",
                     "exact_face", "axis", "gram_schmidt", "separate")
-#: The map values of the worst case: a Fibonacci set over the upper hemisphere (z >= 0).
-HEMISPHERE = 256
+#: The map values of the worst case: a Fibonacci set over the upper hemisphere (z >= 0) and
+#: ``RIM`` of them on its rim (`hemisphere`).
+HEMISPHERE = 192
+RIM = 48
 UV_LAYOUTS = {"orthogonal": [[0.5, 0.0], [0.0, 0.5]],
               "stretched 1:4": [[0.5, 0.0], [0.0, 0.125]],
               "sheared 30 deg": [[0.5, 0.5 * math.tan(math.radians(30))], [0.0, 0.5]],
@@ -279,13 +286,19 @@ def _map_texels(kind: str) -> np.ndarray:
     return ((jaxnm.procedural.default_normal_map(128) + 1) / 2).astype(np.float32)
 
 
-def hemisphere(k=HEMISPHERE):
-    """``k`` unit vectors spread evenly over the upper hemisphere (z from 1 down to 0)."""
-    i = np.arange(k) + 0.5
-    z = 1.0 - i / k
+def hemisphere(k=HEMISPHERE, rim=RIM):
+    """``k`` unit vectors over the closed upper hemisphere: ``k - rim`` spread evenly over
+    it (a Fibonacci set, z from 1 down to 0) and ``rim`` evenly spaced on its rim (z = 0,
+    starting along +x), where a frame's error is largest (a reversed T turns the rim's +x
+    into -x: 180 degrees)."""
+    n = k - rim
+    i = np.arange(n) + 0.5
+    z = 1.0 - i / n
     phi = i * math.pi * (3.0 - math.sqrt(5.0))
     r = np.sqrt(1.0 - z * z)
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
+    a = 2 * math.pi * np.arange(rim) / rim
+    ring = np.stack([np.cos(a), np.sin(a), np.zeros(rim)], -1)
+    return np.concatenate([np.stack([r * np.cos(phi), r * np.sin(phi), z], -1), ring])
 
 
 def _stats(rec, prefix, e):
@@ -299,21 +312,21 @@ def frame_measures(t, b, n, t0, b0, n0, chunk=4096):
     (each ``(P, 3)``, float64), per pixel: the worst angle over every map value of the
     upper hemisphere (`hemisphere`) between ``normalize(F m)`` and ``normalize(F* m)``, and
     the operator norm (largest singular value) of ``F - F*``, ``F = [t b n]``."""
-    ms = hemisphere()
+    ms = hemisphere().T  # (3, K)
     worst = np.empty(len(t))
     for a in range(0, len(t), chunk):
         sl = slice(a, a + chunk)
-        f = np.stack([t[sl], b[sl], n[sl]], -1)
-        f0 = np.stack([t0[sl], b0[sl], n0[sl]], -1)
-        v = np.einsum("pij,kj->pki", f, ms)
-        v0 = np.einsum("pij,kj->pki", f0, ms)
-        worst[sl] = angle(v, v0).max(1)
+        v = np.stack([t[sl], b[sl], n[sl]], -1) @ ms  # (P, 3, K): F m for every m
+        v0 = np.stack([t0[sl], b0[sl], n0[sl]], -1) @ ms
+        cross = np.linalg.norm(np.cross(v, v0, axis=1), axis=1)
+        worst[sl] = np.degrees(np.arctan2(cross, np.sum(v * v0, 1))).max(1)
     d = np.stack([t - t0, b - b0, n - n0], -1)
     return worst, np.linalg.norm(d, ord=2, axis=(-2, -1))
 
 
 def measure(surf, camera, size, methods=METHODS, modes=("fine",), keep_maps=False,
-            normal_map="constant", precision="float32", ddy="up", stored=None) -> list:
+            normal_map="constant", precision="float32", ddy="up", stored=None,
+            screen_modes_only=False) -> list:
     """One record per (method, mode): mean / p95 / max angles of the perturbed normal to
     the smooth surface's truth of the method's convention (``error_*``) and to the other
     convention's (``gradient_*`` / ``orthonormal_*``), to the mesh's own per-triangle
@@ -331,22 +344,27 @@ def measure(surf, camera, size, methods=METHODS, modes=("fine",), keep_maps=Fals
 
     ``ddy="down"`` feeds HLSL's ``ddy`` to the screen-space frames; ``stored`` (a map
     value) puts that value in the texels while the truth still decodes `MAP_VALUE` (a
-    map stored in another convention)."""
+    map stored in another convention). With ``screen_modes_only`` the frames that take no
+    screen derivatives (`jaxnm.frames.SCREEN_FRAMES` lists those that do) run with fine
+    derivatives only: with the constant map's nearest sample nothing else in their render
+    depends on the derivative mode."""
     texels = _map_texels(normal_map)
     if stored is not None:
         texels = np.broadcast_to(((np.asarray(stored) + 1) / 2).astype(np.float32),
                                  texels.shape).copy()
     options = NormalMapOptions(filter="nearest" if normal_map == "constant" else "bilinear",
                                wrap="clamp" if normal_map == "constant" else "repeat")
-    mesh = _mesh(surf)
-    if "vertex" in methods:
-        mesh = mesh.with_tangents()
+    # always with its tangents: one pytree, so every call at this size and mesh shape shares
+    # each (frame, derivatives) program, whichever methods it asks for
+    mesh = _mesh(surf).with_tangents()
     scene = Scene(mesh=mesh, camera=camera, width=size, height=size,
                   normal_map=jnp.asarray(texels), normal_map_options=options,
                   source="<frame study>", ddy=ddy)
     rows, maps = [], {}
     for mode in modes:
         for method in methods:
+            if screen_modes_only and mode != "fine" and method not in SCREEN_FRAMES:
+                continue
             out = jaxnm.render(scene, outputs=("perturbed_normal", "tangent", "bitangent",
                                                "position", "normal", "uv", "triangle_id",
                                                "mask", "front_facing"),
@@ -385,7 +403,7 @@ def measure(surf, camera, size, methods=METHODS, modes=("fine",), keep_maps=Fals
                     if keep_maps:
                         img = np.full(m.shape, np.nan)
                         img[m] = e
-                        maps[method] = img
+                        maps[method if len(modes) == 1 else f"{method} ({mode})"] = img
             e = angle(pn, perturbed(*face[own], n_px, mv))
             rec["face_mean"], rec["face_p95"] = float(e.mean()), float(np.percentile(e, 95))
             rec["face_max"] = float(e.max())
@@ -504,15 +522,18 @@ def _time_render(scene, method, reps):
 
 
 def real_mesh(asset: Path, sizes=(256, 1024), methods=METHODS, reps=5,
-              time_size=None, keep_maps=False):
+              time_size=-1, keep_maps=False, small_methods=None):
     """Each frame decoding a real baked map on a real uv layout, against the baker's decode.
 
     The reference is MikkTSpace as Blender decodes it, in float64: Blender's own corner
     tangents and signs (`blender_suzanne.py`) interpolated with the pixel's barycentric
     weights, ``B = sign N x T``, ``normalize(m.x T + m.y B + m.z N)``, with ``m`` the map
     value jaxnm sampled (trilinear, mip-mapped) at the pixel. ``ms``: the compiled,
-    steady-state time of rendering the perturbed normal (median of ``reps``);
-    ``frame_ms``: less the time of the same render with no frame (``none``)."""
+    steady-state time of rendering the perturbed normal (median of ``reps``), at
+    ``time_size`` only (-1: the largest of ``sizes``, None: every size, 0: none);
+    ``frame_ms``: less the time of the same render with no frame (``none``). With
+    ``keep_maps``, also each method's error image at the largest size. ``small_methods``:
+    the methods at the smaller sizes (default: ``methods``)."""
     d = np.load(asset)
     mesh = jaxnm.Mesh(jnp.asarray(d["positions"], jnp.float32), jnp.asarray(d["faces"],
                                                                                 jnp.int32),
@@ -520,6 +541,8 @@ def real_mesh(asset: Path, sizes=(256, 1024), methods=METHODS, reps=5,
                       jnp.asarray(d["normals"], jnp.float32)).with_tangents()
     pos, faces, nrm = d["positions"], d["faces"], d["normals"]
     rows, maps = [], {}
+    if time_size == -1:
+        time_size = max(sizes)
     for size in sizes:
         scene = Scene(mesh=mesh, camera=_suzanne_camera(), width=size, height=size,
                       normal_map=jnp.asarray(d["image"], jnp.float32),
@@ -543,7 +566,8 @@ def real_mesh(asset: Path, sizes=(256, 1024), methods=METHODS, reps=5,
         ref = _unit(t_b * mv[:, :1] + sgn * np.cross(n_b, t_b) * mv[:, 1:2] + n_b * mv[:, 2:3])
         none_ms = (_time_render(scene, "none", reps)
                    if time_size in (None, size) else None)
-        for method in methods:
+        for method in methods if small_methods is None or size == max(sizes) else [
+                m for m in methods if m in small_methods]:
             out = jaxnm.render(scene, outputs=("perturbed_normal",), frame=method)
             e = angle(np.asarray(out["perturbed_normal"], np.float64)[m], ref)
             rec = {"sweep": "real", "surface": "Suzanne", "method": method, "size": size,
@@ -556,7 +580,7 @@ def real_mesh(asset: Path, sizes=(256, 1024), methods=METHODS, reps=5,
                 rec["frame_ms"] = rec["ms"] - none_ms
                 rec["none_ms"] = none_ms
             rows.append(rec)
-            if keep_maps and size == sizes[0]:
+            if keep_maps and size == max(sizes):
                 img = np.full(m.shape, np.nan)
                 img[m] = e
                 maps[method] = img
@@ -602,11 +626,32 @@ SWEEP_MODES = ("fine", "coarse", "analytic")
 #: The screen-space frames the convention sweep feeds HLSL's ddy to.
 DDY_METHODS = ("cotangent", "nonperspective", "gram_schmidt", "separate", "cross",
                "surface_gradient")
+#: The frames of the orthographic sweep.
+ORTHO_METHODS = ("cotangent", "nonperspective", "cross", "exact")
+#: The frames of the precision sweep.
+PRECISION_METHODS = ("cotangent", "nonperspective", "exact", "exact_face", "vertex")
+#: The frames of the real asset at its smaller sizes (every frame at the largest).
+REAL_METHODS = ("cotangent", "nonperspective", "vertex", "cross", "surface_gradient")
+#: ``--quick``: these frames, fine derivatives, two or three points per sweep (a smoke test
+#: of every sweep; its numbers are not the document's).
+QUICK_METHODS = ("cotangent", "nonperspective", "vertex", "surface_gradient")
 
 
 def sweeps(size: int, quick: bool, only=DEFAULT_SWEEPS, asset: Path | None = None,
-           real_sizes=(256, 1024)) -> list:
-    rows = []
+           real_sizes=(256, 1024)) -> tuple[list, dict]:
+    """The records of the sweeps ``only``, and error images (per frame) of the real asset
+    (``real_<frame>``) and of the torus (``torus_<frame> (<derivatives>)``).
+
+    Compiled programs are shared: a render program depends on the image size, the mesh's
+    array shapes and the static options (frame, derivatives, precision, ddy, the map's
+    shape and filter), not on the camera, so the plane sweeps (one mesh shape) compile
+    each (frame, derivatives) pair once."""
+    rows, maps = [], {}
+    methods = QUICK_METHODS if quick else METHODS
+    modes = ("fine",) if quick else SWEEP_MODES
+
+    def pick(names):
+        return tuple(m for m in names if m in methods)
 
     def tag(records, **kw):
         for r in records:
@@ -621,73 +666,89 @@ def sweeps(size: int, quick: bool, only=DEFAULT_SWEEPS, asset: Path | None = Non
 
     plane = Plane(UV_LAYOUTS["sheared 30 deg"])
     base = 1.15 / math.tan(math.radians(30))
-    if "precision" in only:  # shader precision against the camera distance (close-ups)
-        for precision in ("float32", "float16", "bfloat16"):
-            for f in ((0.01, 1) if quick else (0.003, 0.03, 0.3, 3)):
-                tag(measure(plane, _camera(60, 60, dist=f * base), size,
-                            modes=("fine", "analytic"), precision=precision),
-                    sweep="precision", fov=60, view=60, distance=f, surface="plane",
-                    uv="sheared 30 deg")
-            forget()
-        for precision in ("float16", "bfloat16"):
-            tag(measure(Torus(32), _torus_camera(), size, modes=("fine", "analytic"),
-                        normal_map="rivets", precision=precision),
-                sweep="precision", surface="torus", segments=32, normals="smooth",
-                uv="surface", map="rivets")
-            forget()
     for fov in ([] if "fov" not in only else
-                (1, 30, 120) if quick else (1, 10, 30, 60, 90, 120)):
-        tag(measure(plane, _camera(45, fov), size, modes=SWEEP_MODES), sweep="fov", fov=fov,
+                (1, 120) if quick else (1, 10, 30, 60, 90, 120)):
+        tag(measure(plane, _camera(45, fov), size, methods, modes,
+                    screen_modes_only=True), sweep="fov", fov=fov,
             view=45, surface="plane", uv="sheared 30 deg")
     for view in ([] if "view angle" not in only else
-                 (0, 60, 89) if quick else (0, 30, 60, 75, 85, 89)):
-        tag(measure(plane, _camera(view, 60), size, modes=SWEEP_MODES), sweep="view angle",
+                 (0, 89) if quick else (0, 30, 60, 75, 85, 89)):
+        tag(measure(plane, _camera(view, 60), size, methods, modes,
+                    screen_modes_only=True), sweep="view angle",
             fov=60, view=view, surface="plane", uv="sheared 30 deg")
     for name, a in (UV_LAYOUTS.items() if "uv" in only else ()):
-        tag(measure(Plane(a), _camera(45, 60), size), sweep="uv", fov=60, view=45,
+        tag(measure(Plane(a), _camera(45, 60), size, methods), sweep="uv", fov=60, view=45,
             surface="plane", uv=name)
     for f in ([] if "distance" not in only else
-              (0.1, 1, 10) if quick else (0.1, 0.3, 1, 3, 10)):
-        tag(measure(plane, _camera(60, 60, dist=f * base), size, modes=SWEEP_MODES),
+              (0.1, 10) if quick else (0.1, 0.3, 1, 3, 10)):
+        tag(measure(plane, _camera(60, 60, dist=f * base), size, methods, modes,
+                    screen_modes_only=True),
             sweep="distance", fov=60, view=60, distance=f, surface="plane",
             uv="sheared 30 deg")
     for view in ([] if "orthographic" not in only else
-                 (0, 60, 89) if quick else (0, 15, 30, 45, 60, 75, 89)):
+                 (0, 60) if quick else (0, 15, 30, 45, 60, 75, 89)):
         for name in ("orthogonal", "sheared 30 deg"):
             recs = measure(Plane(UV_LAYOUTS[name]), _ortho_camera(view), size,
-                           methods=("cotangent", "nonperspective", "cross", "exact"))
+                           methods=pick(ORTHO_METHODS))
             for r in recs:
                 if r["method"] == "nonperspective":
                     r["predicted"] = nonperspective_prediction(view, UV_LAYOUTS[name])
             tag(recs, sweep="orthographic", view=view, surface="plane", uv=name,
                 camera="orthographic")
     if "conventions" in only:
-        tag(measure(plane, _camera(45, 60), size, methods=DDY_METHODS, ddy="down"),
+        tag(measure(plane, _camera(45, 60), size, ddy="down",
+                    methods=("cotangent",) if quick else DDY_METHODS),
             sweep="conventions", case="HLSL ddy", fov=60, view=45, surface="plane",
             uv="sheared 30 deg")
         green_down = MAP_VALUE * [1.0, -1.0, 1.0]
-        tag(measure(plane, _camera(45, 60), size, stored=green_down),
+        tag(measure(plane, _camera(45, 60), size, methods, stored=green_down),
             sweep="conventions", case="DirectX map read as OpenGL", fov=60, view=45,
             surface="plane", uv="sheared 30 deg")
-        for name in ("sheared 30 deg", "mirrored"):
-            tag(measure(MirrorPlane(UV_LAYOUTS[name if name != "mirrored" else "orthogonal"]),
-                        _camera(45, 60), size),
+        for name in ("sheared 30 deg", "orthogonal"):
+            tag(measure(MirrorPlane(UV_LAYOUTS[name]), _camera(45, 60), size, methods),
                 sweep="conventions", case="mirrored halves share texels", fov=60, view=45,
-                surface="mirror plane", uv=name if name != "mirrored" else "orthogonal")
-        forget()
-    if "real" in only and asset is not None:
-        rows.extend(real_mesh(asset, sizes=(128,) if quick else real_sizes, reps=3 if quick
-                              else 5, time_size=None))
-        forget()
+                surface="mirror plane", uv=name)
     if "derivatives" in only:
-        tag(measure(plane, _camera(45, 60), size, modes=DERIVATIVE_MODES),
+        # the screen-space frame in every mode; the per-triangle one with fine derivatives
+        # and with G-buffer differences (its frame takes none: only its sampling would)
+        cot, exact = pick(("cotangent",)), pick(("exact",))
+        d_modes = ("fine",) if quick else DERIVATIVE_MODES
+        tag(measure(plane, _camera(45, 60), size, cot + exact, ("gbuffer",)),
             sweep="derivatives", fov=60, view=45, surface="plane", uv="sheared 30 deg")
-    torus = Torus(32)
-    for normal_map in (("constant", "rivets") if "derivatives" in only else ()):
-        tag(measure(torus, _torus_camera(), size, modes=DERIVATIVE_MODES,
-                    normal_map=normal_map),
-            sweep="derivatives", surface="torus", segments=32, normals="smooth",
-            uv="surface", map=normal_map)
+        forget()
+        torus = Torus(32)
+        for normal_map in ("constant",) if quick else ("constant", "rivets"):
+            recs, tmaps = measure(torus, _torus_camera(), size, cot, d_modes,
+                                  normal_map=normal_map, keep_maps=True)
+            recs += measure(torus, _torus_camera(), size, exact, ("fine", "gbuffer"),
+                            normal_map=normal_map)
+            if normal_map == "constant":
+                maps.update({f"torus_{k}": v for k, v in tmaps.items()})
+            tag(recs, sweep="derivatives", surface="torus", segments=32, normals="smooth",
+                uv="surface", map=normal_map)
+            forget()
+    if "real" in only and asset is not None:
+        recs, rmaps = real_mesh(asset, sizes=(64,) if quick else real_sizes,
+                                methods=("cotangent", "vertex") if quick else methods,
+                                small_methods=REAL_METHODS, reps=5,
+                                time_size=0 if quick else -1, keep_maps=True)
+        rows.extend(recs)
+        maps.update({f"real_{k}": v for k, v in rmaps.items()})
+        forget()
+    if "precision" in only:  # shader precision against the camera distance (close-ups)
+        for precision in ("float32", "float16", "bfloat16"):
+            for f in ((0.01, 1) if quick else (0.003, 0.03, 0.3, 3)):
+                tag(measure(plane, _camera(60, 60, dist=f * base), size,
+                            pick(PRECISION_METHODS), modes=("fine", "analytic"),
+                            precision=precision),
+                    sweep="precision", fov=60, view=60, distance=f, surface="plane",
+                    uv="sheared 30 deg")
+        forget()
+        for precision in ("float32", "float16", "bfloat16"):
+            tag(measure(Torus(32), _torus_camera(), size, pick(PRECISION_METHODS),
+                        modes=("fine",), normal_map="rivets", precision=precision),
+                sweep="precision", surface="torus", segments=32, normals="smooth",
+                uv="surface", map="rivets")
         forget()
     for seg in ([] if "tessellation" not in only else (8, 32) if quick else (8, 16, 32, 64)):
         for name, surf in (("torus", Torus(seg)), ("sphere", Sphere(seg)),
@@ -703,7 +764,7 @@ def sweeps(size: int, quick: bool, only=DEFAULT_SWEEPS, asset: Path | None = Non
                     sweep="tessellation", surface=name, segments=seg, normals=normals,
                     uv="surface")
                 forget()
-    return rows
+    return rows, maps
 
 
 def _plot(rows, out: Path) -> None:
@@ -829,26 +890,27 @@ def _plot(rows, out: Path) -> None:
 
 
 def summary(rows, meta) -> dict:
-    """The rows behind the document's tables, with only the columns they show (small
-    enough to keep beside the document)."""
-    keep = ("sweep", "case", "method", "mode", "fov", "view", "distance", "uv", "surface",
-            "camera", "size", "pixels", "predicted", "ddy", "above_5deg", "ms", "frame_ms")
-    stats = ("error", "gradient", "orthonormal", "worst", "opnorm", "other_worst", "T", "B",
-             "Tlen", "Blen")
-    out = []
-    for r in rows:
-        if r["sweep"] in ("precision", "tessellation") or r.get("map") == "rivets":
-            continue
-        rec = {k: r[k] for k in keep if k in r}
-        for k in stats:
-            for q in ("mean", "p95", "max"):
-                if f"{k}_{q}" in r:
-                    rec[f"{k}_{q}"] = float(f"{r[f'{k}_{q}']:.4g}")
-        out.append(rec)
-    return {"metadata": meta, "rows": out}
+    """The rows behind the document's tables, with only the columns they show, as a table
+    (``columns``, and ``rows`` of values, None where a record has no such field; numbers
+    to 4 significant digits): small enough to keep beside the document."""
+    keep = ("sweep", "case", "method", "mode", "convention", "fov", "view", "distance", "uv",
+            "surface", "camera", "map", "precision", "segments", "normals", "size", "pixels",
+            "predicted", "ddy", "above_5deg", "ms", "frame_ms")
+    stats = [f"{k}_{q}" for k in ("error", "gradient", "orthonormal", "worst", "other_worst")
+             for q in ("mean", "p95", "max")]
+    stats += [f"{k}_{q}" for k in ("opnorm", "T", "B", "Tlen", "Blen") for q in ("p95", "max")]
+    stats += ["face_mean"]
+    cols = [k for k in keep + tuple(stats) if any(k in r for r in rows)]
+
+    def value(r, k):
+        v = r.get(k)
+        return float(f"{v:.4g}") if isinstance(v, float) else v
+
+    return {"metadata": meta, "columns": cols,
+            "rows": [[value(r, k) for k in cols] for r in rows]}
 
 
-def _error_maps(maps, path: Path) -> None:
+def _error_maps(maps, path: Path, title: str = "") -> None:
     """One panel per frame: its angle to the reference, 0 (black) to 10 degrees (white)."""
     try:
         from matplotlib.figure import Figure
@@ -864,6 +926,8 @@ def _error_maps(maps, path: Path) -> None:
         ax.set_title(name, fontsize=8)
         ax.axis("off")
     fig.colorbar(im, ax=fig.axes, shrink=0.6, label="deg")
+    if title:
+        fig.suptitle(f"{title}: angle to the reference per pixel", fontsize=9)
     fig.savefig(path)
 
 
@@ -871,7 +935,8 @@ def main(argv=None) -> None:
     argv = list(argv) if argv is not None else None
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="frames_out")
-    ap.add_argument("--size", type=int, default=128)
+    ap.add_argument("--size", type=int, default=None,
+                    help="render size of the plane and torus sweeps (default 128, --quick 32)")
     ap.add_argument("--quick", action="store_true", help="fewer sweep points (a smoke test)")
     ap.add_argument("--sweeps", default=",".join(DEFAULT_SWEEPS),
                     help="comma-separated subset of: " + ", ".join(SWEEPS) + " (default: all "
@@ -880,6 +945,8 @@ def main(argv=None) -> None:
                     help="the real asset's npz (default: OUT/suzanne.npz, baked by Blender "
                     "when missing; the real sweep is left out without Blender)")
     args = ap.parse_args(argv)
+    if args.size is None:
+        args.size = 32 if args.quick else 128
     only = SWEEPS if args.sweeps == "all" else tuple(x.strip() for x in args.sweeps.split(","))
     if bad := [x for x in only if x not in SWEEPS]:
         ap.error(f"--sweeps: unknown {bad}; expected any of {', '.join(SWEEPS)}")
@@ -891,18 +958,12 @@ def main(argv=None) -> None:
         asset = Path(args.asset) if args.asset else bake_asset(out / "suzanne.npz")
         if asset is None:
             print("no Blender environment: the real-asset sweep is left out")
-    rows = sweeps(args.size, args.quick, only, asset=asset)
+    rows, maps = sweeps(args.size, args.quick, only, asset=asset)
     _plot(rows, out)
-    _, maps = measure(Torus(32), _torus_camera(), args.size, keep_maps=True)
-    from jaxnm.io import save_png
-
-    for method, img in maps.items():
-        save_png(out / f"error_map_{method}.png",
-                 np.nan_to_num(np.clip(img / 5.0, 0, 1), nan=0.25).astype(np.float32))
-    if asset is not None and not args.quick:
-        _, rmaps = real_mesh(asset, sizes=(512,), methods=METHODS, keep_maps=True,
-                             time_size=-1)
-        _error_maps(rmaps, out / "real_error_maps.png")
+    for family, title in (("real", "Suzanne"), ("torus", "torus")):
+        fam = {k.split("_", 1)[1]: v for k, v in maps.items() if k.startswith(family + "_")}
+        if fam:
+            _error_maps(fam, out / f"{family}_error_maps.png", title)
     meta = metadata(time.perf_counter() - t0, sys.argv[1:] if argv is None else argv)
     (out / "frames.json").write_text(json.dumps({"metadata": meta, "rows": rows}, indent=1)
                                      + "\n")
