@@ -18,6 +18,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 import warnings
 
 import jax
@@ -31,6 +32,7 @@ from jaxnm.procedural import DEFAULT_FIT_EYES, default_problem
 
 SIZE, MAP, STEPS = 32, 16, 2
 TIMEOUT = 240  # seconds a pair of processes may take (a few s each when the machine is idle)
+LOST_AFTER = 20  # the dying-process test's --timeout (s)
 
 
 def _port() -> int:
@@ -194,10 +196,10 @@ def test_process_0_writes_the_checkpoints_and_both_processes_resume_from_them(pa
         np.testing.assert_array_equal(p["resumed_normals"], got["normals"])
 
 
-def _cli(fit_file, port, me, count=2, *extra):
+def _cli(fit_file, port, me, count=2, *extra, timeout=60):
     return ["fit", str(fit_file), "--distributed", "--coordinator",
             f"127.0.0.1:{port}", "--num-processes", str(count), "--process-id", str(me),
-            "--timeout", "60", "--no-progress", *map(str, extra)]
+            "--timeout", str(timeout), "--no-progress", *map(str, extra)]
 
 
 def _start_cli(args, cwd, cache, dies_after_step: int | None = None) -> subprocess.Popen:
@@ -224,11 +226,14 @@ def test_a_process_that_dies_mid_fit_stops_the_other_with_one_line(fit_file, cac
     port = _port()
     (tmp_path / "p0").mkdir()
     (tmp_path / "p1").mkdir()
-    a = _start_cli(_cli(fit_file, port, 0, 2, "-o", "out", "--checkpoint-every", 0.001),
-                   tmp_path / "p0", cache)
-    b = _start_cli(_cli(fit_file, port, 1, 2, "-o", "out", "--checkpoint-every", 0.001),
-                   tmp_path / "p1", cache, dies_after_step=1)
+    # (the coordination service notices the lost process when its heartbeat is --timeout late)
+    a = _start_cli(_cli(fit_file, port, 0, 2, "-o", "out", "--checkpoint-every", 0.001,
+                        timeout=LOST_AFTER), tmp_path / "p0", cache)
+    b = _start_cli(_cli(fit_file, port, 1, 2, "-o", "out", "--checkpoint-every", 0.001,
+                        timeout=LOST_AFTER), tmp_path / "p1", cache, dies_after_step=1)
+    t = time.perf_counter()
     (rc0, _, err0), (rc1, _, err1) = _finish([a, b])
+    assert time.perf_counter() - t < TIMEOUT / 2  # not a hang cut short by _finish
     assert rc1 == 7, err1[-3000:]
     assert rc0 == 1, err0[-3000:]
     assert "Traceback" not in err0
