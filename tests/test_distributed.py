@@ -136,18 +136,21 @@ def cache(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def pair(fit_file, cache, tmp_path_factory):
-    """Both processes' results (`_PROCESS`) and the folder they wrote into."""
+def started(fit_file, cache, tmp_path_factory):
+    """The pair of processes running `_PROCESS`, started first: the single-process
+    reference is computed while they run."""
     out = tmp_path_factory.mktemp("pair")
     port = _port()
     procs = [_start(_PROCESS, fit_file, port, i, out, cache, cache=cache) for i in range(2)]
-    for rc, stdout, stderr in _finish(procs):
-        assert rc == 0 and "DONE" in stdout, stderr[-3000:]
-    return [dict(np.load(out / f"process_{i}.npz")) for i in range(2)], out
+    yield procs, out
+    for p in procs:  # (finished by `pair`; killed here if a fixture between failed)
+        if p.poll() is None:
+            p.kill()
+            p.wait()
 
 
 @pytest.fixture(scope="module")
-def reference(fit_file):
+def reference(fit_file, started):
     """The single-process fit of the fit file: loss and gradient at the same map, result."""
     job = load_fit(fit_file)
     prep = F.prepare(job.problem)
@@ -157,6 +160,15 @@ def reference(fit_file):
         warnings.simplefilter("ignore", F.FitWarning)
         res = F.fit_normal_map(job.problem, job.options, prepared=prep, progress=False)
     return float(loss), np.asarray(grad), res
+
+
+@pytest.fixture(scope="module")
+def pair(started, reference):
+    """Both processes' results (`_PROCESS`) and the folder they wrote into."""
+    procs, out = started
+    for rc, stdout, stderr in _finish(procs):
+        assert rc == 0 and "DONE" in stdout, stderr[-3000:]
+    return [dict(np.load(out / f"process_{i}.npz")) for i in range(2)], out
 
 
 def test_fit_across_two_processes_equals_the_single_process_fit(pair, reference):
