@@ -6,10 +6,13 @@ formulas) must approach the analytic frame at the triangle's centroid as the mes
 error falls with the square of the edge length).
 """
 
+import os
+
 import numpy as np
 import pytest
 
 from scripts.studies import study_frames as S
+from scripts.studies.blender_bake_cases import blender_python
 
 
 def _face_gradient_frames(surf):
@@ -164,3 +167,36 @@ def test_hlsl_ddy_turns_the_screen_space_frame_by_180_degrees():
     r = _by_method(S.measure(S.Plane(SHEARED), S._camera(60, 60), SIZE, methods=("cotangent",),
                              ddy="down"))["cotangent"]
     assert r["T_mean"] > 179.9 and r["B_mean"] > 179.9 and r["worst_max"] > 179.0
+
+
+def test_a_map_decoded_in_the_other_convention_is_off_by_degrees():
+    """A MikkTSpace-baked map decoded with Schüler's frame (its angle to the orthonormal
+    truth), and a map baked in Schüler's frame decoded with MikkTSpace's (its angle to the
+    gradient truth), on a 30-degree shear: both off by the same 12 degrees here, while each
+    is exact against its own truth."""
+    r = _by_method(S.measure(S.Plane(SHEARED), S._camera(60, 60), SIZE,
+                             methods=("cotangent", "vertex")))
+    cot, mikk = r["cotangent"], r["vertex"]
+    assert cot["error_max"] < 1e-3 and mikk["error_max"] < 1e-3
+    assert 10.0 < cot["orthonormal_mean"] < 15.0 and 10.0 < mikk["gradient_mean"] < 15.0
+    assert cot["other_worst_max"] > 25.0 and mikk["other_worst_max"] > 25.0
+
+
+BLENDER = blender_python()
+
+
+@pytest.mark.skipif(BLENDER is None and os.environ.get("JAXNM_REQUIRE_BLENDER") != "1",
+                    reason="no Blender Python (set JAXNM_BLENDER_PYTHON or make .venv-blender "
+                    "with bpy)")
+def test_on_suzanne_only_mikktspace_decodes_blenders_bake(tmp_path):
+    """Blender's Suzanne, its uv layout and a map Cycles baked (small sizes): MikkTSpace's
+    per-vertex frame is closest to Blender's own decode, Schüler's frame is off by degrees
+    on the mean and tens of degrees at its worst pixels."""
+    assert BLENDER is not None, "JAXNM_REQUIRE_BLENDER=1 but no Blender Python was found"
+    asset = S.bake_asset(tmp_path / "suzanne.npz", size=128)
+    r = _by_method(S.real_mesh(asset, sizes=(64,), methods=("vertex", "cotangent"),
+                               time_size=0))
+    assert r["vertex"]["pixels"] > 1000
+    assert r["vertex"]["error_mean"] < 1.2
+    assert r["cotangent"]["error_mean"] > max(1.5, 2 * r["vertex"]["error_mean"])
+    assert r["cotangent"]["error_max"] > 10.0
