@@ -134,7 +134,7 @@ def test_perspective_correct_frames_are_exact_on_a_plane_and_shipped_variants_ar
     assert r["nonperspective"]["error_mean"] > 1.0
 
 
-def test_foreshortening_not_perspective_breaks_the_nonperspective_frame(sheared_plane):
+def test_foreshortening_not_perspective_breaks_the_nonperspective_frame():
     head_on = S.measure(S.Plane(SHEARED), S._ortho_camera(0), SIZE, methods=("nonperspective",))
     assert head_on[0]["worst_max"] < 1e-3
     tilted = S.measure(S.Plane(SHEARED), S._ortho_camera(60), SIZE,
@@ -145,7 +145,7 @@ def test_foreshortening_not_perspective_breaks_the_nonperspective_frame(sheared_
     assert r["cotangent"]["error_max"] < 1e-3
 
 
-def test_mirrored_halves_need_the_handedness(sheared_plane):
+def test_mirrored_halves_need_the_handedness():
     r = _by_method(S.measure(S.MirrorPlane(S.UV_LAYOUTS["orthogonal"]), S._camera(45, 60), SIZE,
                              methods=("cross", "surface_gradient", "cotangent")))
     assert r["surface_gradient"]["worst_max"] < 1e-3 and r["cotangent"]["worst_max"] < 1e-3
@@ -154,7 +154,7 @@ def test_mirrored_halves_need_the_handedness(sheared_plane):
     assert r["cross"]["T_mean"] > 45.0
 
 
-def test_a_directx_map_read_as_opengl_is_off_by_its_green_mirror(sheared_plane):
+def test_a_directx_map_read_as_opengl_is_off_by_its_green_mirror():
     flipped = S.MAP_VALUE * [1.0, -1.0, 1.0]
     r = _by_method(S.measure(S.Plane(S.UV_LAYOUTS["orthogonal"]), S._camera(60, 60), SIZE,
                              methods=("cotangent",), stored=flipped))["cotangent"]
