@@ -123,15 +123,6 @@ def _pixel_model(m, gb, lights, material, shading, strength):
     return _pixel_colors(m, gb, lights, material, shading, strength)
 
 
-def _values_and_blocks(f, m: Array) -> tuple[Array, Array]:
-    """``f(m)`` and its derivatives along each of the three map components, stacked first:
-    (3, ...) for ``m`` (K, 3). One JVP under `jax.vmap` over the basis, so that ``f`` is
-    traced once (the value does not depend on the direction and comes out unbatched)."""
-    basis = jnp.eye(3, dtype=m.dtype)
-    return jax.vmap(lambda e: jax.jvp(f, (m,), (jnp.broadcast_to(e, m.shape),)),
-                    out_axes=(None, 0))(basis)
-
-
 def _is_zero(t) -> bool:
     return isinstance(t, SymbolicZero)
 
@@ -144,9 +135,9 @@ def _pixel_model_jvp(shading, primals, tangents):
         out = None
         y = f(m)
     else:
-        # the colours and their three directional derivatives from one trace of the shading
-        # (the colours do not depend on the direction: out_axes None)
-        y, blocks = _values_and_blocks(f, m)
+        y = f(m)
+        basis = jnp.eye(3, dtype=m.dtype)
+        blocks = jax.vmap(lambda e: jax.jvp(f, (m,), (jnp.broadcast_to(e, m.shape),))[1])(basis)
         # blocks: (3, T, K, 3) = d colour / d m_k
         out = jnp.einsum("kt...c,...k->t...c", blocks, dm, precision=jax.lax.Precision.HIGHEST)
     # the other inputs (G-buffer, lights, material, strength) are constants in a fit: their
@@ -175,7 +166,9 @@ def _reduce_pixels(m, gb, lights, material, shading, strength, images, weights):
     def r_of(m_):  # (T, K, 3) weighted residuals of every target at every pixel
         return (_pixel_colors(m_, gb, lights, material, shading, strength) - images) * weights
 
-    r, B = _values_and_blocks(r_of, m)
+    r = r_of(m)
+    basis = jnp.eye(3, dtype=m.dtype)
+    B = jax.vmap(lambda e: jax.jvp(r_of, (m,), (jnp.broadcast_to(e, m.shape),))[1])(basis)
     # B: (3, T, K, 3), d r / d m_a. The Gram matrix G = B^T B and g = B^T r per pixel:
     def gram(a, b):
         return jnp.sum(B[a] * B[b], axis=(0, 2))  # sum over targets and colour channels
