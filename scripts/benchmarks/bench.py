@@ -666,7 +666,7 @@ def markdown(res: dict) -> str:
                          f"{m['well_mean_deg']} | {m['held_out_psnr_db']} |")
     c = res.get("cli")
     if c:
-        lines += ["", "| `jaxnm fit` | wall s | peak RSS MB | result |", "|---|---|---|---|"]
+        lines += ["", "| `jaxnm fit` | wall s | peak RSS MiB | result |", "|---|---|---|---|"]
         for k in ("cold", "warm"):
             lines.append(f"| {k} cache | {c[k]['wall_s']} | {c[k]['peak_rss_mb']} | "
                          f"{c[k]['summary']} |")
