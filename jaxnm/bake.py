@@ -31,7 +31,7 @@ import numpy as np
 from . import frames as _frames
 from .geometry import Mesh
 
-__all__ = ["BAKE_FRAMES", "texel_uv", "locate_texels", "bake_normal_map"]
+__all__ = ["BAKE_FRAMES", "texel_uv", "locate_texels", "world_to_tangent", "bake_normal_map"]
 
 #: The frame conventions `bake_normal_map` can bake for (``"exact"`` is ``"cotangent"``).
 BAKE_FRAMES = ("cotangent", "exact", "vertex", "vertex_area")
@@ -71,35 +71,37 @@ def locate_texels(mesh: Mesh, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray,
     return tri, bary
 
 
-def bake_normal_map(mesh: Mesh, normal_at_uv: Callable[[np.ndarray, np.ndarray], np.ndarray],
-                    map_hw: tuple[int, int], *, frame: str = "vertex",
-                    fill: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
-    """Bake the normals ``normal_at_uv(u, v) -> (N, 3)`` into a tangent-space map for
-    ``frame`` (one of `BAKE_FRAMES`).
-
-    **Arguments:**
-    - `mesh`: the (low-poly) mesh with uv and vertex normals; ``"vertex"`` needs its
-      MikkTSpace tangents (`Mesh.with_tangents`).
-    - `normal_at_uv`: the target unit normals (world space) at flat arrays of u and v.
-    - `map_hw`: ``(height, width)`` of the map.
-    - `fill`: the value of texels no uv triangle covers.
-
-    **Returns:** ``(h, w, 3)`` float32 signed unit vectors (decode them with
-    ``NormalMapOptions(encoding="signed")``; `jaxnm.textures.encode_normal_map` makes an
-    8-bit image), uv origin at the bottom left.
-    """
+def _check_bakeable(mesh: Mesh, frame: str, caller: str) -> None:
     if frame not in BAKE_FRAMES:
-        raise ValueError(f"bake_normal_map: cannot bake for frame {frame!r}; expected one of "
+        raise ValueError(f"{caller}: cannot bake for frame {frame!r}; expected one of "
                          f"{', '.join(BAKE_FRAMES)} (the others depend on the camera)")
     if mesh.normals is None:
-        raise ValueError("bake_normal_map: the mesh has no vertex normals")
+        raise ValueError(f"{caller}: the mesh has no vertex normals")
     if frame == "vertex" and mesh.tangents is None:
-        raise ValueError("bake_normal_map: frame 'vertex' needs the mesh's MikkTSpace "
+        raise ValueError(f"{caller}: frame 'vertex' needs the mesh's MikkTSpace "
                          "tangents (Mesh.with_tangents())")
-    u, v = texel_uv(map_hw)
-    tri, bary = locate_texels(mesh, u, v)
-    hit = tri >= 0
-    tri, bary = tri[hit], bary[hit]
+
+
+def world_to_tangent(mesh: Mesh, tri: np.ndarray, bary: np.ndarray, normals: np.ndarray, *,
+                     frame: str = "vertex",
+                     fill: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """The tangent-space vectors that decode to the world-space ``normals`` at the mesh
+    points ``(tri, bary)`` in ``frame`` (one of `BAKE_FRAMES`): per point the frame is
+    built exactly as the renderer builds it there (`jaxnm.frames`, float32) and inverted,
+    ``m = normalize([T B N]^-1 n)``.
+
+    **Arguments:**
+    - `mesh`: the mesh with uv and vertex normals; ``"vertex"`` needs its MikkTSpace
+      tangents (`Mesh.with_tangents`).
+    - `tri`: ``(N,)`` face index of each point; `bary`: ``(N, 3)`` its barycentrics.
+    - `normals`: ``(N, 3)`` world-space target normals (any length but zero).
+    - `fill`: the result where the frame is degenerate (or the target is zero).
+
+    **Returns:** ``(N, 3)`` float64 unit vectors.
+    """
+    _check_bakeable(mesh, frame, "world_to_tangent")
+    tri = np.asarray(tri)
+    bary = np.asarray(bary, np.float64)
     faces = np.asarray(mesh.faces)[tri]
 
     def corners(a):
@@ -124,11 +126,39 @@ def bake_normal_map(mesh: Mesh, normal_at_uv: Callable[[np.ndarray, np.ndarray],
         fr = _frames.compute_frame("vertex_area", N=f32(n_unit), tangent=f32(interp(corners(vt))))
     basis = np.stack([np.asarray(fr.T, np.float64), np.asarray(fr.B, np.float64),
                       np.asarray(fr.N, np.float64)], -1)  # columns T, B, N
-    target = np.asarray(normal_at_uv(u.ravel()[hit], v.ravel()[hit]), np.float64)
+    target = np.asarray(normals, np.float64)
     ok = np.abs(np.linalg.det(basis)) > 1e-12  # a degenerate frame stores the fill value
     m = np.tile(np.asarray(fill, np.float64), (len(tri), 1))
     m[ok] = np.linalg.solve(basis[ok], target[ok][..., None])[..., 0]
-    m /= np.linalg.norm(m, axis=-1, keepdims=True)
+    length = np.linalg.norm(m, axis=-1, keepdims=True)
+    bad = ~(length[:, 0] > 0)
+    m[bad] = fill
+    return m / np.linalg.norm(m, axis=-1, keepdims=True)
+
+
+def bake_normal_map(mesh: Mesh, normal_at_uv: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                    map_hw: tuple[int, int], *, frame: str = "vertex",
+                    fill: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """Bake the normals ``normal_at_uv(u, v) -> (N, 3)`` into a tangent-space map for
+    ``frame`` (one of `BAKE_FRAMES`).
+
+    **Arguments:**
+    - `mesh`: the (low-poly) mesh with uv and vertex normals; ``"vertex"`` needs its
+      MikkTSpace tangents (`Mesh.with_tangents`).
+    - `normal_at_uv`: the target unit normals (world space) at flat arrays of u and v.
+    - `map_hw`: ``(height, width)`` of the map.
+    - `fill`: the value of texels no uv triangle covers.
+
+    **Returns:** ``(h, w, 3)`` float32 signed unit vectors (decode them with
+    ``NormalMapOptions(encoding="signed")``; `jaxnm.textures.encode_normal_map` makes an
+    8-bit image), uv origin at the bottom left.
+    """
+    _check_bakeable(mesh, frame, "bake_normal_map")
+    u, v = texel_uv(map_hw)
+    tri, bary = locate_texels(mesh, u, v)
+    hit = tri >= 0
+    target = np.asarray(normal_at_uv(u.ravel()[hit], v.ravel()[hit]), np.float64)
+    m = world_to_tangent(mesh, tri[hit], bary[hit], target, frame=frame, fill=fill)
     out = np.tile(np.asarray(fill, np.float32), (u.size, 1))
     out[hit] = m
     return out.reshape(*map_hw, 3)
