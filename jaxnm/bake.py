@@ -23,8 +23,10 @@ float64 on the host, with the frames built by `jaxnm.frames` (float32).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -82,6 +84,16 @@ def _check_bakeable(mesh: Mesh, frame: str, caller: str) -> None:
                          "tangents (Mesh.with_tangents())")
 
 
+@functools.partial(jax.jit, static_argnames="frame")
+def _frame_of(frame: str, *args) -> _frames.Frame:
+    """The renderer's frame at points, from `world_to_tangent`'s interpolated attributes."""
+    if frame in ("cotangent", "exact"):
+        return _frames.exact_frame(*args)
+    if frame == "vertex":
+        return _frames.compute_frame("vertex", N=args[0], tangent=args[1])
+    return _frames.compute_frame("vertex_area", N=args[0], tangent=args[1])
+
+
 def world_to_tangent(mesh: Mesh, tri: np.ndarray, bary: np.ndarray, normals: np.ndarray, *,
                      frame: str = "vertex",
                      fill: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
@@ -102,6 +114,11 @@ def world_to_tangent(mesh: Mesh, tri: np.ndarray, bary: np.ndarray, normals: np.
     _check_bakeable(mesh, frame, "world_to_tangent")
     tri = np.asarray(tri)
     bary = np.asarray(bary, np.float64)
+    n_points = len(tri)
+    # pad to a power of two (>= 1024) so that the frame is compiled for few shapes
+    size = max(1024, 1 << max(0, n_points - 1).bit_length())
+    tri = np.concatenate([tri, np.zeros(size - n_points, tri.dtype)])
+    bary = np.concatenate([bary, np.full((size - n_points, 3), 1.0 / 3.0)])
     faces = np.asarray(mesh.faces)[tri]
 
     def corners(a):
@@ -110,22 +127,19 @@ def world_to_tangent(mesh: Mesh, tri: np.ndarray, bary: np.ndarray, normals: np.
     def interp(c):
         return np.einsum("tk,tkc->tc", bary, c)
 
-    def f32(x):
-        return jnp.asarray(x, jnp.float32)
-
     n = interp(corners(mesh.normals))
     n_unit = n / np.linalg.norm(n, axis=-1, keepdims=True)
     if frame in ("cotangent", "exact"):
-        fr = _frames.exact_frame(f32(corners(mesh.positions)), f32(corners(mesh.uv)),
-                                 f32(n_unit))
+        args = (corners(mesh.positions), corners(mesh.uv), n_unit)
     elif frame == "vertex":  # per face corner, reconstructed as the renderer does
-        t = interp(np.asarray(mesh.tangents, np.float64)[tri])
-        fr = _frames.compute_frame("vertex", N=f32(n), tangent=f32(t))
+        args = (n, interp(np.asarray(mesh.tangents, np.float64)[tri]))
     else:
         vt = _frames.vertex_tangents(mesh.positions, mesh.normals, mesh.uv, mesh.faces)
-        fr = _frames.compute_frame("vertex_area", N=f32(n_unit), tangent=f32(interp(corners(vt))))
+        args = (n_unit, interp(corners(vt)))
+    fr = _frame_of(frame, *(jnp.asarray(a, jnp.float32) for a in args))
     basis = np.stack([np.asarray(fr.T, np.float64), np.asarray(fr.B, np.float64),
-                      np.asarray(fr.N, np.float64)], -1)  # columns T, B, N
+                      np.asarray(fr.N, np.float64)], -1)[:n_points]  # columns T, B, N
+    tri = tri[:n_points]
     target = np.asarray(normals, np.float64)
     ok = np.abs(np.linalg.det(basis)) > 1e-12  # a degenerate frame stores the fill value
     m = np.tile(np.asarray(fill, np.float64), (len(tri), 1))

@@ -1,0 +1,553 @@
+"""Ray-cast baking: a tangent-space normal map of a high-poly mesh on a low-poly mesh's uv
+layout, with the semantics of Blender's "selected to active" bake (Cycles).
+
+Per texel of LOW's uv layout (`jaxnm.transfer._texels`, texel centres; where uv triangles
+overlap, the one with the highest index holds the texel, as in Blender, which draws them in
+order):
+
+1. **The ray.** The texel's point ``p`` on LOW and LOW's interpolated normal there,
+   normalised, ``n``. With an extrusion ``cage`` (Blender's "Extrusion") the ray starts at
+   ``p + cage n`` and runs along ``-n``; with a ``cage_mesh`` (Blender's "Cage Object", the
+   same triangles as LOW) it starts at the same barycentric point ``c`` of the cage and
+   runs towards ``p``, ``normalize(p - c)``, and on past it. The ray takes the *nearest*
+   hit on HIGH in front of its origin, front or back face alike, and ``max_distance``
+   (Blender's "Max Ray Distance", 0 = unlimited) bounds the distance from the origin
+   (``calc_point_from_barycentric_extrusion``, ``calc_point_from_barycentric_cage`` and
+   ``cast_ray_highpoly`` in Blender's ``source/blender/render/intern/bake.cc``).
+2. **The normal.** HIGH's interpolated shading normal at the hit, ``normalize(sum_i b_i
+   n_i)`` with its vertex normals (the face normal where that vanishes), in world space
+   (Cycles' ``triangle_smooth_normal``, which ``integrator_init_from_bake`` in
+   ``intern/cycles/kernel/integrator/init_from_bake.h`` writes to the normal pass).
+3. **Samples.** Sample 0 is the hit itself. Cycles casts no further rays: samples ``k >=
+   1`` move the hit *within its HIGH triangle* by ``(r - 1/2)`` times the texel's
+   differentials, ``r`` uniform in ``[0, 1)^2`` (no pixel filter: Blender's filter type and
+   width do not enter bakes), trying up to 10 draws to land strictly inside the triangle and
+   keeping the hit itself otherwise (``bake_jitter_barycentric``). The differentials are
+   half a texel's step of LOW's (or the cage's) surface point (``bake_differentials`` scales
+   them by 1/2), carried along the ray onto the HIGH triangle's plane (``cast_ray_highpoly``).
+   The world-space normals of the samples are averaged, not renormalised.
+4. **The frame.** The average goes into tangent space at the texel's own point on LOW
+   (`jaxnm.bake.world_to_tangent`: MikkTSpace for ``frame="vertex"``, as Blender's
+   ``RE_bake_normal_world_to_tangent``, or Schüler's cotangent frame).
+5. **Margin.** Texels whose ray hit nothing keep no value (they are reported), and
+   ``margin`` passes of Blender's "extend" filter fill the texels around the islands
+   (`jaxnm.transfer._texels.extend_margin`; Blender uses this margin type for every
+   tangent-space normal bake, ``bake_init_api_data`` in
+   ``source/blender/editors/object/object_bake_api.cc``).
+
+The differences from Blender: texel centres are exact (Blender shifts them by 0.001 and
+0.002 texel to dodge ties), rays leave along LOW's own ``normals`` (Blender uses the vertex
+normals it computes, angle-weighted, for smooth faces and face normals for flat ones: they
+agree for a smooth LOW whose normals are angle-weighted, `jaxnm.geometry.vertex_normals`),
+and the random numbers are a hash of the texel and the sample, not Cycles' sequence.
+
+The rays are cast with Embree (``embreex``, robust mode: a ray through an edge or a vertex
+shared by triangles hits one of them), in chunks of texels, so the memory is bounded
+whatever the map's size; the result does not depend on the chunk size.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import warnings
+
+import numpy as np
+
+from ..bake import world_to_tangent
+from ..geometry import Mesh, vertex_normals
+from ..io import JaxnmWarning
+from ._texels import extend_margin, rasterize_uv, uv_box
+
+__all__ = ["RAYCAST_FRAMES", "BakeWarning", "RaycastBake", "raycast_normal_map"]
+
+#: The frames `raycast_normal_map` bakes for (``"vertex"``: MikkTSpace, as Blender).
+RAYCAST_FRAMES = ("vertex", "cotangent")
+#: Jitter draws per sample before a sample keeps the hit itself (Cycles' limit).
+_JITTER_TRIES = 10
+#: Texels per chunk of rays at one sample per texel (fewer at more samples).
+_CHUNK = 1 << 18
+
+
+class BakeWarning(JaxnmWarning):
+    """Something in a bake's input deserves attention but the bake went on: rays that hit
+    nothing, overlapping uv islands, degenerate or non-manifold triangles."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RaycastBake:
+    """The result of `raycast_normal_map`. Maps are in image layout (row 0 on top, uv origin
+    at the bottom left), like `jaxnm.bake.bake_normal_map`'s.
+
+    **Fields:**
+    - `normals`: ``(h, w, 3)`` float32 unit tangent-space vectors, signed (decode with
+      ``NormalMapOptions(encoding="signed")`` in `frame`); ``(0, 0, 1)`` where neither a
+      ray nor the margin gave a value. This is what ``jaxnm fit`` writes to
+      ``normal_map.npz`` under ``normals``.
+    - `inside`: ``(h, w)`` bool, texels whose centre lies in one of LOW's uv triangles.
+    - `missed`: ``(h, w)`` bool, texels inside whose ray hit nothing (before the margin).
+    - `filled`: ``(h, w)`` bool, texels holding a value: the hits and the margin.
+    - `face`: ``(h, w)`` int32, LOW's triangle holding each texel (-1 outside).
+    - `texels_inside`, `texels_missed`: the counts of `inside` and `missed`.
+    - `missed_uv_box`: ``(u0, v0, u1, v1)`` bounding the missed texels, or None.
+    - `missed_faces`: LOW's triangles with missed texels, ascending.
+    - `overlapping`: the count of texels strictly inside two or more uv triangles.
+    - `cage`: the extrusion the rays started from (None with a cage mesh).
+    - `cage_source`: ``"given"``, ``"automatic"`` (chosen by `raycast_normal_map`) or
+      ``"mesh"``.
+    - `max_distance`: the ray length bound (0: unlimited); `samples`: per texel;
+      `frame`: the tangent frame; `margin`: the margin's passes.
+    - `seconds`: the whole bake's wall time; `timings`: seconds per stage.
+    """
+
+    normals: np.ndarray
+    inside: np.ndarray
+    missed: np.ndarray
+    filled: np.ndarray
+    face: np.ndarray
+    texels_inside: int
+    texels_missed: int
+    missed_uv_box: tuple[float, float, float, float] | None
+    missed_faces: np.ndarray
+    overlapping: int
+    cage: float | None
+    cage_source: str
+    max_distance: float
+    samples: int
+    frame: str
+    margin: int
+    seconds: float
+    timings: dict[str, float]
+
+
+# ----------------------------------------------------------------------------- the ray engine
+
+
+class _Embree:
+    """HIGH's triangles in an Embree scene (robust mode) and the nearest hit of rays."""
+
+    def __init__(self, positions: np.ndarray, faces: np.ndarray):
+        try:
+            from embreex import mesh_construction, rtcore_scene
+        except ImportError:
+            raise ImportError('ray-cast baking needs Embree (embreex): pip install -e ".[bake]"'
+                              ) from None
+        self._scene = rtcore_scene.EmbreeScene(robust=True)
+        self._mesh = mesh_construction.TriangleMesh(
+            self._scene, np.ascontiguousarray(positions, np.float32),
+            np.ascontiguousarray(faces, np.int32))
+
+    def cast(self, origins: np.ndarray, directions: np.ndarray, max_distance: float):
+        """(triangle or -1, Embree's barycentrics u and v, distance) of the nearest hit."""
+        o = np.ascontiguousarray(origins, np.float32)
+        d = np.ascontiguousarray(directions, np.float32)
+        far = None
+        if max_distance > 0:
+            far = np.full(len(o), max_distance, np.float32)
+        r = self._scene.run(o, d, dists=far, output=1)
+        return (r["primID"].astype(np.int64), r["u"].astype(np.float64),
+                r["v"].astype(np.float64), r["tfar"].astype(np.float64))
+
+
+# ----------------------------------------------------------------------------- inputs
+
+
+def _check_mesh(mesh: Mesh, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """Host float64 positions and int64 faces, or ValueError naming the mesh."""
+    p = np.asarray(mesh.positions, np.float64)
+    f = np.asarray(mesh.faces)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
+        raise ValueError(f"{name}: positions must have shape (V, 3), got {p.shape}")
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or not np.issubdtype(f.dtype, np.integer):
+        raise ValueError(f"{name}: faces must be integer triangles (F, 3), got {f.shape} "
+                         f"{f.dtype}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"{name}: vertex positions are NaN or infinite")
+    if f.min() < 0 or f.max() >= len(p):
+        raise ValueError(f"{name}: face indices must be in [0, {len(p) - 1}]")
+    return p, f.astype(np.int64)
+
+
+def _with_normals(mesh: Mesh, name: str) -> Mesh:
+    if mesh.normals is not None:
+        n = np.asarray(mesh.normals)
+        if n.shape != np.shape(mesh.positions) or not np.all(np.isfinite(n)):
+            raise ValueError(f"{name}: normals must be finite with shape (V, 3), got {n.shape}")
+        return mesh
+    return dataclasses.replace(mesh, normals=vertex_normals(mesh.positions, mesh.faces))
+
+
+def _prepare_low(low: Mesh, frame: str, name: str) -> Mesh:
+    """LOW with uvs checked, normals (angle-weighted where it has none) and, for
+    ``"vertex"``, MikkTSpace tangents; warns about degenerate and non-manifold triangles."""
+    p, f = _check_mesh(low, name)
+    if low.uv is None:
+        raise ValueError(f"{name}: the mesh has no texture coordinates (uv); a normal map is "
+                         "baked into the low-poly mesh's uv layout")
+    uv = np.asarray(low.uv)
+    if uv.shape != (len(p), 2) or not np.all(np.isfinite(uv)):
+        raise ValueError(f"{name}: uv must be finite with shape ({len(p)}, 2), got {uv.shape}")
+    low = _with_normals(low, name)
+    if frame == "vertex" and low.tangents is None:
+        low = low.with_tangents()
+    _warn_bad_triangles(p, f, name)
+    return low
+
+
+def _warn_bad_triangles(p: np.ndarray, f: np.ndarray, name: str) -> None:
+    """`BakeWarning`s for zero-area triangles and for edges that more than two triangles
+    share (after welding equal positions)."""
+    q = p[f]
+    area2 = np.linalg.norm(np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), axis=-1)
+    scale = max(float(np.abs(p).max()), np.finfo(np.float64).tiny)
+    bad = np.flatnonzero(area2 <= (1e-12 * scale) ** 2)
+    if bad.size:
+        warnings.warn(f"{name}: {bad.size} degenerate (zero-area) triangles (first: face "
+                      f"{bad[0]}); their texels have no tangent frame and keep (0, 0, 1)",
+                      BakeWarning, stacklevel=3)
+    _, weld = np.unique(p, axis=0, return_inverse=True)
+    t = weld.reshape(-1)[f]
+    e = np.sort(np.stack([t, np.roll(t, -1, axis=1)], -1).reshape(-1, 2), axis=1)
+    e = e[e[:, 0] != e[:, 1]]
+    edges, counts = np.unique(e, axis=0, return_counts=True)
+    many = counts > 2
+    if many.any():
+        a, b = edges[np.argmax(many)]
+        warnings.warn(f"{name}: {int(many.sum())} edges are shared by more than two triangles "
+                      f"(non-manifold; first: the edge at {p[np.argmax(weld == a)].round(4)} - "
+                      f"{p[np.argmax(weld == b)].round(4)}); rays near them leave from every "
+                      "sheet", BakeWarning, stacklevel=3)
+
+
+def _check_options(size, frame, cage, cage_mesh, max_distance, samples, margin):
+    hw = (size, size) if np.ndim(size) == 0 else tuple(size)
+    if len(hw) != 2 or not all(int(x) == x and x > 0 for x in hw):
+        raise ValueError(f"raycast_normal_map: size must be a positive int or (height, width), "
+                         f"got {size!r}")
+    if frame not in RAYCAST_FRAMES:
+        raise ValueError(f"raycast_normal_map: frame must be one of {', '.join(RAYCAST_FRAMES)}"
+                         f", got {frame!r}")
+    if cage is not None and cage_mesh is not None:
+        raise ValueError("raycast_normal_map: give an extrusion `cage` or a `cage_mesh`, not both")
+    for what, x in (("cage", cage), ("max_distance", max_distance)):
+        if x is not None and not (np.isfinite(x) and x >= 0):
+            raise ValueError(f"raycast_normal_map: {what} must be finite and >= 0, got {x!r}")
+    if int(samples) != samples or samples < 1:
+        raise ValueError(f"raycast_normal_map: samples must be an int >= 1, got {samples!r}")
+    if int(margin) != margin or margin < 0:
+        raise ValueError(f"raycast_normal_map: margin must be an int >= 0, got {margin!r}")
+    return int(hw[0]), int(hw[1])
+
+
+def _check_cage_mesh(cage_mesh: Mesh | None, low: Mesh, name: str) -> np.ndarray | None:
+    if cage_mesh is None:
+        return None
+    p, f = _check_mesh(cage_mesh, name)
+    if f.shape != np.shape(low.faces) or not np.array_equal(f, np.asarray(low.faces)):
+        raise ValueError(f"{name}: a cage mesh must have the low-poly mesh's triangles "
+                         f"({np.shape(low.faces)[0]} faces, the same vertex indices), got "
+                         f"{f.shape[0]} faces")
+    return p
+
+
+def _warn_overlap(cover, name: str) -> None:
+    k = int(cover.overlapping.sum())
+    if k:
+        faces = " and ".join(str(i) for i in cover.overlap_faces)
+        warnings.warn(f"{name}: {k} texels lie inside more than one uv triangle (overlapping "
+                      f"uv islands; first: faces {faces}); each such texel is baked from the "
+                      "triangle with the highest index, as Blender does", BakeWarning,
+                      stacklevel=3)
+
+
+# ----------------------------------------------------------------------------- per texel
+
+
+@dataclasses.dataclass(frozen=True)
+class _Low:
+    """What the rays need of LOW: positions, ray normals, the cage's positions (or None),
+    and per face the jitter steps ``dxco``, ``dyco`` (half a texel's step of the surface
+    point along +u and +v, on the cage mesh when there is one, as in Blender)."""
+
+    faces: np.ndarray
+    positions: np.ndarray
+    normals: np.ndarray
+    cage_positions: np.ndarray | None
+    dxco: np.ndarray
+    dyco: np.ndarray
+
+    @staticmethod
+    def build(low: Mesh, cage_positions: np.ndarray | None, hw: tuple[int, int]) -> _Low:
+        faces = np.asarray(low.faces, np.int64)
+        pos = np.asarray(low.positions, np.float64)
+        q = (pos if cage_positions is None else cage_positions)[faces]
+        t = np.asarray(low.uv, np.float64)[faces]
+        e1, e2 = q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]
+        d1, d2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+        det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+        # Blender leaves the differentials at zero below FLT_EPSILON of doubled pixel area
+        ok = (np.abs(det) * hw[0] * hw[1] > np.finfo(np.float32).eps)[:, None]
+        safe = np.where(ok[:, 0], det, 1.0)[:, None]
+        dpdu = np.where(ok, (e1 * d2[:, 1:] - e2 * d1[:, 1:]) / safe, 0.0)
+        dpdv = np.where(ok, (e2 * d1[:, :1] - e1 * d2[:, :1]) / safe, 0.0)
+        return _Low(faces, pos, np.asarray(low.normals, np.float64), cage_positions,
+                    0.5 * dpdu / hw[1], 0.5 * dpdv / hw[0])
+
+
+def _rays(low: _Low, tri: np.ndarray, bary: np.ndarray, cage: float | None):
+    """Ray origins and unit directions of texels ``(tri, bary)`` (Blender's, see the module
+    docstring), and whether each is defined (a zero normal or cage offset gives none)."""
+    fc = low.faces[tri]
+    p = np.einsum("tk,tkc->tc", bary, low.positions[fc])
+    if low.cage_positions is None:
+        d = np.einsum("tk,tkc->tc", bary, low.normals[fc])
+    else:
+        origin = np.einsum("tk,tkc->tc", bary, low.cage_positions[fc])
+        d = p - origin
+    length = np.linalg.norm(d, axis=-1, keepdims=True)
+    ok = length[:, 0] > 0
+    d = np.where(ok[:, None], d / np.where(ok[:, None], length, 1.0), [0.0, 0.0, 1.0])
+    if low.cage_positions is None:
+        return p + cage * d, -d, ok
+    return origin, d, ok
+
+
+def _hash(x: np.ndarray) -> np.ndarray:
+    """A 32-bit integer hash (lowbias32) of each element of ``x`` (uint32)."""
+    x = x ^ (x >> np.uint32(16))
+    x = x * np.uint32(0x7FEB352D)
+    x = x ^ (x >> np.uint32(15))
+    x = x * np.uint32(0x846CA68B)
+    return x ^ (x >> np.uint32(16))
+
+
+def _uniform(keys: np.ndarray, *salt: int) -> np.ndarray:
+    """Uniform numbers in [0, 1) that depend only on each texel's key and the salt."""
+    x = keys
+    for s in salt:
+        x = _hash(x ^ _hash(np.full(1, s, np.uint32)))
+    return (x >> np.uint32(8)).astype(np.float64) * 2.0 ** -24
+
+
+class _HighHits:
+    """HIGH's triangles at a chunk's hits, and the normal at barycentrics there."""
+
+    def __init__(self, positions, faces, normals, prim):
+        f = faces[prim]
+        self.p = positions[f]  # (n, 3, 3)
+        self.n = normals[f]
+        ng = np.cross(self.p[:, 1] - self.p[:, 0], self.p[:, 2] - self.p[:, 0])
+        self.ng = ng / np.maximum(np.linalg.norm(ng, axis=-1, keepdims=True), 1e-300)
+
+    def normal(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Cycles' smooth normal at Blender's barycentrics ``(a, b)`` (weights of corners 0
+        and 1): the interpolated vertex normals, normalised, or the face normal."""
+        n = (a[:, None] * self.n[:, 0] + b[:, None] * self.n[:, 1]
+             + (1.0 - a - b)[:, None] * self.n[:, 2])
+        length = np.linalg.norm(n, axis=-1, keepdims=True)
+        return np.where(length > 0, n / np.where(length > 0, length, 1.0), self.ng)
+
+    def differentials(self, direction, dxco, dyco):
+        """Blender's barycentric differentials on the hit triangles: the texel steps carried
+        along the ray onto the triangle's plane, in the corner-2-based edge basis."""
+        cos = np.sum(direction * self.ng, -1, keepdims=True)
+        cos = np.where(cos == 0, np.inf, cos)
+        e0 = self.p[:, 0] - self.p[:, 2]
+        e1 = self.p[:, 1] - self.p[:, 2]
+        g00, g01, g11 = (np.sum(e0 * e0, -1), np.sum(e0 * e1, -1), np.sum(e1 * e1, -1))
+        det = g00 * g11 - g01 * g01
+        det = np.where(det == 0, np.inf, det)
+        out = []
+        for step in (dxco, dyco):
+            d = step - direction * (np.sum(step * self.ng, -1, keepdims=True) / cos)
+            r0, r1 = np.sum(e0 * d, -1), np.sum(e1 * d, -1)
+            out.append(((g11 * r0 - g01 * r1) / det, (g00 * r1 - g01 * r0) / det))
+        (dudx, dvdx), (dudy, dvdy) = out
+        return dudx, dudy, dvdx, dvdy
+
+
+def _average_normal(hits: _HighHits, a, b, diffs, keys, samples: int) -> np.ndarray:
+    """The mean world-space normal of Cycles' ``samples`` samples about the hit ``(a, b)``:
+    sample 0 at the hit, the others jittered within the hit triangle (module docstring)."""
+    acc = hits.normal(a, b)
+    dudx, dudy, dvdx, dvdy = diffs
+    for s in range(1, samples):
+        ja, jb = a.copy(), b.copy()
+        todo = np.arange(len(a))
+        for attempt in range(_JITTER_TRIES):
+            rx = _uniform(keys[todo], s, attempt, 0) - 0.5
+            ry = _uniform(keys[todo], s, attempt, 1) - 0.5
+            ca = a[todo] + rx * dudx[todo] + ry * dudy[todo]
+            cb = b[todo] + rx * dvdx[todo] + ry * dvdy[todo]
+            ok = (ca > 0) & (cb > 0) & (ca + cb < 1)
+            ja[todo[ok]], jb[todo[ok]] = ca[ok], cb[ok]
+            todo = todo[~ok]
+            if todo.size == 0:
+                break
+        acc = acc + hits.normal(ja, jb)
+    return acc / samples
+
+
+# ----------------------------------------------------------------------------- the bake
+
+
+def _automatic_cage(engine: _Embree, low: _Low, tri, bary, chunks) -> float:
+    """The smallest extrusion that starts every texel's ray outside HIGH where HIGH lies
+    outside LOW: per texel, rays from LOW's point along +n and -n find the nearest HIGH
+    surface each way; where the outward one is nearer, HIGH is outside there, and the cage
+    must clear it. 5% more than the largest such distance, plus 1e-4 of LOW's size (so
+    that rays never start on HIGH where the two coincide)."""
+    need = 0.0
+    for sl in chunks:
+        origin, d, ok = _rays(low, tri[sl], bary[sl], 0.0)  # origin = p, d = -n
+        prim_out, _, _, t_out = engine.cast(origin, -d, 0.0)
+        prim_in, _, _, t_in = engine.cast(origin, d, 0.0)
+        outside = ok & (prim_out >= 0) & ((prim_in < 0) | (t_out < t_in))
+        if outside.any():
+            need = max(need, float(t_out[outside].max()))
+    size = float(np.linalg.norm(np.ptp(low.positions, axis=0)))
+    return 1.05 * need + 1e-4 * size
+
+
+def _bake_chunk(engine, high, low, tri, bary, keys, cage, max_distance, samples):
+    """World-space normals and hit flags of one chunk of texels."""
+    origin, direction, ok = _rays(low, tri, bary, cage)
+    prim, u, v, _ = engine.cast(origin, direction, max_distance)
+    hit = ok & (prim >= 0)
+    world = np.zeros((len(tri), 3))
+    if hit.any():
+        hits = _HighHits(*high, prim[hit])
+        a, b = 1.0 - u[hit] - v[hit], u[hit]  # Blender's weights of corners 0 and 1
+        diffs = ((None,) * 4 if samples == 1 else
+                 hits.differentials(direction[hit], low.dxco[tri[hit]], low.dyco[tri[hit]]))
+        world[hit] = _average_normal(hits, a, b, diffs, keys[hit], samples)
+    return world, hit
+
+
+def _report_misses(missed: np.ndarray, face: np.ndarray, n_inside: int, cage, source: str,
+                   high_name: str, low_name: str):
+    box = uv_box(missed)
+    faces = np.unique(face[missed])
+    if missed.any():
+        where = ", ".join(str(i) for i in faces[:8]) + (", ..." if faces.size > 8 else "")
+        cage_txt = "the cage mesh" if cage is None else f"{source} cage {cage:.6g}"
+        warnings.warn(f"{low_name}: the rays of {int(missed.sum())} of {n_inside} texels hit "
+                      f"nothing on {high_name} ({cage_txt}): uv [{box[0]:.4f}, {box[1]:.4f}] "
+                      f"to [{box[2]:.4f}, {box[3]:.4f}], faces {where}; the margin fills them "
+                      "where it reaches", BakeWarning, stacklevel=3)
+    return box, faces
+
+
+def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
+                       frame: str = "vertex", cage: float | None = None,
+                       cage_mesh: Mesh | None = None, max_distance: float = 0.0,
+                       samples: int = 1, margin: int = 16, seed: int = 0,
+                       chunk_texels: int | None = None, high_name: str = "HIGH",
+                       low_name: str = "LOW") -> RaycastBake:
+    """Bake HIGH's normals into a tangent-space map on LOW's uv layout by casting rays, as
+    Blender's Cycles "selected to active" bake does (the module docstring has the rules and
+    the Blender sources they follow).
+
+    **Arguments:**
+    - `high`: the detailed mesh; its vertex normals are interpolated at the hits
+      (angle-weighted normals are computed where it has none, as Blender does).
+    - `low`: the mesh whose uv layout the map covers; needs uvs; its normals aim the rays
+      and, with its MikkTSpace tangents (computed where it has none), give the frame.
+    - `size`: the map's side, or ``(height, width)``.
+    - `frame`: one of `RAYCAST_FRAMES`: ``"vertex"`` (MikkTSpace: Blender, glTF viewers,
+      jaxnm's ``frame: "vertex"``) or ``"cotangent"``.
+    - `cage`: the extrusion (Blender's ``cage_extrusion``), in LOW's units; None (with no
+      `cage_mesh`) chooses one so that rays start outside HIGH (`RaycastBake.cage`).
+    - `cage_mesh`: a mesh with LOW's triangles whose points the rays start from (Blender's
+      cage object).
+    - `max_distance`: rays longer than this from their origin miss (0: no limit).
+    - `samples`: Cycles' bake samples per texel (jittered within the hit triangle).
+    - `margin`: passes of the extend filter around the islands (Blender's default 16).
+    - `seed`: varies the jitter; `chunk_texels`: texels per chunk of rays (memory bound;
+      the result does not depend on it); `high_name`, `low_name`: for messages (the files).
+
+    **Returns:** a `RaycastBake`. Raises ValueError when no ray hits HIGH at all (the
+    meshes do not overlap) and for unusable input; warns (`BakeWarning`) about missed
+    texels, overlapping uv islands and degenerate or non-manifold triangles.
+    """
+    t0 = time.perf_counter()
+    timings = {}
+    lap = [t0]
+
+    def tick(stage):
+        now = time.perf_counter()
+        timings[stage] = timings.get(stage, 0.0) + now - lap[0]
+        lap[0] = now
+
+    hw = _check_options(size, frame, cage, cage_mesh, max_distance, samples, margin)
+    low = _prepare_low(low, frame, low_name)
+    hp, hf = _check_mesh(high, high_name)
+    hn = np.asarray(_with_normals(high, high_name).normals, np.float64)
+    cage_pos = _check_cage_mesh(cage_mesh, low, "cage mesh")
+    geo = _Low.build(low, cage_pos, hw)
+    tick("inputs")
+    cover = rasterize_uv(low.uv, low.faces, hw)
+    _warn_overlap(cover, low_name)
+    texels = np.flatnonzero(cover.face.ravel() >= 0)
+    if texels.size == 0:
+        raise ValueError(f"{low_name}: no texel centre of the {hw[0]}x{hw[1]} map lies in a uv "
+                         "triangle (uvs outside [0, 1] or zero-area uv triangles)")
+    tri, bary = cover.face.ravel()[texels].astype(np.int64), cover.bary.reshape(-1, 3)[texels]
+    tick("texels")
+    engine = _Embree(hp, hf)
+    step = max(1, int(chunk_texels or _CHUNK // samples))
+    chunks = [slice(i, i + step) for i in range(0, texels.size, step)]
+    source = "given" if cage is not None else "mesh" if cage_mesh is not None else "automatic"
+    if source == "automatic":
+        cage = _automatic_cage(engine, geo, tri, bary, chunks)
+    tick("cage")
+    keys = (texels.astype(np.uint32) ^ _hash(np.full(1, seed, np.uint32)))
+    world = np.zeros((texels.size, 3))
+    hit = np.zeros(texels.size, bool)
+    for sl in chunks:
+        world[sl], hit[sl] = _bake_chunk(engine, (hp, hf, hn), geo, tri[sl], bary[sl],
+                                         keys[sl], cage, max_distance, samples)
+    tick("rays")
+    if not hit.any():
+        raise ValueError(f"{high_name} and {low_name} do not overlap: none of the "
+                         f"{texels.size} rays from {low_name}'s texels hit {high_name} "
+                         f"({'the cage mesh' if cage_mesh is not None else f'cage {cage:.6g}'}"
+                         f", max distance {max_distance:g}); are both in the same space "
+                         "and units?")
+    m = np.zeros((texels.size, 3))
+    for sl in chunks:
+        h_ = hit[sl]
+        m[sl][h_] = world_to_tangent(low, tri[sl][h_], bary[sl][h_], world[sl][h_],
+                                     frame=frame)
+    tick("frames")
+    return _finish(cover, texels, hit, m, hw, margin, dict(
+        cage=None if cage_mesh is not None else float(cage), cage_source=source,
+        max_distance=float(max_distance), samples=int(samples), frame=frame,
+        margin=int(margin)), (high_name, low_name), tick, timings, t0)
+
+
+def _finish(cover, texels, hit, m, hw, margin, settings, names, tick, timings, t0):
+    """The margin, the miss report and the `RaycastBake`."""
+    h, w = hw
+    values = np.zeros((h * w, 3))
+    values[texels[hit]] = m[hit]
+    done = np.zeros(h * w, bool)
+    done[texels[hit]] = True
+    vals, filled = extend_margin(values.reshape(h, w, 3), done.reshape(h, w), margin)
+    length = np.linalg.norm(vals, axis=-1, keepdims=True)
+    filled &= length[..., 0] > 0
+    normals = np.where(filled[..., None], vals / np.where(length > 0, length, 1.0),
+                       [0.0, 0.0, 1.0]).astype(np.float32)
+    inside = cover.face >= 0
+    missed = np.zeros(h * w, bool)
+    missed[texels[~hit]] = True
+    missed = missed.reshape(h, w)
+    box, faces = _report_misses(missed, cover.face, int(inside.sum()), settings["cage"],
+                                settings["cage_source"], *names)
+    tick("margin")
+    return RaycastBake(normals=normals, inside=inside, missed=missed, filled=filled,
+                       face=cover.face, texels_inside=int(inside.sum()),
+                       texels_missed=int(missed.sum()), missed_uv_box=box,
+                       missed_faces=faces.astype(np.int64),
+                       overlapping=int(cover.overlapping.sum()), **settings,
+                       seconds=time.perf_counter() - t0, timings=dict(timings))
