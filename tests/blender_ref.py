@@ -160,7 +160,8 @@ def _bake_image(lo, size, d, margin):
     bpy.ops.object.bake(type="NORMAL", normal_space="TANGENT", use_selected_to_active=True,
                         cage_extrusion=float(d["cage_extrusion"]),
                         max_ray_distance=float(d["max_ray_distance"]), margin=int(margin),
-                        normal_r="POS_X", normal_g="POS_Y", normal_b="POS_Z", **cage)
+                        normal_r="POS_X", normal_g="POS_Y", normal_b="POS_Z", use_clear=False,
+                        **cage)
     seconds = time.perf_counter() - t
     px = np.zeros(size * size * 4, np.float32)
     image.pixels.foreach_get(px)

@@ -39,8 +39,8 @@ def _torus_points(s, t, radius, tube, h=0.0):
 def torus_height(s, t, amplitude=0.025):
     """The detail: mirror-symmetric in s about 0 and 1/2 (so a mirrored uv layout suits it)
     and periodic in both."""
-    return amplitude * (np.cos(2 * np.pi * 6 * s) * np.cos(2 * np.pi * 3 * t)
-                        + 0.6 * np.cos(2 * np.pi * 10 * s) * np.sin(2 * np.pi * 2 * t + 0.4))
+    return amplitude * (np.cos(2 * np.pi * 3 * s) * np.cos(2 * np.pi * 2 * t)
+                        + 0.6 * np.cos(2 * np.pi * 5 * s) * np.sin(2 * np.pi * t + 0.4))
 
 
 def torus_pair(lo_n=(48, 24), hi_n=(384, 192), *, mirrored=True, radius=1.0, tube=0.35,
