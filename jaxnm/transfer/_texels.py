@@ -42,71 +42,98 @@ class TexelCover:
     overlap_faces: tuple[int, ...]
 
 
-def _face_boxes(corners: np.ndarray, hw: tuple[int, int]):
-    """Per triangle: the texel-centre box its uv bounding box spans (columns and rows
-    counted from the bottom), and whether it has a uv area."""
+def _affine(corners: np.ndarray, hw: tuple[int, int]):
+    """Per triangle, in texel coordinates (texel column c, row j from the bottom, has its
+    centre at ``(c, j)``): the corners ``(F, 3, 2)``, and the barycentrics of corners 1 and
+    2 as affine functions ``l = a x + b y + c``, ``(F, 2, 3)``; zero-area triangles get
+    none (their rows are skipped)."""
     h, w = hw
-    x = corners[..., 0] * w - 0.5  # texel column c has its centre at x = c
-    y = corners[..., 1] * h - 0.5  # row j from the bottom has its centre at y = j
-    c0 = np.maximum(np.ceil(x.min(1) - _EDGE_TOLERANCE), 0).astype(np.int64)
-    c1 = np.minimum(np.floor(x.max(1) + _EDGE_TOLERANCE), w - 1).astype(np.int64)
-    j0 = np.maximum(np.ceil(y.min(1) - _EDGE_TOLERANCE), 0).astype(np.int64)
-    j1 = np.minimum(np.floor(y.max(1) + _EDGE_TOLERANCE), h - 1).astype(np.int64)
-    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
-    area = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    count = np.where((c1 >= c0) & (j1 >= j0) & (area != 0), (c1 - c0 + 1) * (j1 - j0 + 1), 0)
-    return c0, j0, c1 - c0 + 1, count, area
+    q = np.stack([corners[..., 0] * w - 0.5, corners[..., 1] * h - 0.5], -1)
+    e1, e2 = q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    ok = det != 0
+    d = np.where(ok, det, 1.0)
+    # l1 = ((p - q0) x e2) / det, l2 = (e1 x (p - q0)) / det
+    a1, b1 = e2[:, 1] / d, -e2[:, 0] / d
+    a2, b2 = -e1[:, 1] / d, e1[:, 0] / d
+    c1 = -(a1 * q[:, 0, 0] + b1 * q[:, 0, 1])
+    c2 = -(a2 * q[:, 0, 0] + b2 * q[:, 0, 1])
+    return q, np.stack([np.stack([a1, b1, c1], -1), np.stack([a2, b2, c2], -1)], 1), ok
 
 
-def _candidates(faces_idx, c0, j0, bw, count, corners, area, hw):
-    """The (texel, triangle, barycentrics) pairs of a group of triangles whose centre lies in
-    the triangle (closed, with `_EDGE_TOLERANCE`)."""
+def _row_spans(q: np.ndarray, faces_idx: np.ndarray, h: int, w: int):
+    """The (triangle, row, first column, count) spans of texel centres that a group of
+    triangles may hold: per row through a triangle, the columns between the crossings of
+    its edges with the row's centre line (widened by `_EDGE_TOLERANCE`)."""
+    t = q[faces_idx]
+    y0 = np.maximum(np.ceil(t[..., 1].min(1) - _EDGE_TOLERANCE), 0).astype(np.int64)
+    y1 = np.minimum(np.floor(t[..., 1].max(1) + _EDGE_TOLERANCE), h - 1).astype(np.int64)
+    rows = np.maximum(y1 - y0 + 1, 0)
+    f = np.repeat(np.arange(len(faces_idx)), rows)
+    j = y0[f] + np.arange(f.size) - np.repeat(np.cumsum(rows) - rows, rows)
+    lo = np.full(f.size, np.inf)
+    hi = np.full(f.size, -np.inf)
+    for k in range(3):
+        p, r = t[f, k], t[f, (k + 1) % 3]
+        dy = r[:, 1] - p[:, 1]
+        flat = dy == 0
+        s = np.clip((j - p[:, 1]) / np.where(flat, 1.0, dy), 0.0, 1.0)
+        x = p[:, 0] + s * (r[:, 0] - p[:, 0])
+        lo = np.minimum(lo, np.where(flat, np.minimum(p[:, 0], r[:, 0]), x))
+        hi = np.maximum(hi, np.where(flat, np.maximum(p[:, 0], r[:, 0]), x))
+    c0 = np.maximum(np.ceil(lo - 1e-6), 0).astype(np.int64)
+    c1 = np.minimum(np.floor(hi + 1e-6), w - 1).astype(np.int64)
+    return faces_idx[f], j, c0, np.maximum(c1 - c0 + 1, 0)
+
+
+def _candidates(faces_idx, q, coef, hw):
+    """The (texel, triangle, barycentrics) pairs of a group of triangles whose centre lies
+    in the triangle (closed, with `_EDGE_TOLERANCE`)."""
     h, w = hw
-    n = count[faces_idx]
-    f = np.repeat(faces_idx, n)
-    start = np.repeat(np.cumsum(n) - n, n)
-    k = np.arange(f.size) - start
-    c = c0[f] + k % bw[f]
-    j = j0[f] + k // bw[f]
-    u = (c + 0.5) / w
-    v = (j + 0.5) / h
-    a, b, cc = corners[f, 0], corners[f, 1], corners[f, 2]
-    du, dv = u - a[:, 0], v - a[:, 1]
-    l1 = (du * (cc[:, 1] - a[:, 1]) - (cc[:, 0] - a[:, 0]) * dv) / area[f]
-    l2 = ((b[:, 0] - a[:, 0]) * dv - du * (b[:, 1] - a[:, 1])) / area[f]
+    f, j, c0, n = _row_spans(q, faces_idx, h, w)
+    f, j = np.repeat(f, n), np.repeat(j, n)
+    c = np.repeat(c0, n) + np.arange(f.size) - np.repeat(np.cumsum(n) - n, n)
+    k = coef[f]
+    l1 = k[:, 0, 0] * c + k[:, 0, 1] * j + k[:, 0, 2]
+    l2 = k[:, 1, 0] * c + k[:, 1, 1] * j + k[:, 1, 2]
     l0 = 1.0 - l1 - l2
     ok = (l0 >= -_EDGE_TOLERANCE) & (l1 >= -_EDGE_TOLERANCE) & (l2 >= -_EDGE_TOLERANCE)
-    bary = np.clip(np.stack([l0, l1, l2], -1)[ok], 0.0, 1.0)
+    bary = np.clip(np.stack([l0[ok], l1[ok], l2[ok]], -1), 0.0, 1.0)
     bary /= bary.sum(-1, keepdims=True)
-    texel = (h - 1 - j[ok]) * w + c[ok]  # image layout: row 0 on top
-    return texel, f[ok], bary
+    return (h - 1 - j[ok]) * w + c[ok], f[ok], bary  # image layout: row 0 on top
 
 
 def rasterize_uv(uv: np.ndarray, faces: np.ndarray, hw: tuple[int, int]) -> TexelCover:
     """Find, for every texel centre of an ``hw = (h, w)`` map, the triangle of the uv layout
     ``(uv[faces])`` that holds it and its barycentrics there (see `TexelCover`).
 
-    Vectorised over the texels of each triangle's bounding box, in groups of at most
-    `_CANDIDATES` pairs; zero-area uv triangles hold no texel.
+    Vectorised over the spans of texel centres each triangle crosses row by row, in groups
+    of triangles that hold about `_CANDIDATES` texels; zero-area uv triangles hold none.
     """
     h, w = hw
     corners = np.asarray(uv, np.float64)[np.asarray(faces)]
-    c0, j0, bw, count, area = _face_boxes(corners, hw)
+    q, coef, ok = _affine(corners, hw)
+    e1, e2 = q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]
+    texels = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) / 2 + 2 * np.ptp(q[..., 1], 1)
+    order = np.flatnonzero(ok)
+    cum = np.cumsum(texels[order] + 2)  # about the texels (and rows) each triangle holds
     face = np.full(h * w, -1, np.int64)
     bary = np.zeros((h * w, 3))
-    strict = np.zeros(h * w, np.int32)
-    order = np.flatnonzero(count)
-    cum = np.cumsum(count[order])
+    strict = np.zeros(h * w, np.int64)
     start = 0
     while start < len(order):  # groups of triangles in index order: the highest index wins
         base = cum[start - 1] if start else 0
         stop = max(start + 1, int(np.searchsorted(cum, base + _CANDIDATES, side="right")))
-        texel, f, b = _candidates(order[start:stop], c0, j0, bw, count, corners, area, hw)
+        texel, f, b = _candidates(order[start:stop], q, coef, hw)
         start = stop
-        np.maximum.at(face, texel, f)
-        win = f == face[texel]
-        bary[texel[win]] = b[win]
-        np.add.at(strict, texel[np.all(b > _STRICT, -1)], 1)
+        once = np.bincount(texel, minlength=h * w)[texel] == 1
+        face[texel[once]], bary[texel[once]] = f[once], b[once]
+        if not once.all():  # texels of several triangles: the highest index
+            tt, ff, bb = texel[~once], f[~once], b[~once]
+            np.maximum.at(face, tt, ff)
+            win = ff == face[tt]
+            bary[tt[win]] = bb[win]
+        strict += np.bincount(texel[np.all(b > _STRICT, -1)], minlength=h * w)
     overlap_faces: tuple[int, ...] = ()
     if np.any(strict > 1):
         hold = _holders(int(np.argmax(strict > 1)), corners, hw)
@@ -138,31 +165,41 @@ def extend_margin(values: np.ndarray, mask: np.ndarray, margin: int) -> tuple[np
     corner), and counts as assigned from the next pass on. Texels beyond the map's border
     do not count.
 
+    Each pass visits only the texels next to the last pass's (a band around the islands).
+
     **Returns:** the values ``(h, w, C)`` and the mask of assigned texels after the passes.
     """
-    vals = np.array(values, np.float64, copy=True)
-    done = np.array(mask, bool, copy=True)
-    h, w = done.shape
+    h, w = mask.shape
+    channels = values.shape[-1]
+    stride = w + 2  # a padded grid: the border's neighbours exist and are never assigned
+    grid = np.zeros((h + 2, stride), bool)
+    grid[1:-1, 1:-1] = True
+    in_map = grid.ravel()
+    done = np.zeros((h + 2) * stride, bool)
+    done[in_map] = np.asarray(mask, bool).ravel()
+    vals = np.zeros(((h + 2) * stride, channels))
+    vals[in_map] = np.asarray(values, np.float64).reshape(-1, channels)
+    edges = np.array([-1, 1, -stride, stride])
+    corners = np.array([-stride - 1, -stride + 1, stride - 1, stride + 1])
+    near = np.zeros_like(done)
+    for o in edges:  # the padding keeps np.roll from wrapping an assigned texel in
+        near |= np.roll(done, o)
+    cand = np.flatnonzero(near & in_map & ~done)
     for _ in range(int(margin)):
-        pad_m = np.pad(done, 1)
-        pad_v = np.pad(vals * done[..., None], ((1, 1), (1, 1), (0, 0)))
-        edge = (pad_m[:-2, 1:-1] | pad_m[2:, 1:-1] | pad_m[1:-1, :-2] | pad_m[1:-1, 2:])
-        todo = ~done & edge
-        if not todo.any():
+        if cand.size == 0:
             break
-        acc = np.zeros_like(vals)
-        wsum = np.zeros((h, w))
-        for di in (-1, 0, 1):
-            for dj in (-1, 0, 1):
-                if di == dj == 0:
-                    continue
-                wt = 2.0 if di == 0 or dj == 0 else 1.0
-                sl = (slice(1 + di, h + 1 + di), slice(1 + dj, w + 1 + dj))
-                acc += wt * pad_v[sl]
-                wsum += wt * pad_m[sl]
-        vals[todo] = acc[todo] / wsum[todo][:, None]
-        done = done | todo
-    return vals, done
+        acc = np.zeros((cand.size, channels))
+        wsum = np.zeros(cand.size)
+        for offsets, weight in ((edges, 2.0), (corners, 1.0)):
+            for o in offsets:
+                m = done[cand + o]
+                acc += np.where(m[:, None], weight * vals[cand + o], 0.0)
+                wsum += weight * m
+        vals[cand] = acc / wsum[:, None]
+        done[cand] = True
+        cand = np.unique((cand[:, None] + edges[None]).ravel())
+        cand = cand[in_map[cand] & ~done[cand]]
+    return vals[in_map].reshape(h, w, channels), done[in_map].reshape(h, w)
 
 
 def uv_box(mask: np.ndarray) -> tuple[float, float, float, float] | None:

@@ -321,11 +321,16 @@ def _hash(x: np.ndarray) -> np.ndarray:
     return x ^ (x >> np.uint32(16))
 
 
-def _uniform(keys: np.ndarray, *salt: int) -> np.ndarray:
-    """Uniform numbers in [0, 1) that depend only on each texel's key and the salt."""
-    x = keys
-    for s in salt:
-        x = _hash(x ^ _hash(np.full(1, s, np.uint32)))
+def _salt(*values: int) -> np.uint32:
+    """A 32-bit hash of a few small integers (a sample's or a draw's salt)."""
+    x = np.zeros(1, np.uint32)
+    for v in values:
+        x = _hash(x ^ np.uint32(v & 0xFFFFFFFF))
+    return x[0]
+
+
+def _uniform(x: np.ndarray) -> np.ndarray:
+    """Uniform numbers in [0, 1) from 32-bit hashes (their top 24 bits)."""
     return (x >> np.uint32(8)).astype(np.float64) * 2.0 ** -24
 
 
@@ -374,9 +379,11 @@ def _average_normal(hits: _HighHits, a, b, diffs, keys, samples: int) -> np.ndar
     for s in range(1, samples):
         ja, jb = a.copy(), b.copy()
         todo = np.arange(len(a))
+        draw = _hash(keys ^ _salt(s))  # per texel and sample; each retry hashes it again
         for attempt in range(_JITTER_TRIES):
-            rx = _uniform(keys[todo], s, attempt, 0) - 0.5
-            ry = _uniform(keys[todo], s, attempt, 1) - 0.5
+            hx = _hash(draw[todo] ^ _salt(attempt, 0))
+            rx = _uniform(hx) - 0.5
+            ry = _uniform(_hash(hx ^ _salt(attempt, 1))) - 0.5
             ca = a[todo] + rx * dudx[todo] + ry * dudy[todo]
             cb = b[todo] + rx * dvdx[todo] + ry * dvdy[todo]
             ok = (ca > 0) & (cb > 0) & (ca + cb < 1)
@@ -501,7 +508,7 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
     if source == "automatic":
         cage = _automatic_cage(engine, geo, tri, bary, chunks)
     tick("cage")
-    keys = (texels.astype(np.uint32) ^ _hash(np.full(1, seed, np.uint32)))
+    keys = texels.astype(np.uint32) ^ _salt(seed, 0x5EED)
     world = np.zeros((texels.size, 3))
     hit = np.zeros(texels.size, bool)
     for sl in chunks:

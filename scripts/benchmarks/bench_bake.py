@@ -1,0 +1,113 @@
+"""Ray-cast baking: jaxnm's `raycast_normal_map` against Blender's Cycles bake of the same pair.
+
+    python -m scripts.benchmarks.bench_bake [--size 1024] [--samples 4] [--repeats 3]
+
+The pair is `bake_pairs.torus_pair`: a displaced torus of ``--hi`` quads (two triangles each;
+1000 x 500 = 1,000,000 triangles) over a plain one of ``--lo`` quads (64 x 40 = 5,120
+triangles) with a mirrored uv layout. Both bake a tangent-space normal map of ``--size``
+squared with ``--samples`` samples per texel, the same cage extrusion, no max ray distance
+and a 16-texel margin, on this machine, one after the other in one run of this script:
+
+- **jaxnm** in this process: the first call (Embree's scene and JAX's compilation of the
+  frame included) and the median of ``--repeats`` more, and the process's peak RSS after
+  them (the pair's arrays included);
+- **Blender** (``tests/blender_ref.py transfer`` in Blender's Python, ``JAXNM_BLENDER_PYTHON``
+  or ``.venv-blender``): the ``bpy.ops.object.bake`` call itself, first and median of the
+  same repeats in one Blender process, the whole process's wall time (start, scene set-up,
+  every bake) and its peak RSS.
+
+Prints JSON: the settings, the machine, both sides' figures and the ratio of the medians.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from jaxnm.transfer import BakeWarning, raycast_normal_map
+from scripts.benchmarks import bake_pairs
+from scripts.studies.blender_bake_cases import blender_python
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _mib(kib: int) -> float:
+    return round(kib / 1024, 1)  # ru_maxrss is in KiB on Linux
+
+
+def run_jaxnm(pair: dict, args) -> dict:
+    low, high = bake_pairs.low_mesh(pair), bake_pairs.high_mesh(pair)
+    times, result = [], None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", BakeWarning)  # the mirrored halves share texels
+        for _ in range(args.repeats + 1):
+            t = time.perf_counter()
+            result = raycast_normal_map(high, low, args.size, samples=args.samples,
+                                        cage=args.cage, margin=16)
+            times.append(time.perf_counter() - t)
+    return dict(first_s=round(times[0], 3), median_s=round(statistics.median(times[1:]), 3),
+                runs_s=[round(x, 3) for x in times[1:]],
+                stages_s={k: round(v, 3) for k, v in result.timings.items()},
+                texels_inside=result.texels_inside, texels_missed=result.texels_missed,
+                peak_rss_mib=_mib(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))
+
+
+def run_blender(pair: dict, args, blender: str) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        spec, out = Path(tmp) / "spec.npz", Path(tmp) / "out.npz"
+        np.savez(spec, **pair, size=args.size, samples=args.samples,
+                 margins=np.full(args.repeats + 1, 16), cage_extrusion=args.cage,
+                 max_ray_distance=0.0)
+        t = time.perf_counter()
+        run = subprocess.run([blender, str(ROOT / "tests" / "blender_ref.py"), "transfer",
+                              str(spec), str(out)], capture_output=True, text=True)
+        wall = time.perf_counter() - t
+        if run.returncode != 0:
+            sys.exit(f"Blender failed: {run.stderr[-2000:]}")
+        sec = np.load(out)["bake_seconds"]
+    return dict(bake_first_s=round(float(sec[0]), 3),
+                bake_median_s=round(float(np.median(sec[1:])), 3),
+                bake_runs_s=[round(float(x), 3) for x in sec[1:]], process_s=round(wall, 3),
+                process_bakes=int(sec.size),
+                peak_rss_mib=_mib(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss))
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=int, default=1024)
+    ap.add_argument("--samples", type=int, default=4)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--hi", type=int, nargs=2, default=(1000, 500))
+    ap.add_argument("--lo", type=int, nargs=2, default=(64, 40))
+    ap.add_argument("--cage", type=float, default=0.08)
+    ap.add_argument("--no-blender", action="store_true")
+    args = ap.parse_args(argv)
+    pair = bake_pairs.torus_pair(tuple(args.lo), tuple(args.hi))
+    out = dict(settings=dict(size=args.size, samples=args.samples, repeats=args.repeats,
+                             hi_triangles=len(pair["hi_faces"]),
+                             lo_triangles=len(pair["lo_faces"]), cage=args.cage, margin=16),
+               machine=dict(cpus=os.cpu_count(), processor=platform.processor() or
+                            platform.machine(), python=platform.python_version()))
+    out["jaxnm"] = run_jaxnm(pair, args)
+    blender = None if args.no_blender else blender_python()
+    if blender is not None:
+        out["blender"] = run_blender(pair, args, blender)
+        out["blender_bake_over_jaxnm"] = round(out["blender"]["bake_median_s"]
+                                               / out["jaxnm"]["median_s"], 2)
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
