@@ -137,13 +137,15 @@ def world_to_tangent(mesh: Mesh, tri: np.ndarray, bary: np.ndarray, normals: np.
         vt = _frames.vertex_tangents(mesh.positions, mesh.normals, mesh.uv, mesh.faces)
         args = (n_unit, interp(corners(vt)))
     fr = _frame_of(frame, *(jnp.asarray(a, jnp.float32) for a in args))
-    basis = np.stack([np.asarray(fr.T, np.float64), np.asarray(fr.B, np.float64),
-                      np.asarray(fr.N, np.float64)], -1)[:n_points]  # columns T, B, N
-    tri = tri[:n_points]
+    t_, b_, n_ = (np.asarray(x, np.float64)[:n_points] for x in (fr.T, fr.B, fr.N))
     target = np.asarray(normals, np.float64)
-    ok = np.abs(np.linalg.det(basis)) > 1e-12  # a degenerate frame stores the fill value
-    m = np.tile(np.asarray(fill, np.float64), (len(tri), 1))
-    m[ok] = np.linalg.solve(basis[ok], target[ok][..., None])[..., 0]
+    # [T B N] m = target by Cramer's rule: the rows of the inverse are B x N, N x T, T x B
+    bn, nt, tb = np.cross(b_, n_), np.cross(n_, t_), np.cross(t_, b_)
+    det = np.sum(t_ * bn, -1)
+    ok = np.abs(det) > 1e-12  # a degenerate frame stores the fill value
+    m = np.stack([np.sum(bn * target, -1), np.sum(nt * target, -1), np.sum(tb * target, -1)],
+                 -1) / np.where(ok, det, 1.0)[:, None]
+    m[~ok] = fill
     length = np.linalg.norm(m, axis=-1, keepdims=True)
     bad = ~(length[:, 0] > 0)
     m[bad] = fill

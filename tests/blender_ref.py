@@ -26,7 +26,8 @@ a modeller's is, its normals Blender's own smooth ones), ``samples``, ``cage_ext
 ``max_ray_distance``, optional ``cage_positions`` (V, 3) (a cage object with the low-poly
 mesh's triangles) and ``margins`` (one bake per margin). ``OUT.npz`` gets ``images`` (one per
 margin, (size, size, 3), row 0 = top, -1 where the bake wrote nothing), ``bake_seconds`` (the
-``bpy.ops.object.bake`` calls) and the tangents.
+``bpy.ops.object.bake`` calls), ``peak_rss_kib`` (the process's peak resident memory) and the
+tangents.
 
     python blender_ref.py suzanne LEVELS OUT.npz
 
@@ -199,7 +200,16 @@ def transfer(src: str, dst: str) -> None:
         seconds.append(sec)
     t, s, n = _tangents(lo.data, len(d["lo_faces"]))
     np.savez(dst, images=np.stack(images), bake_seconds=np.array(seconds), tangents=t, signs=s,
-             normals=n)
+             normals=n, peak_rss_kib=_peak_rss_kib())
+
+
+def _peak_rss_kib() -> int:
+    """This process's peak resident set (Linux's VmHWM), or -1 where /proc has none."""
+    try:
+        with open("/proc/self/status") as f:
+            return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
+    except (OSError, StopIteration):
+        return -1
 
 
 def _triangulated(me):

@@ -156,7 +156,7 @@ def test_rays_through_edges_and_vertices_hit():
 def test_chunks_change_no_bit():
     low, high = uv_sphere(0.9), ico_sphere(3)
     one = raycast_normal_map(high, low, 48, samples=4, cage=0.2)
-    many = raycast_normal_map(high, low, 48, samples=4, cage=0.2, chunk_texels=97)
+    many = raycast_normal_map(high, low, 48, samples=4, cage=0.2, chunk_texels=97, workers=3)
     assert np.array_equal(one.normals, many.normals)
     assert np.array_equal(one.missed, many.missed) and np.array_equal(one.filled, many.filled)
     other = raycast_normal_map(high, low, 48, samples=4, cage=0.2, seed=1)

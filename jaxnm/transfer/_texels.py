@@ -14,7 +14,7 @@ import numpy as np
 __all__ = ["TexelCover", "rasterize_uv", "extend_margin", "uv_box"]
 
 #: Candidate (texel, triangle) pairs tested at once: bounds the memory of `rasterize_uv`.
-_CANDIDATES = 1 << 22
+_CANDIDATES = 1 << 18
 #: A texel centre this close outside a triangle (in barycentric units) still belongs to it,
 #: so that rounding never opens a crack along an edge two triangles share.
 _EDGE_TOLERANCE = 1e-9

@@ -48,7 +48,9 @@ whatever the map's size; the result does not depend on the chunk size.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
+import os
 import time
 import warnings
 
@@ -136,6 +138,7 @@ class _Embree:
         self._mesh = mesh_construction.TriangleMesh(
             self._scene, np.ascontiguousarray(positions, np.float32),
             np.ascontiguousarray(faces, np.int32))
+        self.cast(np.zeros((1, 3)), np.ones((1, 3)), 0.0)  # builds the BVH (before threads)
 
     def cast(self, origins: np.ndarray, directions: np.ndarray, max_distance: float):
         """(triangle or -1, Embree's barycentrics u and v, distance) of the nearest hit."""
@@ -398,6 +401,14 @@ def _average_normal(hits: _HighHits, a, b, diffs, keys, samples: int) -> np.ndar
 # ----------------------------------------------------------------------------- the bake
 
 
+def _workers(workers: int | None, chunks: int) -> int:
+    if workers is None:
+        workers = min(4, os.cpu_count() or 1)
+    if int(workers) != workers or workers < 1:
+        raise ValueError(f"raycast_normal_map: workers must be an int >= 1, got {workers!r}")
+    return max(1, min(int(workers), chunks))
+
+
 def _automatic_cage(engine: _Embree, low: _Low, tri, bary, chunks) -> float:
     """The smallest extrusion that starts every texel's ray outside HIGH where HIGH lies
     outside LOW: per texel, rays from LOW's point along +n and -n find the nearest HIGH
@@ -416,7 +427,7 @@ def _automatic_cage(engine: _Embree, low: _Low, tri, bary, chunks) -> float:
     return 1.05 * need + 1e-4 * size
 
 
-def _bake_chunk(engine, high, low, tri, bary, keys, cage, max_distance, samples):
+def _bake_chunk(engine, high, low, tri, bary, keys, *, cage, max_distance, samples):
     """World-space normals and hit flags of one chunk of texels."""
     origin, direction, ok = _rays(low, tri, bary, cage)
     prim, u, v, _ = engine.cast(origin, direction, max_distance)
@@ -449,8 +460,8 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
                        frame: str = "vertex", cage: float | None = None,
                        cage_mesh: Mesh | None = None, max_distance: float = 0.0,
                        samples: int = 1, margin: int = 16, seed: int = 0,
-                       chunk_texels: int | None = None, high_name: str = "HIGH",
-                       low_name: str = "LOW") -> RaycastBake:
+                       chunk_texels: int | None = None, workers: int | None = None,
+                       high_name: str = "HIGH", low_name: str = "LOW") -> RaycastBake:
     """Bake HIGH's normals into a tangent-space map on LOW's uv layout by casting rays, as
     Blender's Cycles "selected to active" bake does (the module docstring has the rules and
     the Blender sources they follow).
@@ -471,7 +482,9 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
     - `samples`: Cycles' bake samples per texel (jittered within the hit triangle).
     - `margin`: passes of the extend filter around the islands (Blender's default 16).
     - `seed`: varies the jitter; `chunk_texels`: texels per chunk of rays (memory bound;
-      the result does not depend on it); `high_name`, `low_name`: for messages (the files).
+      the result does not depend on it); `workers`: threads baking chunks at once
+      (default: the machine's cores, at most 4; the result does not depend on it);
+      `high_name`, `low_name`: for messages (the files).
 
     **Returns:** a `RaycastBake`. Raises ValueError when no ray hits HIGH at all (the
     meshes do not overlap) and for unusable input; warns (`BakeWarning`) about missed
@@ -490,47 +503,64 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
     low = _prepare_low(low, frame, low_name)
     hp, hf = _check_mesh(high, high_name)
     hn = np.asarray(_with_normals(high, high_name).normals, np.float64)
-    cage_pos = _check_cage_mesh(cage_mesh, low, "cage mesh")
-    geo = _Low.build(low, cage_pos, hw)
+    geo = _Low.build(low, _check_cage_mesh(cage_mesh, low, "cage mesh"), hw)
     tick("inputs")
-    cover = rasterize_uv(low.uv, low.faces, hw)
-    _warn_overlap(cover, low_name)
-    texels = np.flatnonzero(cover.face.ravel() >= 0)
-    if texels.size == 0:
-        raise ValueError(f"{low_name}: no texel centre of the {hw[0]}x{hw[1]} map lies in a uv "
-                         "triangle (uvs outside [0, 1] or zero-area uv triangles)")
-    tri, bary = cover.face.ravel()[texels].astype(np.int64), cover.bary.reshape(-1, 3)[texels]
+    cover, texels, tri, bary = _texels(low, hw, low_name)
     tick("texels")
     engine = _Embree(hp, hf)
+    tick("scene")
     step = max(1, int(chunk_texels or _CHUNK // samples))
     chunks = [slice(i, i + step) for i in range(0, texels.size, step)]
     source = "given" if cage is not None else "mesh" if cage_mesh is not None else "automatic"
     if source == "automatic":
         cage = _automatic_cage(engine, geo, tri, bary, chunks)
     tick("cage")
-    keys = texels.astype(np.uint32) ^ _salt(seed, 0x5EED)
-    world = np.zeros((texels.size, 3))
-    hit = np.zeros(texels.size, bool)
-    for sl in chunks:
-        world[sl], hit[sl] = _bake_chunk(engine, (hp, hf, hn), geo, tri[sl], bary[sl],
-                                         keys[sl], cage, max_distance, samples)
-    tick("rays")
+    m, hit = _bake_texels(engine, (hp, hf, hn), low, geo, tri, bary,
+                          texels.astype(np.uint32) ^ _salt(seed, 0x5EED), chunks,
+                          _workers(workers, len(chunks)),
+                          dict(cage=cage, max_distance=max_distance, samples=samples), frame)
+    tick("rays and frames")
     if not hit.any():
         raise ValueError(f"{high_name} and {low_name} do not overlap: none of the "
                          f"{texels.size} rays from {low_name}'s texels hit {high_name} "
                          f"({'the cage mesh' if cage_mesh is not None else f'cage {cage:.6g}'}"
                          f", max distance {max_distance:g}); are both in the same space "
                          "and units?")
-    m = np.zeros((texels.size, 3))
-    for sl in chunks:
-        h_ = hit[sl]
-        m[sl][h_] = world_to_tangent(low, tri[sl][h_], bary[sl][h_], world[sl][h_],
-                                     frame=frame)
-    tick("frames")
     return _finish(cover, texels, hit, m, hw, margin, dict(
         cage=None if cage_mesh is not None else float(cage), cage_source=source,
         max_distance=float(max_distance), samples=int(samples), frame=frame,
         margin=int(margin)), (high_name, low_name), tick, timings, t0)
+
+
+def _texels(low: Mesh, hw: tuple[int, int], name: str):
+    """LOW's uv layout over the map: the cover, and the covered texels' (flat image index,
+    face, barycentrics)."""
+    cover = rasterize_uv(low.uv, low.faces, hw)
+    _warn_overlap(cover, name)
+    texels = np.flatnonzero(cover.face.ravel() >= 0)
+    if texels.size == 0:
+        raise ValueError(f"{name}: no texel centre of the {hw[0]}x{hw[1]} map lies in a uv "
+                         "triangle (uvs outside [0, 1] or zero-area uv triangles)")
+    return (cover, texels, cover.face.ravel()[texels].astype(np.int64),
+            cover.bary.reshape(-1, 3)[texels])
+
+
+def _bake_texels(engine, high, low, geo, tri, bary, keys, chunks, workers, rays, frame):
+    """Tangent-space vectors and hit flags of all covered texels, chunk by chunk on
+    ``workers`` threads (NumPy and XLA release the GIL, embreex's casts do not; each chunk
+    writes only its own rows, so the result does not depend on the threads)."""
+    m = np.zeros((len(tri), 3))
+    hit = np.zeros(len(tri), bool)
+
+    def bake(sl):
+        world, hit[sl] = _bake_chunk(engine, high, geo, tri[sl], bary[sl], keys[sl], **rays)
+        h = hit[sl]
+        if h.any():
+            m[sl][h] = world_to_tangent(low, tri[sl][h], bary[sl][h], world[h], frame=frame)
+
+    with concurrent.futures.ThreadPoolExecutor(workers) as pool:
+        list(pool.map(bake, chunks))
+    return m, hit
 
 
 def _finish(cover, texels, hit, m, hw, margin, settings, names, tick, timings, t0):

@@ -9,8 +9,8 @@ squared with ``--samples`` samples per texel, the same cage extrusion, no max ra
 and a 16-texel margin, on this machine, one after the other in one run of this script:
 
 - **jaxnm** in this process: the first call (Embree's scene and JAX's compilation of the
-  frame included) and the median of ``--repeats`` more, and the process's peak RSS after
-  them (the pair's arrays included);
+  frame included) and the median of ``--repeats`` more; the process's RSS before them (the
+  pair's arrays, Python, JAX) and its peak during them (Linux's VmHWM, restarted before);
 - **Blender** (``tests/blender_ref.py transfer`` in Blender's Python, ``JAXNM_BLENDER_PYTHON``
   or ``.venv-blender``): the ``bpy.ops.object.bake`` call itself, first and median of the
   same repeats in one Blender process, the whole process's wall time (start, scene set-up,
@@ -25,7 +25,6 @@ import argparse
 import json
 import os
 import platform
-import resource
 import statistics
 import subprocess
 import sys
@@ -43,13 +42,32 @@ from scripts.studies.blender_bake_cases import blender_python
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _mib(kib: int) -> float:
-    return round(kib / 1024, 1)  # ru_maxrss is in KiB on Linux
+def _status_mib(field: str) -> float | None:
+    """A memory figure of this process from Linux's /proc/self/status (VmRSS, VmHWM)."""
+    try:
+        with open("/proc/self/status") as f:
+            kib = next(int(line.split()[1]) for line in f if line.startswith(field + ":"))
+    except (OSError, StopIteration):
+        return None
+    return round(kib / 1024, 1)
+
+
+def _reset_peak() -> bool:
+    """Restart the peak-RSS count (VmHWM) from the current RSS (Linux; the benchmark's own
+    process, so that the peak is the bakes', not the pair's construction)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
 
 
 def run_jaxnm(pair: dict, args) -> dict:
     low, high = bake_pairs.low_mesh(pair), bake_pairs.high_mesh(pair)
     times, result = [], None
+    rss_before = _status_mib("VmRSS")
+    reset = _reset_peak()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", BakeWarning)  # the mirrored halves share texels
         for _ in range(args.repeats + 1):
@@ -61,7 +79,8 @@ def run_jaxnm(pair: dict, args) -> dict:
                 runs_s=[round(x, 3) for x in times[1:]],
                 stages_s={k: round(v, 3) for k, v in result.timings.items()},
                 texels_inside=result.texels_inside, texels_missed=result.texels_missed,
-                peak_rss_mib=_mib(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))
+                rss_before_mib=rss_before,
+                peak_rss_mib=_status_mib("VmHWM") if reset else None)
 
 
 def run_blender(pair: dict, args, blender: str) -> dict:
@@ -76,12 +95,13 @@ def run_blender(pair: dict, args, blender: str) -> dict:
         wall = time.perf_counter() - t
         if run.returncode != 0:
             sys.exit(f"Blender failed: {run.stderr[-2000:]}")
-        sec = np.load(out)["bake_seconds"]
+        res = np.load(out)
+        sec, peak = res["bake_seconds"], int(res["peak_rss_kib"])
     return dict(bake_first_s=round(float(sec[0]), 3),
                 bake_median_s=round(float(np.median(sec[1:])), 3),
                 bake_runs_s=[round(float(x), 3) for x in sec[1:]], process_s=round(wall, 3),
                 process_bakes=int(sec.size),
-                peak_rss_mib=_mib(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss))
+                peak_rss_mib=round(peak / 1024, 1) if peak >= 0 else None)
 
 
 def main(argv=None) -> None:
