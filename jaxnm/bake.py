@@ -139,17 +139,15 @@ def world_to_tangent(mesh: Mesh, tri: np.ndarray, bary: np.ndarray, normals: np.
     fr = _frame_of(frame, *(jnp.asarray(a, jnp.float32) for a in args))
     t_, b_, n_ = (np.asarray(x, np.float64)[:n_points] for x in (fr.T, fr.B, fr.N))
     target = np.asarray(normals, np.float64)
-    # [T B N] m = target by Cramer's rule: the rows of the inverse are B x N, N x T, T x B
-    bn, nt, tb = np.cross(b_, n_), np.cross(n_, t_), np.cross(t_, b_)
-    det = np.sum(t_ * bn, -1)
+    # [T B N] m = target by Cramer's rule: det times the inverse has the rows B x N, N x T,
+    # T x B
+    inverse = np.stack([np.cross(b_, n_), np.cross(n_, t_), np.cross(t_, b_)], 1)  # rows
+    det = np.einsum("ti,ti->t", t_, inverse[:, 0])
     ok = np.abs(det) > 1e-12  # a degenerate frame stores the fill value
-    m = np.stack([np.sum(bn * target, -1), np.sum(nt * target, -1), np.sum(tb * target, -1)],
-                 -1) / np.where(ok, det, 1.0)[:, None]
+    m = np.einsum("tki,ti->tk", inverse, target) / np.where(ok, det, 1.0)[:, None]
     m[~ok] = fill
-    length = np.linalg.norm(m, axis=-1, keepdims=True)
-    bad = ~(length[:, 0] > 0)
-    m[bad] = fill
-    return m / np.linalg.norm(m, axis=-1, keepdims=True)
+    m[~(np.einsum("ti,ti->t", m, m) > 0)] = fill
+    return m / np.sqrt(np.einsum("ti,ti->t", m, m))[:, None]
 
 
 def bake_normal_map(mesh: Mesh, normal_at_uv: Callable[[np.ndarray, np.ndarray], np.ndarray],

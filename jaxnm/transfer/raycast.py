@@ -59,6 +59,7 @@ import numpy as np
 from ..bake import world_to_tangent
 from ..geometry import Mesh, vertex_normals
 from ..io import JaxnmWarning
+from ._embree import EmbreeScene
 from ._texels import extend_margin, rasterize_uv, uv_box
 
 __all__ = ["RAYCAST_FRAMES", "BakeWarning", "RaycastBake", "raycast_normal_map"]
@@ -69,6 +70,8 @@ RAYCAST_FRAMES = ("vertex", "cotangent")
 _JITTER_TRIES = 10
 #: Texels per chunk of rays at one sample per texel (fewer at more samples).
 _CHUNK = 1 << 18
+#: How to reach Embree (`jaxnm.transfer._embree.ENGINES`; None: the fastest available).
+_ENGINE = None
 
 
 class BakeWarning(JaxnmWarning):
@@ -120,36 +123,6 @@ class RaycastBake:
     margin: int
     seconds: float
     timings: dict[str, float]
-
-
-# ----------------------------------------------------------------------------- the ray engine
-
-
-class _Embree:
-    """HIGH's triangles in an Embree scene (robust mode) and the nearest hit of rays."""
-
-    def __init__(self, positions: np.ndarray, faces: np.ndarray):
-        try:
-            from embreex import mesh_construction, rtcore_scene
-        except ImportError:
-            raise ImportError('ray-cast baking needs Embree (embreex): pip install -e ".[bake]"'
-                              ) from None
-        self._scene = rtcore_scene.EmbreeScene(robust=True)
-        self._mesh = mesh_construction.TriangleMesh(
-            self._scene, np.ascontiguousarray(positions, np.float32),
-            np.ascontiguousarray(faces, np.int32))
-        self.cast(np.zeros((1, 3)), np.ones((1, 3)), 0.0)  # builds the BVH (before threads)
-
-    def cast(self, origins: np.ndarray, directions: np.ndarray, max_distance: float):
-        """(triangle or -1, Embree's barycentrics u and v, distance) of the nearest hit."""
-        o = np.ascontiguousarray(origins, np.float32)
-        d = np.ascontiguousarray(directions, np.float32)
-        far = None
-        if max_distance > 0:
-            far = np.full(len(o), max_distance, np.float32)
-        r = self._scene.run(o, d, dists=far, output=1)
-        return (r["primID"].astype(np.int64), r["u"].astype(np.float64),
-                r["v"].astype(np.float64), r["tfar"].astype(np.float64))
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -307,12 +280,21 @@ def _rays(low: _Low, tri: np.ndarray, bary: np.ndarray, cage: float | None):
     else:
         origin = np.einsum("tk,tkc->tc", bary, low.cage_positions[fc])
         d = p - origin
-    length = np.linalg.norm(d, axis=-1, keepdims=True)
+    length = _norm(d)[:, None]
     ok = length[:, 0] > 0
     d = np.where(ok[:, None], d / np.where(ok[:, None], length, 1.0), [0.0, 0.0, 1.0])
     if low.cage_positions is None:
         return p + cage * d, -d, ok
     return origin, d, ok
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot products (einsum: NumPy's reductions over a last axis of 3 are slow)."""
+    return np.einsum("...i,...i->...", a, b)
+
+
+def _norm(a: np.ndarray) -> np.ndarray:
+    return np.sqrt(_dot(a, a))
 
 
 def _hash(x: np.ndarray) -> np.ndarray:
@@ -345,30 +327,30 @@ class _HighHits:
         self.p = positions[f]  # (n, 3, 3)
         self.n = normals[f]
         ng = np.cross(self.p[:, 1] - self.p[:, 0], self.p[:, 2] - self.p[:, 0])
-        self.ng = ng / np.maximum(np.linalg.norm(ng, axis=-1, keepdims=True), 1e-300)
+        self.ng = ng / np.maximum(_norm(ng), 1e-300)[:, None]
 
     def normal(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Cycles' smooth normal at Blender's barycentrics ``(a, b)`` (weights of corners 0
         and 1): the interpolated vertex normals, normalised, or the face normal."""
         n = (a[:, None] * self.n[:, 0] + b[:, None] * self.n[:, 1]
              + (1.0 - a - b)[:, None] * self.n[:, 2])
-        length = np.linalg.norm(n, axis=-1, keepdims=True)
+        length = _norm(n)[:, None]
         return np.where(length > 0, n / np.where(length > 0, length, 1.0), self.ng)
 
     def differentials(self, direction, dxco, dyco):
         """Blender's barycentric differentials on the hit triangles: the texel steps carried
         along the ray onto the triangle's plane, in the corner-2-based edge basis."""
-        cos = np.sum(direction * self.ng, -1, keepdims=True)
+        cos = _dot(direction, self.ng)[:, None]
         cos = np.where(cos == 0, np.inf, cos)
         e0 = self.p[:, 0] - self.p[:, 2]
         e1 = self.p[:, 1] - self.p[:, 2]
-        g00, g01, g11 = (np.sum(e0 * e0, -1), np.sum(e0 * e1, -1), np.sum(e1 * e1, -1))
+        g00, g01, g11 = _dot(e0, e0), _dot(e0, e1), _dot(e1, e1)
         det = g00 * g11 - g01 * g01
         det = np.where(det == 0, np.inf, det)
         out = []
         for step in (dxco, dyco):
-            d = step - direction * (np.sum(step * self.ng, -1, keepdims=True) / cos)
-            r0, r1 = np.sum(e0 * d, -1), np.sum(e1 * d, -1)
+            d = step - direction * (_dot(step, self.ng)[:, None] / cos)
+            r0, r1 = _dot(e0, d), _dot(e1, d)
             out.append(((g11 * r0 - g01 * r1) / det, (g00 * r1 - g01 * r0) / det))
         (dudx, dvdx), (dudy, dvdy) = out
         return dudx, dudy, dvdx, dvdy
@@ -409,7 +391,7 @@ def _workers(workers: int | None, chunks: int) -> int:
     return max(1, min(int(workers), chunks))
 
 
-def _automatic_cage(engine: _Embree, low: _Low, tri, bary, chunks) -> float:
+def _automatic_cage(engine: EmbreeScene, low: _Low, tri, bary, chunks) -> float:
     """The smallest extrusion that starts every texel's ray outside HIGH where HIGH lies
     outside LOW: per texel, rays from LOW's point along +n and -n find the nearest HIGH
     surface each way; where the outward one is nearer, HIGH is outside there, and the cage
@@ -507,7 +489,7 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
     tick("inputs")
     cover, texels, tri, bary = _texels(low, hw, low_name)
     tick("texels")
-    engine = _Embree(hp, hf)
+    engine = EmbreeScene(hp, hf, engine=_ENGINE)
     tick("scene")
     step = max(1, int(chunk_texels or _CHUNK // samples))
     chunks = [slice(i, i + step) for i in range(0, texels.size, step)]
@@ -571,7 +553,7 @@ def _finish(cover, texels, hit, m, hw, margin, settings, names, tick, timings, t
     done = np.zeros(h * w, bool)
     done[texels[hit]] = True
     vals, filled = extend_margin(values.reshape(h, w, 3), done.reshape(h, w), margin)
-    length = np.linalg.norm(vals, axis=-1, keepdims=True)
+    length = _norm(vals)[..., None]
     filled &= length[..., 0] > 0
     normals = np.where(filled[..., None], vals / np.where(length > 0, length, 1.0),
                        [0.0, 0.0, 1.0]).astype(np.float32)
