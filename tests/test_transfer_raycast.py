@@ -122,7 +122,8 @@ def test_a_sphere_bakes_its_radial_normals(frame, with_cage_mesh):
     assert err.max() < 2e-3, err.max()
 
 
-def test_rays_through_edges_and_vertices_hit():
+@pytest.mark.parametrize("engine", ["direct", "embreex"])
+def test_rays_through_edges_and_vertices_hit(engine):
     """HIGH is a grid of triangles at z = 0 with normals that vary; at 8x8 every texel's ray
     meets a grid vertex, at 16x16 the midpoint of a diagonal edge. Embree runs in robust
     mode: no ray falls through, and each gets the normal interpolated there."""
@@ -138,7 +139,7 @@ def test_rays_through_edges_and_vertices_hit():
     q = np.array([[0, 0, 0.25], [1, 0, 0.25], [1, 1, 0.25], [0, 1, 0.25]])
     low = _mesh(q, [[0, 1, 2], [0, 2, 3]], q[:, :2], np.tile([0.0, 0, 1], (4, 1)))
     for size in (8, 16):
-        res = raycast_normal_map(high, low, size, margin=0)
+        res = raycast_normal_map(high, low, size, margin=0, engine=engine)
         assert res.texels_inside == size * size and res.texels_missed == 0
         c = (np.arange(size) + 0.5) / size
         u, v = np.meshgrid(c, c[::-1], indexing="xy")
@@ -153,12 +154,15 @@ def test_rays_through_edges_and_vertices_hit():
         assert _angle(res.normals, want).max() < 1e-3
 
 
-def test_chunks_change_no_bit():
+def test_chunks_threads_and_engines_change_no_bit():
     low, high = uv_sphere(0.9), ico_sphere(3)
-    one = raycast_normal_map(high, low, 48, samples=4, cage=0.2)
-    many = raycast_normal_map(high, low, 48, samples=4, cage=0.2, chunk_texels=97, workers=3)
-    assert np.array_equal(one.normals, many.normals)
-    assert np.array_equal(one.missed, many.missed) and np.array_equal(one.filled, many.filled)
+    one = raycast_normal_map(high, low, 48, samples=4, cage=0.2, workers=1)
+    for kw in (dict(chunk_texels=97, workers=3), dict(engine="embreex"),
+               dict(engine="direct", chunk_texels=1000, workers=2)):
+        other = raycast_normal_map(high, low, 48, samples=4, cage=0.2, **kw)
+        assert np.array_equal(one.normals, other.normals), kw
+        assert np.array_equal(one.missed, other.missed) and np.array_equal(one.filled,
+                                                                            other.filled)
     other = raycast_normal_map(high, low, 48, samples=4, cage=0.2, seed=1)
     assert not np.array_equal(one.normals, other.normals)  # the jitter does depend on the seed
 

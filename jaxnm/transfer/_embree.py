@@ -81,6 +81,8 @@ class EmbreeScene:
     """
 
     def __init__(self, positions: np.ndarray, faces: np.ndarray, *, engine: str | None = None):
+        if engine not in (None,) + ENGINES:
+            raise ValueError(f"engine must be one of {', '.join(ENGINES)} or None, got {engine!r}")
         mesh_construction, rtcore_scene = _embreex()
         lib = _library() if engine in (None, "direct") else None
         if engine == "direct" and lib is None:

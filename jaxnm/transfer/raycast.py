@@ -41,9 +41,10 @@ normals it computes, angle-weighted, for smooth faces and face normals for flat 
 agree for a smooth LOW whose normals are angle-weighted, `jaxnm.geometry.vertex_normals`),
 and the random numbers are a hash of the texel and the sample, not Cycles' sequence.
 
-The rays are cast with Embree (``embreex``, robust mode: a ray through an edge or a vertex
-shared by triangles hits one of them), in chunks of texels, so the memory is bounded
-whatever the map's size; the result does not depend on the chunk size.
+The rays are cast with Embree (the ``bake`` extra's ``embreex``, robust mode: a ray through
+an edge or a vertex shared by triangles hits one of them; `jaxnm.transfer._embree`), in
+chunks of texels on worker threads, so the memory is bounded whatever the map's size; the
+result depends neither on the chunks nor on the threads.
 """
 
 from __future__ import annotations
@@ -70,8 +71,6 @@ RAYCAST_FRAMES = ("vertex", "cotangent")
 _JITTER_TRIES = 10
 #: Texels per chunk of rays at one sample per texel (fewer at more samples).
 _CHUNK = 1 << 18
-#: How to reach Embree (`jaxnm.transfer._embree.ENGINES`; None: the fastest available).
-_ENGINE = None
 
 
 class BakeWarning(JaxnmWarning):
@@ -443,7 +442,8 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
                        cage_mesh: Mesh | None = None, max_distance: float = 0.0,
                        samples: int = 1, margin: int = 16, seed: int = 0,
                        chunk_texels: int | None = None, workers: int | None = None,
-                       high_name: str = "HIGH", low_name: str = "LOW") -> RaycastBake:
+                       engine: str | None = None, high_name: str = "HIGH",
+                       low_name: str = "LOW") -> RaycastBake:
     """Bake HIGH's normals into a tangent-space map on LOW's uv layout by casting rays, as
     Blender's Cycles "selected to active" bake does (the module docstring has the rules and
     the Blender sources they follow).
@@ -466,6 +466,9 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
     - `seed`: varies the jitter; `chunk_texels`: texels per chunk of rays (memory bound;
       the result does not depend on it); `workers`: threads baking chunks at once
       (default: the machine's cores, at most 4; the result does not depend on it);
+      `engine`: how to reach Embree, ``"direct"`` (its library through ctypes, rays in
+      packets on every worker) or ``"embreex"`` (embreex's scene, one ray at a time), the
+      same hits (`jaxnm.transfer._embree`); None: ``"direct"`` where it can be had;
       `high_name`, `low_name`: for messages (the files).
 
     **Returns:** a `RaycastBake`. Raises ValueError when no ray hits HIGH at all (the
@@ -489,7 +492,7 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
     tick("inputs")
     cover, texels, tri, bary = _texels(low, hw, low_name)
     tick("texels")
-    engine = EmbreeScene(hp, hf, engine=_ENGINE)
+    engine = EmbreeScene(hp, hf, engine=engine)
     tick("scene")
     step = max(1, int(chunk_texels or _CHUNK // samples))
     chunks = [slice(i, i + step) for i in range(0, texels.size, step)]
