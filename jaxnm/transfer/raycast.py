@@ -179,7 +179,7 @@ def _warn_bad_triangles(p: np.ndarray, f: np.ndarray, name: str) -> None:
     if bad.size:
         warnings.warn(f"{name}: {bad.size} degenerate (zero-area) triangles (first: face "
                       f"{bad[0]}); their texels have no tangent frame and keep (0, 0, 1)",
-                      BakeWarning, stacklevel=3)
+                      BakeWarning, stacklevel=4)
     _, weld = np.unique(p, axis=0, return_inverse=True)
     t = weld.reshape(-1)[f]
     e = np.sort(np.stack([t, np.roll(t, -1, axis=1)], -1).reshape(-1, 2), axis=1)
@@ -191,7 +191,7 @@ def _warn_bad_triangles(p: np.ndarray, f: np.ndarray, name: str) -> None:
         warnings.warn(f"{name}: {int(many.sum())} edges are shared by more than two triangles "
                       f"(non-manifold; first: the edge at {p[np.argmax(weld == a)].round(4)} - "
                       f"{p[np.argmax(weld == b)].round(4)}); rays near them leave from every "
-                      "sheet", BakeWarning, stacklevel=3)
+                      "sheet", BakeWarning, stacklevel=4)
 
 
 def _check_options(size, frame, cage, cage_mesh, max_distance, samples, margin):
@@ -232,7 +232,7 @@ def _warn_overlap(cover, name: str) -> None:
         warnings.warn(f"{name}: {k} texels lie inside more than one uv triangle (overlapping "
                       f"uv islands; first: faces {faces}); each such texel is baked from the "
                       "triangle with the highest index, as Blender does", BakeWarning,
-                      stacklevel=3)
+                      stacklevel=4)
 
 
 # ----------------------------------------------------------------------------- per texel
@@ -433,7 +433,7 @@ def _report_misses(missed: np.ndarray, face: np.ndarray, n_inside: int, cage, so
         warnings.warn(f"{low_name}: the rays of {int(missed.sum())} of {n_inside} texels hit "
                       f"nothing on {high_name} ({cage_txt}): uv [{box[0]:.4f}, {box[1]:.4f}] "
                       f"to [{box[2]:.4f}, {box[3]:.4f}], faces {where}; the margin fills them "
-                      "where it reaches", BakeWarning, stacklevel=3)
+                      "where it reaches", BakeWarning, stacklevel=4)
     return box, faces
 
 
