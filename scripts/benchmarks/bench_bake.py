@@ -16,7 +16,8 @@ and a 16-texel margin, on this machine, one after the other in one run of this s
   same repeats in one Blender process, the whole process's wall time (start, scene set-up,
   every bake) and its peak RSS.
 
-Prints JSON: the settings, the machine, both sides' figures and the ratio of the medians.
+Prints JSON: the settings, the machine (with its load average before and after: run it on a
+quiet machine), both sides' figures and the ratio of the medians.
 """
 
 from __future__ import annotations
@@ -120,12 +121,14 @@ def main(argv=None) -> None:
                              lo_triangles=len(pair["lo_faces"]), cage=args.cage, margin=16),
                machine=dict(cpus=os.cpu_count(), processor=platform.processor() or
                             platform.machine(), python=platform.python_version()))
+    out["machine"]["load_average_before"] = [round(x, 2) for x in os.getloadavg()]
     out["jaxnm"] = run_jaxnm(pair, args)
     blender = None if args.no_blender else blender_python()
     if blender is not None:
         out["blender"] = run_blender(pair, args, blender)
         out["blender_bake_over_jaxnm"] = round(out["blender"]["bake_median_s"]
                                                / out["jaxnm"]["median_s"], 2)
+    out["machine"]["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
     print(json.dumps(out, indent=1))
 
 
