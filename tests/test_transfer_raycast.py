@@ -4,8 +4,10 @@ Against analytic answers (a sphere, rays through triangle edges and vertices), a
 itself (chunking changes no bit), its messages on bad input, and against Blender's Cycles
 "selected to active" bake (tests/blender_ref.py, run in its own environment; skipped
 without it except in CI, JAXNM_REQUIRE_BLENDER=1): Suzanne subdivided and displaced onto
-Suzanne, and a displaced torus onto a torus with mirrored uvs, both sides at 32 samples
-per texel, within 0.2 deg mean and 1 deg p99 inside the uv triangles.
+Suzanne (an extrusion and a max ray distance), and a displaced torus onto a torus with
+mirrored uvs (a cage object), both sides at 32 samples per texel, within 0.2 deg mean and
+1 deg p99 inside the uv triangles, the same texels covered and the same margin; and
+Cycles' sample jitter, where it shows (256 samples on large triangles).
 """
 
 import dataclasses
@@ -347,8 +349,8 @@ def _blender(tmp, name, *args):
     assert run.returncode == 0, run.stderr[-2000:]
 
 
-def _suzanne_pair(tmp):
-    _blender(tmp, "suzanne", 3, tmp / "suzanne.npz")
+def _suzanne_pair(tmp, levels=3):
+    _blender(tmp, "suzanne", levels, tmp / "suzanne.npz")
     s = np.load(tmp / "suzanne.npz")
 
     def height(p):
@@ -359,23 +361,25 @@ def _suzanne_pair(tmp):
                 lo_corner_uv=s["corner_uv"])
 
 
-def _compare(tmp, pair, settings, cage_mesh=None):
-    """(jaxnm's bake, Blender's images at margins 0 and 16 as unit vectors, where Blender
-    wrote)."""
-    np.savez(tmp / "spec.npz", **pair, size=SIZE, samples=SAMPLES, margins=np.array([0, 16]),
+def _cycles(tmp, pair, settings, size=SIZE, samples=SAMPLES):
+    """Blender's bakes at margins 0 and 16, as unit vectors, and where Blender wrote."""
+    np.savez(tmp / "spec.npz", **pair, size=size, samples=samples, margins=np.array([0, 16]),
              **settings)
     _blender(tmp, "transfer", tmp / "spec.npz", tmp / "out.npz")
     images = np.load(tmp / "out.npz")["images"].astype(np.float64)
     wrote = images[..., 0] >= 0
     n = 2 * (images - 0.5 - 1e-5)  # Blender's encoding adds 1e-5
     n /= np.where(wrote[..., None], np.linalg.norm(n, axis=-1, keepdims=True), 1)
+    return n, wrote
+
+
+def _ours(pair, settings, cage_mesh=None, size=SIZE, samples=SAMPLES):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", BakeWarning)
-        res = raycast_normal_map(
-            P.high_mesh(pair), P.low_mesh(pair), SIZE, samples=SAMPLES,
+        return raycast_normal_map(
+            P.high_mesh(pair), P.low_mesh(pair), size, samples=samples,
             cage=None if cage_mesh is not None else settings["cage_extrusion"],
             cage_mesh=cage_mesh, max_distance=settings["max_ray_distance"], margin=16)
-    return res, n, wrote
 
 
 @pytest.mark.slow
@@ -387,14 +391,14 @@ def test_the_bake_matches_cycles(case, tmp_path):
     if case == "suzanne":  # an extrusion and a max ray distance
         pair = _suzanne_pair(tmp_path)
         settings = dict(cage_extrusion=0.1, max_ray_distance=0.4)
-        res, n, wrote = _compare(tmp_path, pair, settings)
+        res = _ours(pair, settings)
     else:  # a cage object: the low-poly torus inflated along its normals
         pair = P.torus_pair()
         cage = pair["lo_positions"] + 0.08 * P.angle_normals(pair["lo_positions"],
                                                              pair["lo_faces"])
         settings = dict(cage_extrusion=0.0, max_ray_distance=0.0, cage_positions=cage)
-        res, n, wrote = _compare(tmp_path, pair, settings,
-                                 P.low_mesh(dict(pair, cage=cage), "cage"))
+        res = _ours(pair, settings, P.low_mesh(dict(pair, cage=cage), "cage"))
+    n, wrote = _cycles(tmp_path, pair, settings)
     baked = res.inside & ~res.missed
     # the same texels: Blender writes the covered texels whose ray hit (its texel centres
     # are 0.001 texel off, which can tip a texel on an island's edge or a ray's reach)
@@ -409,3 +413,26 @@ def test_the_bake_matches_cycles(case, tmp_path):
     margin = res.filled & wrote[1] & ~res.inside
     err_m = _angle(res.normals, n[1])[margin]
     assert err_m.size > 1000 and np.median(err_m) <= 0.2
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(BLENDER is None and os.environ.get("JAXNM_REQUIRE_BLENDER") != "1",
+                    reason="no Blender Python (set JAXNM_BLENDER_PYTHON or make .venv-blender)")
+def test_the_sample_jitter_matches_cycles(tmp_path):
+    """Where HIGH's triangles span several texels and their normals turn fast (Suzanne
+    subdivided twice, a 64x64 map), Cycles' jitter within the hit triangle shows at 256
+    samples: jaxnm's footprint (half a texel's step, carried onto the triangle) agrees, and a
+    bake without jitter does not."""
+    assert BLENDER is not None, "JAXNM_REQUIRE_BLENDER=1 but no Blender Python was found"
+    pair = _suzanne_pair(tmp_path, levels=2)
+    settings = dict(cage_extrusion=0.1, max_ray_distance=0.4)
+    n, wrote = _cycles(tmp_path, pair, settings, size=64, samples=256)
+    errs = {}
+    for ours in (256, 1):
+        res = _ours(pair, settings, size=64, samples=ours)
+        baked = res.inside & ~res.missed & wrote[0]
+        errs[ours] = _angle(res.normals, n[0])[baked]
+    print({k: (round(float(e.mean()), 4), round(float(np.percentile(e, 99)), 3))
+           for k, e in errs.items()})
+    assert errs[256].mean() <= 0.3 and np.percentile(errs[256], 99) <= 1.5
+    assert errs[1].mean() > 2 * errs[256].mean()
