@@ -85,22 +85,32 @@ class EmbreeScene:
             raise ValueError(f"engine must be one of {', '.join(ENGINES)} or None, got {engine!r}")
         mesh_construction, rtcore_scene = _embreex()
         lib = _library() if engine in (None, "direct") else None
-        if engine == "direct" and lib is None:
-            raise OSError("the Embree library of embreex's wheel was not found")
-        self.engine = "direct" if lib is not None else "embreex"
-        if lib is None:
-            self._scene = rtcore_scene.EmbreeScene(robust=True)
-            self._mesh = mesh_construction.TriangleMesh(
-                self._scene, np.ascontiguousarray(positions, np.float32),
-                np.ascontiguousarray(faces, np.int32))
-            self.cast(np.zeros((1, 3)), np.ones((1, 3)), 0.0)  # builds the BVH
-            return
+        if lib is not None:
+            try:
+                self._build_direct(lib, positions, faces)
+                self.engine = "direct"
+                return
+            except OSError:
+                if engine == "direct":
+                    raise
+        elif engine == "direct":
+            raise OSError("Embree: the library of embreex's wheel was not found")
+        self.engine = "embreex"
+        self._scene = rtcore_scene.EmbreeScene(robust=True)
+        self._mesh = mesh_construction.TriangleMesh(
+            self._scene, np.ascontiguousarray(positions, np.float32),
+            np.ascontiguousarray(faces, np.int32))
+        self.cast(np.zeros((1, 3)), np.ones((1, 3)), 0.0)  # builds the BVH
+
+    def _build_direct(self, lib, positions, faces):
         self._lib = lib
         # Embree reads vertices with 16-byte loads: one more row of padding
         self._vertices = np.zeros((len(positions) + 1, 3), np.float32)
         self._vertices[:-1] = positions
         self._faces = np.ascontiguousarray(faces, np.uint32)
         self._device = lib.rtcNewDevice(None)
+        if not self._device:
+            raise OSError("Embree: no device")
         self._ptr = lib.rtcNewScene(self._device)
         weakref.finalize(self, _release, lib, self._ptr, self._device)
         lib.rtcSetSceneFlags(self._ptr, _ROBUST)
@@ -113,9 +123,9 @@ class EmbreeScene:
         lib.rtcAttachGeometry(self._ptr, geom)
         lib.rtcReleaseGeometry(geom)
         lib.rtcCommitScene(self._ptr)
-        if lib.rtcGetDeviceError(self._device) != 0:
-            raise RuntimeError(f"Embree: error {lib.rtcGetDeviceError(self._device)} while "
-                               "building the scene")
+        error = lib.rtcGetDeviceError(self._device)
+        if error != 0:
+            raise OSError(f"Embree: error {error} while building the scene")
 
     def cast(self, origins: np.ndarray, directions: np.ndarray, max_distance: float):
         """The nearest hit of each ray at or beyond its origin, front or back face, within

@@ -24,7 +24,8 @@ order):
    width do not enter bakes), trying up to 10 draws to land strictly inside the triangle and
    keeping the hit itself otherwise (``bake_jitter_barycentric``). The differentials are
    half a texel's step of LOW's (or the cage's) surface point (``bake_differentials`` scales
-   them by 1/2), carried along the ray onto the HIGH triangle's plane (``cast_ray_highpoly``).
+   them by 1/2), carried along the ray onto the HIGH triangle's plane (``cast_ray_highpoly``):
+   the samples spread over +-1/4 texel.
    The world-space normals of the samples are averaged, not renormalised.
 4. **The frame.** The average goes into tangent space at the texel's own point on LOW
    (`jaxnm.bake.world_to_tangent`: MikkTSpace for ``frame="vertex"``, as Blender's
