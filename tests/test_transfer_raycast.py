@@ -242,7 +242,8 @@ def test_overlapping_islands_degenerate_and_non_manifold_triangles_warn():
     with pytest.warns(BakeWarning, match=r"^LOW: \d+ texels lie inside more than one uv "
                                          r"triangle \(overlapping uv islands; first: faces 1 and "
                                          r"3\).*highest index"):
-        raycast_normal_map(plane, low, 8, cage=0.2)
+        res = raycast_normal_map(plane, low, 8, cage=0.2)
+    assert res.overlapping > 0 and set(np.unique(res.face[res.inside])) == {2, 3}
     degenerate = _mesh(np.concatenate([q, [[0.5, 0.5, 0.1]]]), [[0, 1, 2], [0, 2, 3], [4, 4, 0]],
                        np.concatenate([q[:, :2], [[0.9, 0.9]]]), np.tile([0.0, 0, 1], (5, 1)))
     with pytest.warns(BakeWarning, match=r"^LOW: 1 degenerate \(zero-area\) triangles \(first: "
