@@ -73,8 +73,9 @@ import numpy as np
 from . import io
 from .camera import Camera, look_at, perspective
 from .fit import FitJob, FitOptions, FitTarget, problem_from_scene
+from .frames import canonical_frame
 from .maps import height_to_derivative_map
-from .procedural import builtin_mesh, default_normal_map_texels
+from .procedural import BUILTIN_MESHES, builtin_mesh, default_normal_map_texels
 from .scene import (
     Scene,
     _check_scene_options,
@@ -272,64 +273,126 @@ def _map_options(spec: dict, known, where: str, **fixed) -> NormalMapOptions:
         raise ValueError(f"{where}{str(e).removeprefix('NormalMapOptions: ')}") from None
 
 
-def _load_normal_map(spec: Any, *, base_dir=".", where: str = ""):
-    """``(stored texels, NormalMapOptions)`` from a scene's ``normal_map`` entry (a path,
-    ``"builtin:rivets"``, or an object with ``path`` and the `NormalMapOptions` fields)."""
+def _input_file(base: Path, ref: Any, key: str, where: str) -> Path:
+    """``base / ref``, checked to name an existing file: else a one-line error naming the
+    field (``"scene.json: normal_map: maps/rivet.png: no such file"``)."""
+    if not isinstance(ref, str) or not ref:
+        raise ValueError(f"{where}'{key}' must be a file path, got {ref!r}")
+    p = base / ref
+    if not p.exists():
+        raise FileNotFoundError(f"{where}{key}: {p}: no such file")
+    if not p.is_file():
+        raise ValueError(f"{where}{key}: {p}: not a regular file")
+    return p
+
+
+#: Image formats that store unsigned 8- or 16-bit values (``encoding: "signed"`` needs float).
+_INTEGER_IMAGES = (".png", ".jpg", ".jpeg", ".bmp", ".tga", ".tif", ".tiff")
+
+
+def _normal_map_loader(spec: Any, *, base_dir=".", where: str = ""):
+    """Check a scene's ``normal_map`` entry (a path, ``"builtin:rivets"``, or an object with
+    ``path`` and the `NormalMapOptions` fields) and that its file exists; returns a function
+    that reads it: ``() -> (stored texels, NormalMapOptions)``."""
     spec = _object(spec, "normal_map", where)
     w = f"{where}normal_map: "
-    ref = spec.pop("path")
     fields = [f.name for f in dataclasses.fields(NormalMapOptions) if f.name != "bits"]
+    _keys(spec, ["path", *fields], w)
+    ref = spec.pop("path")
     opts = _map_options(spec, fields, w)
     if ref == "builtin:rivets":
         if opts.encoding != "unsigned" or opts.channels != 3:
             raise ValueError(f"{w}'builtin:rivets' is stored as a 3-channel unsigned map")
-        return default_normal_map_texels(256), dataclasses.replace(opts, bits=8)
-    if Path(ref).suffix.lower() == ".dds":  # BC5 or DXT5nm: two 8-bit channels
-        from .storage import load_dds_normal_map
-
-        m = load_dds_normal_map(Path(base_dir) / ref)
+        return lambda: (default_normal_map_texels(256), dataclasses.replace(opts, bits=8))
+    path = _input_file(Path(base_dir), ref, "normal_map", where)
+    if path.suffix.lower() == ".dds":  # BC5 or DXT5nm: two 8-bit channels
         if opts.encoding != "unsigned" or opts.space != "tangent":
             raise ValueError(f"{w}{ref!r}: a DDS map is an unsigned tangent-space map")
-        return m.texels.astype(np.float32), m.options(opts)
-    raw, bits = io.load_texture(Path(base_dir) / ref, channels=opts.channels)
-    if opts.encoding == "signed" and bits in (8, 16):
+
+        def dds():
+            from .storage import load_dds_normal_map
+
+            m = load_dds_normal_map(path)
+            return m.texels.astype(np.float32), m.options(opts)
+        return dds
+    if opts.encoding == "signed" and path.suffix.lower() in _INTEGER_IMAGES:
         raise ValueError(f"{w}{ref!r}: encoding 'signed' needs float data (.npy/.npz); an "
                          "8/16-bit image stores unsigned values")
-    return raw.astype(np.float32), dataclasses.replace(opts, bits=bits if bits in (8, 16)
-                                                       else opts.bits)
+
+    def image():
+        raw, bits = io.load_texture(path, channels=opts.channels)
+        if opts.encoding == "signed" and bits in (8, 16):
+            raise ValueError(f"{w}{ref!r}: encoding 'signed' needs float data (.npy/.npz); an "
+                             "8/16-bit image stores unsigned values")
+        return raw.astype(np.float32), dataclasses.replace(
+            opts, bits=bits if bits in (8, 16) else opts.bits)
+    return image
 
 
-def _load_height_map(spec: Any, *, base_dir=".", where: str = ""):
-    """``(derivative map, NormalMapOptions)`` from a ``height_map`` entry (a path or an
-    object with ``path``, ``scale`` in world units, ``uv_origin``, ``wrap``, ``filter``):
-    the height map is rendered by surface-gradient bump mapping through its derivative map."""
+def _height_map_loader(spec: Any, *, base_dir=".", where: str = ""):
+    """Check a ``height_map`` entry (a path or an object with ``path``, ``scale`` in world
+    units, ``uv_origin``, ``wrap``, ``filter``) and that its file exists; returns a function
+    that reads it: ``() -> (derivative map, NormalMapOptions)``. The height map is rendered
+    by surface-gradient bump mapping through its derivative map."""
     spec = _object(spec, "height_map", where)
     w = f"{where}height_map: "
-    path = spec.pop("path")
+    _keys(spec, ("path", "scale", "uv_origin", "wrap", "filter"), w)
+    ref = spec.pop("path")
     scale = _field(spec, "scale", float, 0.02, w)
     spec.pop("scale", None)
     opts = _map_options(spec, ("uv_origin", "wrap", "filter"), w, encoding="signed",
                         channels=2, space="derivative")
     if opts.wrap == "mirror":
         raise ValueError(f"{w}'wrap' must be 'repeat' or 'clamp'")
-    raw, _ = io.load_texture(Path(base_dir) / path, channels=1)
-    d = np.array(height_to_derivative_map(raw[..., 0], scale=scale, wrap=opts.wrap))
-    if opts.uv_origin == "top_left":  # v grows down the image: dh/dv changes sign
-        d[..., 1] = -d[..., 1]
-    return d.astype(np.float32), opts
+    path = _input_file(Path(base_dir), ref, "height_map", where)
+
+    def load():
+        raw, _ = io.load_texture(path, channels=1)
+        d = np.array(height_to_derivative_map(raw[..., 0], scale=scale, wrap=opts.wrap))
+        if opts.uv_origin == "top_left":  # v grows down the image: dh/dv changes sign
+            d[..., 1] = -d[..., 1]
+        return d.astype(np.float32), opts
+    return load
 
 
-def _albedo(spec: Any, base: Path, where: str) -> np.ndarray:
+def _load_height_map(spec: Any, *, base_dir=".", where: str = ""):
+    """``(derivative map, NormalMapOptions)`` from a ``height_map`` entry
+    (`_height_map_loader`, read at once)."""
+    return _height_map_loader(spec, base_dir=base_dir, where=where)()
+
+
+def _albedo_loader(spec: Any, base: Path, where: str):
+    """Check a scene's ``albedo`` (an RGB list, a path or ``{"path", "srgb"}``); returns a
+    function giving the linear albedo (RGB, or an (h, w, 3) texture)."""
     if isinstance(spec, (list, tuple)):
-        return _vector(spec, 3, "albedo", where).astype(np.float32)
+        rgb = _vector(spec, 3, "albedo", where).astype(np.float32)
+        return lambda: rgb
     if not isinstance(spec, (str, dict)):
         raise ValueError(f"{where}'albedo' must be an RGB list, a path or {{'path', 'srgb'}}")
     spec = _object(spec, "albedo", where)
-    w = f"{where}albedo: "
-    _keys(spec, ("path", "srgb"), w)
-    srgb = _field(spec, "srgb", bool, True, w)
-    tex, _ = io.load_texture(base / spec["path"], channels=3)
-    return np.asarray(srgb_to_linear(tex) if srgb else tex, np.float32)
+    _keys(spec, ("path", "srgb"), f"{where}albedo: ")
+    srgb = _field(spec, "srgb", bool, True, f"{where}albedo: ")
+    path = _input_file(base, spec["path"], "albedo", where)
+
+    def load():
+        tex, _ = io.load_texture(path, channels=3)
+        return np.asarray(srgb_to_linear(tex) if srgb else tex, np.float32)
+    return load
+
+
+def _mesh_loader(ref: Any, base: Path, where: str):
+    """Check a scene's ``mesh`` (a file path or ``"builtin:<name>"``); returns a function
+    that reads it."""
+    if not isinstance(ref, str):
+        raise ValueError(f"{where}'mesh' must be a file path or 'builtin:<name>'")
+    if ref.startswith("builtin:"):
+        name = ref.split(":", 1)[1]
+        if name not in BUILTIN_MESHES:
+            raise ValueError(f"{where}'mesh': unknown built-in mesh {name!r}; expected one of "
+                             f"{', '.join(BUILTIN_MESHES)}")
+        return lambda: builtin_mesh(name)
+    path = _input_file(base, ref, "mesh", where)
+    return lambda: io.load_mesh(path)
 
 
 # --------------------------------------------------------------------------------------
@@ -344,18 +407,31 @@ def load_scene(path) -> Scene:
 
 
 def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scene:
-    """Build a `Scene` from a parsed scene JSON object; errors start with ``source``."""
+    """Build a `Scene` from a parsed scene JSON object; errors start with ``source``. Every
+    field is checked, and every file it names found, before any file is read."""
+    return _scene_loader(data, base_dir=base_dir, source=source)()
+
+
+def _scene_loader(data: Any, *, base_dir=".", source: str = "<dict>"):
+    """Check a parsed scene JSON object, every field and that every file it names exists,
+    without reading any; returns a function that reads them and builds the `Scene`. The
+    function has ``width``, ``height`` and ``camera`` attributes (a fit file's default
+    view)."""
     where = f"{source}: "
     if not isinstance(data, dict):
         raise ValueError(f"{where}a scene must be a JSON object, got {type(data).__name__}")
     _keys(data, SCENE_KEYS, where)
     base = Path(base_dir)
-    # the cheap fields first: a typo costs no mesh loading
     width = _field(data, "width", int, 512, where)
     height = _field(data, "height", int, 512, where)
     if width <= 0 or height <= 0:
         raise ValueError(f"{where}'width' and 'height' must be positive, got {width}x{height}")
-    options = dict(frame=_field(data, "frame", str, "cotangent", where),
+    frame = _field(data, "frame", str, "cotangent", where)
+    try:
+        frame = canonical_frame(frame)
+    except ValueError as e:
+        raise _rewrap(e, where) from None
+    options = dict(frame=frame,
                    derivatives=_field(data, "derivatives", str, "fine", where),
                    precision=_field(data, "precision", str, "float32", where),
                    double_sided=_field(data, "double_sided", bool, True, where),
@@ -378,40 +454,35 @@ def scene_from_dict(data: dict, *, base_dir=".", source: str = "<dict>") -> Scen
                          f"{tangent_mode!r}")
     if data.get("normal_map") is not None and data.get("height_map") is not None:
         raise ValueError(f"{where}give either 'normal_map' or 'height_map', not both")
-    _check_scene_options(width=width, height=height, shading=shading, source=source,
-                        **options)  # before loading anything big
-
+    _check_scene_options(width=width, height=height, shading=shading, source=source, **options)
     if "mesh" not in data:
         raise ValueError(f"{where}missing required key 'mesh'")
-    mesh_ref = data["mesh"]
-    if not isinstance(mesh_ref, str):
-        raise ValueError(f"{where}'mesh' must be a file path or 'builtin:<name>'")
-    if mesh_ref.startswith("builtin:"):
-        try:
-            mesh = builtin_mesh(mesh_ref.split(":", 1)[1])
-        except ValueError as e:
-            raise _rewrap(e, f"{where}'mesh': ") from None
-    else:
-        mesh = io.load_mesh(base / mesh_ref)
-
-    if options["frame"] == "vertex" or tangent_mode == "mikktspace":
-        if tangent_mode == "mikktspace" or mesh.tangents is None:
-            if mesh.uv is None or mesh.normals is None:
-                raise ValueError(f"{where}frame 'vertex' needs a mesh with uvs and normals")
-            mesh = mesh.with_tangents()  # MikkTSpace, once, at load
-    nm, nm_opts = None, NormalMapOptions()
+    # the files: each found now, read below
+    mesh_of = _mesh_loader(data["mesh"], base, where)
+    map_of = None
     if data.get("normal_map") is not None:
-        nm, nm_opts = _load_normal_map(data["normal_map"], base_dir=base, where=where)
-    if data.get("height_map") is not None:
-        nm, nm_opts = _load_height_map(data["height_map"], base_dir=base, where=where)
-    albedo = _albedo(data.get("albedo", [0.8, 0.8, 0.8]), base, where)
-    if cull == "auto":
-        cull = back_faces_hidden(mesh, camera, model)
-    # the model stays a float64 matrix: render composes it with the camera in float64
-    return validate_scene(Scene(
-        mesh=mesh, camera=camera, width=width, height=height, normal_map=nm,
-        normal_map_options=nm_opts, albedo=albedo, lights=lights, material=material,
-        model=model, shading=shading, source=source, cull_back=cull, **options))
+        map_of = _normal_map_loader(data["normal_map"], base_dir=base, where=where)
+    elif data.get("height_map") is not None:
+        map_of = _height_map_loader(data["height_map"], base_dir=base, where=where)
+    albedo_of = _albedo_loader(data.get("albedo", [0.8, 0.8, 0.8]), base, where)
+
+    def load() -> Scene:
+        mesh = mesh_of()
+        if options["frame"] == "vertex" or tangent_mode == "mikktspace":
+            if tangent_mode == "mikktspace" or mesh.tangents is None:
+                if mesh.uv is None or mesh.normals is None:
+                    raise ValueError(f"{where}frame 'vertex' needs a mesh with uvs and normals")
+                mesh = mesh.with_tangents()  # MikkTSpace, once, at load
+        nm, nm_opts = map_of() if map_of is not None else (None, NormalMapOptions())
+        cull_back = back_faces_hidden(mesh, camera, model) if cull == "auto" else cull
+        # the model stays a float64 matrix: render composes it with the camera in float64
+        return validate_scene(Scene(
+            mesh=mesh, camera=camera, width=width, height=height, normal_map=nm,
+            normal_map_options=nm_opts, albedo=albedo_of(), lights=lights, material=material,
+            model=model, shading=shading, source=source, cull_back=cull_back, **options))
+
+    load.width, load.height, load.camera = width, height, camera
+    return load
 
 
 # --------------------------------------------------------------------------------------
@@ -424,12 +495,18 @@ def _image(path: Path, color_space: str | None, where: str) -> np.ndarray:
     if img.ndim == 3 and img.shape[2] == 4:
         img = img[..., :3]
     if img.ndim != 3 or img.shape[2] != 3:
-        raise ValueError(f"{path}: a target must be an RGB image, got shape {img.shape}")
+        raise ValueError(f"{where}{path}: a target must be an RGB image, got shape {img.shape}")
     if color_space is None:
         color_space = "srgb" if bits in (8, 16) else "linear"
     if not np.all(np.isfinite(img)):
-        raise ValueError(f"{path}: the target has NaN or infinite values")
+        raise ValueError(f"{where}{path}: the target has NaN or infinite values")
     return np.asarray(srgb_to_linear(img)) if color_space == "srgb" else img
+
+
+def _check_size(a: np.ndarray, width: int, height: int, what: str, where: str) -> None:
+    if a.shape[:2] != (height, width):
+        raise ValueError(f"{where}{what} is {a.shape[1]}x{a.shape[0]}, but its view renders "
+                         f"{width}x{height}")
 
 
 def _solver_options(spec: Any, where: str) -> tuple[FitOptions, float | None]:
@@ -480,7 +557,10 @@ def load_fit(path, *, images=None) -> FitJob:
 
 def fit_from_dict(data: dict, *, base_dir=".", source: str = "<dict>",
                   images=None) -> FitJob:
-    """Build a `FitJob` from a parsed fit JSON object; errors start with ``source``.
+    """Build a `FitJob` from a parsed fit JSON object; errors start with ``source``. Every
+    field, of the fit file and of its scene file, is checked and every file they name found
+    before any is read; then the images (each checked against its view's size), the ground
+    truth and the scene's files are read.
 
     ``images``: None (read every image), or a function ``images(key, targets)`` given
     ``"targets"`` or ``"held_out"`` and those targets without their images (``image`` and
@@ -492,7 +572,6 @@ def fit_from_dict(data: dict, *, base_dir=".", source: str = "<dict>",
     if not isinstance(data, dict):
         raise ValueError(f"{where}a fit file must be a JSON object")
     _keys(data, FIT_KEYS, where)
-    # the fields that need no file first
     options, time_limit = _solver_options(data.get("solver", {}), where)
     map_size, output = _output_map(data.get("map", {}), where)
     for key in ("targets", "held_out", "views"):
@@ -500,74 +579,101 @@ def fit_from_dict(data: dict, *, base_dir=".", source: str = "<dict>",
             raise ValueError(f"{where}'{key}' must be a list")
     if not data.get("targets"):
         raise ValueError(f"{where}'targets' must be a non-empty list")
-    gt_spec = None
-    if "ground_truth" in data:
-        gt_spec = _object(data["ground_truth"], "ground_truth", where)
-        _keys(gt_spec, ("path", "encoding", "green"), f"{where}ground_truth: ")
-        gt_opts = _map_options({k: v for k, v in gt_spec.items() if k != "path"},
-                               ("encoding", "green"), f"{where}ground_truth: ")
     if "scene" not in data or not isinstance(data["scene"], str):
         raise ValueError(f"{where}'scene' must name a scene JSON file (the mesh and material)")
+    scene_path = _input_file(base, data["scene"], "scene", where)
+    scene_of = _scene_loader(io.load_json(scene_path), base_dir=scene_path.parent,
+                             source=str(scene_path))
+    views = _views(data.get("views", []), scene_of, where)
+    specs = {key: [_target_spec(t, i, key, views, base, where)
+                   for i, t in enumerate(data.get(key, []))] for key in ("targets", "held_out")}
+    truth_of = (_ground_truth_loader(data["ground_truth"], base, map_size, where)
+                if "ground_truth" in data else None)
 
-    scene = load_scene(base / data["scene"])
-    views = []
-    for i, v in enumerate(data.get("views", [])):
-        w = f"{where}views[{i}]: "
-        if not isinstance(v, dict):
-            raise ValueError(f"{w}must be an object with 'camera', 'width', 'height'")
-        _keys(v, ("camera", "width", "height"), w)
-        width = _field(v, "width", int, scene.width, w)
-        height = _field(v, "height", int, scene.height, w)
-        if width <= 0 or height <= 0:
-            raise ValueError(f"{w}'width' and 'height' must be positive")
-        views.append((_parse_camera(v.get("camera"), aspect=width / height, where=w), width,
-                      height))
-    if not views:
-        views = [(scene.camera, scene.width, scene.height)]
+    def read(key):  # the images, each checked against its view
+        bare = tuple(spec[0] for spec in specs[key])
+        wanted = range(len(bare)) if images is None else set(images(key, bare))
+        return tuple(_read_target(*spec) if i in wanted else spec[0]
+                     for i, spec in enumerate(specs[key]))
 
-    def target(t, i, key, load=True):
-        w = f"{where}{key}[{i}]: "
-        if not isinstance(t, dict) or "image" not in t or "lights" not in t:
-            raise ValueError(f"{w}needs 'image' and 'lights'")
-        _keys(t, ("view", "image", "lights", "mask", "color_space"), w)
-        vi = _field(t, "view", int, 0, w)
-        if not 0 <= vi < len(views):
-            raise ValueError(f"{w}'view' = {vi} but there are {len(views)} views")
-        color_space = _field(t, "color_space", str, None, w)
-        if color_space not in (None, "srgb", "linear"):
-            raise ValueError(f"{w}'color_space' must be 'srgb' or 'linear', got {color_space!r}")
-        image_ref = _field(t, "image", str, None, w)
-        lights = _parse_lights(t["lights"], where=w)
-        cam, width, height = views[vi]
-        img = _image(base / image_ref, color_space, w) if load else None
-        mask = None
-        if "mask" in t and load:
-            m, _ = io.load_texture(base / _field(t, "mask", str, None, w))
-            mask = m[..., 0] > 0.5
-        return FitTarget(cam, width, height, lights, img, mask, name=f"{key}[{i}] ({image_ref})")
-
-    def read(key):
-        specs = data.get(key, [])
-        if images is None:
-            return tuple(target(t, i, key) for i, t in enumerate(specs))
-        bare = tuple(target(t, i, key, load=False) for i, t in enumerate(specs))
-        wanted = set(images(key, bare))
-        return tuple(target(t, i, key) if i in wanted else bare[i]
-                     for i, t in enumerate(specs))
-
-    targets = read("targets")
-    held = read("held_out")
-    problem = problem_from_scene(scene, targets, map_size, source=source)
-    gt = None
-    if gt_spec is not None:
-        raw, bits = io.load_texture(base / gt_spec["path"], channels=3)
-        gt = np.asarray(decode_normal_map(
-            jnp.asarray(raw), encoding=gt_opts.encoding, green=gt_opts.green,
-            bits=bits if bits in (8, 16) else 8), np.float64)
-        gt = (gt / np.linalg.norm(gt, axis=-1, keepdims=True)).astype(np.float32)
+    targets, held = read("targets"), read("held_out")
+    gt = truth_of() if truth_of is not None else None
+    problem = problem_from_scene(scene_of(), targets, map_size, source=source)
     try:
         return FitJob(problem=problem, options=options, ground_truth=gt, held_out=held,
                       output=output, time_limit=time_limit)
     except ValueError as e:
         raise ValueError(str(e)) from None
 
+
+def _views(specs: list, scene_of, where: str) -> list:
+    """``(camera, width, height)`` of each of a fit file's ``views`` (default: the scene's
+    camera)."""
+    views = []
+    for i, v in enumerate(specs):
+        w = f"{where}views[{i}]: "
+        if not isinstance(v, dict):
+            raise ValueError(f"{w}must be an object with 'camera', 'width', 'height'")
+        _keys(v, ("camera", "width", "height"), w)
+        width = _field(v, "width", int, scene_of.width, w)
+        height = _field(v, "height", int, scene_of.height, w)
+        if width <= 0 or height <= 0:
+            raise ValueError(f"{w}'width' and 'height' must be positive")
+        views.append((_parse_camera(v.get("camera"), aspect=width / height, where=w), width,
+                      height))
+    return views or [(scene_of.camera, scene_of.width, scene_of.height)]
+
+
+def _target_spec(t: Any, i: int, key: str, views: list, base: Path, where: str):
+    """A fit file's ``targets[i]`` (or ``held_out[i]``) checked, its files found: ``(the
+    target without its image, image path, colour space, mask path or None, where)``."""
+    w = f"{where}{key}[{i}]: "
+    if not isinstance(t, dict) or "image" not in t or "lights" not in t:
+        raise ValueError(f"{w}needs 'image' and 'lights'")
+    _keys(t, ("view", "image", "lights", "mask", "color_space"), w)
+    vi = _field(t, "view", int, 0, w)
+    if not 0 <= vi < len(views):
+        raise ValueError(f"{w}'view' = {vi} but there are {len(views)} views")
+    color_space = _field(t, "color_space", str, None, w)
+    if color_space not in (None, "srgb", "linear"):
+        raise ValueError(f"{w}'color_space' must be 'srgb' or 'linear', got {color_space!r}")
+    image = _input_file(base, t["image"], "image", w)
+    mask = _input_file(base, t["mask"], "mask", w) if "mask" in t else None
+    lights = _parse_lights(t["lights"], where=w)
+    cam, width, height = views[vi]
+    bare = FitTarget(cam, width, height, lights, None, None, name=f"{key}[{i}] ({t['image']})")
+    return bare, image, color_space, mask, w
+
+
+def _read_target(bare: FitTarget, image: Path, color_space, mask: Path | None,
+                 where: str) -> FitTarget:
+    """``bare`` with its image (linear RGB) and mask read, each the size of its view."""
+    img = _image(image, color_space, f"{where}image: ")
+    _check_size(img, bare.width, bare.height, f"image: {image}", where)
+    m = None
+    if mask is not None:
+        m = io.load_texture(mask)[0][..., 0] > 0.5
+        _check_size(m, bare.width, bare.height, f"mask: {mask}", where)
+    return dataclasses.replace(bare, image=img, mask=m)
+
+
+def _ground_truth_loader(spec: Any, base: Path, map_size: tuple[int, int], where: str):
+    """Check a fit file's ``ground_truth`` and that its file exists; returns a function that
+    reads it: unit normals (h, w, 3), float32, the map's size."""
+    spec = _object(spec, "ground_truth", where)
+    w = f"{where}ground_truth: "
+    _keys(spec, ("path", "encoding", "green"), w)
+    opts = _map_options({k: v for k, v in spec.items() if k != "path"}, ("encoding", "green"),
+                        w)
+    path = _input_file(base, spec["path"], "ground_truth", where)
+
+    def load():
+        raw, bits = io.load_texture(path, channels=3)
+        if raw.shape[:2] != tuple(map_size):
+            raise ValueError(f"{w}{path} is {raw.shape[1]}x{raw.shape[0]}, but the map is "
+                             f"{map_size[1]}x{map_size[0]}")
+        gt = np.asarray(decode_normal_map(jnp.asarray(raw), encoding=opts.encoding,
+                                          green=opts.green, bits=bits if bits in (8, 16)
+                                          else 8), np.float64)
+        return (gt / np.linalg.norm(gt, axis=-1, keepdims=True)).astype(np.float32)
+    return load

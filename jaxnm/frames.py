@@ -62,7 +62,8 @@ from .numerics import dot as _ndot
 from .numerics import eps, safe_norm, safe_normalize, safe_rsqrt, spread, tiny
 
 __all__ = [
-    "FRAMES", "SCREEN_FRAMES", "Frame", "axis_frame", "compute_frame", "cotangent_frame",
+    "FRAMES", "FRAME_ALIASES", "SCREEN_FRAMES", "Frame", "canonical_frame", "axis_frame",
+    "compute_frame", "cotangent_frame",
     "exact_frame", "face_forward", "nonperspective_frame", "perturb_normal", "vertex_frame",
     "vertex_tangents", "mikktspace_frame", "gram_schmidt_frame", "separate_frame", "cross_frame",
     "surface_gradient_frame"
@@ -72,6 +73,10 @@ __all__ = [
 FRAMES = ("cotangent", "cotangent_unnormalized", "nonperspective", "exact", "exact_face",
           "vertex", "vertex_area", "axis", "gram_schmidt", "separate", "cross",
           "surface_gradient", "none")
+#: Other names users know frames by, accepted by the command line and in scene files:
+#: MikkTSpace is the per-vertex tangent frame, Schüler's the screen-space cotangent frame.
+FRAME_ALIASES = {"mikktspace": "vertex", "schuler": "cotangent",
+                 "schueler": "cotangent", "schüler": "cotangent"}
 #: The methods that take screen-space derivatives of the position and the uv.
 SCREEN_FRAMES = ("cotangent", "cotangent_unnormalized", "nonperspective", "gram_schmidt",
                  "separate", "cross", "surface_gradient")
@@ -690,7 +695,28 @@ def _derivs(attr, name: str, frame: str):
 def _check_frame(frame: str) -> None:
     """Raise a `ValueError` unless ``frame`` is one of `FRAMES`."""
     if frame not in FRAMES:
-        raise ValueError(f"unknown frame {frame!r}; expected one of {', '.join(FRAMES)}")
+        raise ValueError(f"unknown frame {frame!r}; expected one of {', '.join(FRAMES)}"
+                         + _alias_hint(frame))
+
+
+def _alias_hint(frame) -> str:
+    """``"; 'mikktspace' is called 'vertex' here"`` where ``frame`` is an alias."""
+    name = canonical_frame(frame, strict=False) if isinstance(frame, str) else None
+    return f" ({frame!r} is called {name!r} here)" if name and name != frame else ""
+
+
+def canonical_frame(name: str, *, strict: bool = True) -> str | None:
+    """The frame method (one of `FRAMES`) that ``name`` means: ``name`` itself, or the frame
+    it is another name for (`FRAME_ALIASES`, case and ``-``/``_`` ignored). An unknown name
+    raises a one-line `ValueError` listing the frames and the aliases (returns None
+    instead with ``strict=False``)."""
+    key = name.strip().lower().replace("-", "_")
+    found = key if key in FRAMES else FRAME_ALIASES.get(key)
+    if found is None and strict:
+        aliases = ", ".join(f"{a} = {f}" for a, f in FRAME_ALIASES.items() if a.isascii())
+        raise ValueError(f"unknown frame {name!r}; expected one of {', '.join(FRAMES)} "
+                         f"(or {aliases})")
+    return found
 
 
 def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None = None,

@@ -47,8 +47,8 @@ if TYPE_CHECKING:  # trimesh (with scipy, ~45 MB) is imported when a mesh file i
 __all__ = [
     "JaxnmWarning", "load_mesh", "load_texture", "load_image_float", "save_png", "save_aovs",
     "load_aovs", "load_json", "save_json", "save_loss_plot", "write_fit_outputs",
-    "write_fit_renders", "atomic_write", "PathLike", "MESH_EXTENSIONS", "TEXTURE_EXTENSIONS",
-    "IMAGE_EXTENSIONS"
+    "write_fit_renders", "atomic_write", "unfinished_writes", "PathLike", "MESH_EXTENSIONS",
+    "TEXTURE_EXTENSIONS", "IMAGE_EXTENSIONS"
 ]
 
 PathLike = str | os.PathLike
@@ -89,6 +89,12 @@ def atomic_write(path: PathLike):
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def unfinished_writes(folder: PathLike) -> list[Path]:
+    """The temporary files of this process's `atomic_write` blocks in ``folder`` that have
+    not finished: what a process that ends at once (``os._exit``) removes first."""
+    return sorted(Path(os.fspath(folder)).glob(f".*.{os.getpid()}-*.tmp"))
 
 
 # ----------------------------------------------------------------------------- common

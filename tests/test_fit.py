@@ -467,7 +467,9 @@ def test_fit_file_errors_are_one_line_naming_file_and_field(tmp_path, capsys, ch
     assert str(path) in str(e.value) or "missing.png" in str(e.value)
     assert main(["fit", str(path), "-o", str(tmp_path / "out"), "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "Traceback" not in err and err.startswith("jaxnm fit")
+    errors = [line for line in err.splitlines() if line.startswith("jaxnm fit: error: ")]
+    assert len(errors) == 1 and errors[0] == err.splitlines()[-1] and "Traceback" not in err
+    assert "preparing" not in err  # (checked before anything is prepared)
 
 
 def test_fit_file_and_command_line_set_texel_sums(tmp_path, monkeypatch):

@@ -19,7 +19,9 @@ import pytest
 
 import jaxnm.fit.solve as S
 from jaxnm import fit as F
-from jaxnm.cli import _CHECKPOINT_NAME, main
+from jaxnm.cli import _interrupt as cli_interrupt
+from jaxnm.cli import main
+from jaxnm.cli._fit import CHECKPOINT_NAME as _CHECKPOINT_NAME
 from jaxnm.fit.texel_lm import TexelLM
 from jaxnm.io import atomic_write, load_texture
 from jaxnm.procedural import default_problem
@@ -282,8 +284,9 @@ def test_ctrl_c_while_writing_keeps_the_map_and_the_report(tmp_path, monkeypatch
 
 
 def test_a_second_ctrl_c_stops_at_once_leaving_whole_files(tmp_path, monkeypatch, sigint):
-    """Two Ctrl-C while the held-out light is scored: the command stops at once (130); what
-    it wrote before is whole — the map, and a report that lists what was still pending."""
+    """Two Ctrl-C while the held-out light is scored: the command stops at once (130, its
+    process ended by ``os._exit``, here ``sys.exit``); what it wrote before is whole — the
+    map, and a report that lists what was still pending."""
     path = _fit_file(tmp_path / "job")
 
     def interrupted(*a, **k):
@@ -292,8 +295,11 @@ def test_a_second_ctrl_c_stops_at_once_leaving_whole_files(tmp_path, monkeypatch
         pytest.fail("not stopped")
 
     monkeypatch.setattr(F, "score_held_out", interrupted)
+    monkeypatch.setattr(cli_interrupt, "hard_exit", sys.exit)
     out = tmp_path / "out"
-    assert _run(path, "-o", out) == 130
+    with pytest.raises(SystemExit) as stop:
+        _run(path, "-o", out)
+    assert stop.value.code == 130
     rep = _readable(out)
     assert rep["pending"] == ["held_out", "renders", "loss_plot"]
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
@@ -326,7 +332,8 @@ def test_ctrl_c_during_the_fit_then_resume(tmp_path, monkeypatch, sigint):
     assert _run(path, "-o", out, "--resume") == 0
     rep = _readable(out)
     assert rep["stopped"] == "max_steps" and rep["steps"] == 6 and not rep["interrupted"]
-    assert rep["checkpoint"] == {"file": _CHECKPOINT_NAME, "resumed": True}
+    assert rep["checkpoint"]["file"] is None and rep["checkpoint"]["resumed"] is True
+    assert not (out / _CHECKPOINT_NAME).exists()  # the fit is over: removed
     with np.load(out / "normal_map.npz") as a, np.load(ref / "normal_map.npz") as b:
         np.testing.assert_array_equal(a["slopes"], b["slopes"])
         np.testing.assert_array_equal(a["normals"], b["normals"])
@@ -344,12 +351,12 @@ def test_ctrl_c_during_the_fit_then_resume(tmp_path, monkeypatch, sigint):
 def test_a_resume_of_another_fit_is_refused_in_one_line(tmp_path, capsys, change, args,
                                                         match):
     out = tmp_path / "out"
-    assert _run(_fit_file(tmp_path / "a", max_steps=2), "-o", out) == 0
+    assert _run(_fit_file(tmp_path / "a", max_steps=2), "-o", out, "--keep-checkpoint") == 0
     capsys.readouterr()
     other = _fit_file(tmp_path / "b", max_steps=2, **change)
     assert _run(other, "-o", out, "--resume", *args) == 2
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and err.startswith("jaxnm fit: error: ")
+    err = capsys.readouterr().err.strip().splitlines()[-1]  # (after the stage lines)
+    assert err.startswith("jaxnm fit: error: ")
     assert str(out / _CHECKPOINT_NAME) in err
     assert re.search(match, err), err
 
@@ -357,7 +364,7 @@ def test_a_resume_of_another_fit_is_refused_in_one_line(tmp_path, capsys, change
 def test_resume_without_a_checkpoint_is_refused(tmp_path, capsys):
     assert _run(_fit_file(tmp_path / "a"), "-o", tmp_path / "out", "--resume") == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "no checkpoint to resume from" in err
+    assert len(err.splitlines()) == 1 and "no checkpoint to resume from" in err  # (at once)
 
 
 @pytest.mark.slow

@@ -90,7 +90,7 @@ def test_the_library_does_not_reach_into_jax_internals_or_the_process():
     for path in sorted(root.rglob("*.py")):
         text = path.read_text()
         for word in forbidden:
-            if word in text and not (path.name == "cli.py" and word in (
+            if word in text and not ("cli" in path.parts and word in (
                     "os.environ[", "signal.signal", "malloc_trim")):
                 found.append(f"{path.relative_to(root.parent)}: {word}")
     assert found == []

@@ -85,8 +85,10 @@ def angular_error(a, b) -> np.ndarray:
     return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, -1)))
 
 
-def check_identifiability(prep: Prepared, *, warn: bool = True) -> dict:
-    """How well the targets can determine a normal map; warns when they cannot.
+def check_identifiability(prep: Prepared, *, warn: bool = True,
+                          source: str = "fit") -> dict:
+    """How well the targets can determine a normal map; warns (`FitWarning`, the message
+    starting with ``source``, the fit file's name) when they cannot.
 
     Counts, per view, the lights and the rank of their directions as seen from
     the object (a point light's direction is taken towards the centroid of the
@@ -122,7 +124,7 @@ def check_identifiability(prep: Prepared, *, warn: bool = True) -> dict:
     report["identifiable"] = bool(ok_any)
     if warn and not ok_any:
         warnings.warn(
-            "fit: no view has at least three lights with non-coplanar directions; one light "
+            f"{source}: no view has at least three lights with non-coplanar directions; one light "
             "cannot determine a normal (it only fixes the angle to the light) and two leave a "
             "two-fold ambiguity: the fitted map is not determined by these targets",
             FitWarning, stacklevel=2)

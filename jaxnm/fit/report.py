@@ -17,7 +17,7 @@ from .problem import FitJob, FitResult
 from .solve import _FULL_STEP_DAMPING, STOP_TESTS
 
 __all__ = ["FitOutputs", "fit_outputs", "fit_renders", "prepare_held_out", "score_held_out",
-           "ERROR_MAP_RANGE_DEG"]
+           "ERROR_MAP_RANGE_DEG", "stopped_in_words"]
 
 #: The error map shows 0 to this many degrees as black to white (unseen texels dark grey).
 ERROR_MAP_RANGE_DEG = 10.0
@@ -88,6 +88,20 @@ def fit_renders(prep: Prepared, normals: np.ndarray) -> list:
     return rows
 
 
+def stopped_in_words(result: FitResult, options) -> str:
+    """Why a fit stopped, for people: ``"reached the step limit"`` for ``"max_steps"``,
+    and so on (``report.json``'s ``"stopped_because"``)."""
+    words = {
+        "converged": "converged",
+        "max_steps": f"reached the step limit ({options.max_steps} steps a level)",
+        "time_limit": "reached the time limit",
+        "interrupted": "was interrupted",
+        "no_progress": "made no progress (the loss never went below the start's by more than "
+                       "its rounding)",
+    }
+    return words.get(result.stopped, f"stopped: the solver reported {result.stopped}")
+
+
 def _convergence_rule(options) -> str:
     """The stopping rule of ``options`` in words (``report.json``'s ``_convergence_rule``)."""
     o = options
@@ -113,13 +127,16 @@ def fit_outputs(job: FitJob, prep: Prepared, result: FitResult, *,
     n = result.normals
     texels = np.asarray(quantize(encode_normal_map(jnp.asarray(n), encoding=enc.encoding,
                                                    green=enc.green, bits=enc.bits), enc.bits))
-    report = {"stopped": result.stopped, "stop_test": result.stop_test,
+    report = {"stopped": result.stopped,
+              "stopped_because": stopped_in_words(result, job.options),
+              "stop_test": result.stop_test,
               "stop_test_meaning": STOP_TESTS.get(result.stop_test, ""),
               "convergence_rule": _convergence_rule(job.options),
               "steps": sum(1 for h in result.history if h["step"] > 0),
               "fit_seconds": round(result.seconds, 2), "prepare_seconds": round(prepare_seconds, 2),
               "start_loss": result.history[0]["loss"] if result.history else None,
-              "final_loss": result.best_loss, "noise_floor": result.noise_floor,
+              "final_loss": result.best_loss,
+              "start_loss_rounding": result.noise_floor,
               "identifiability": result.identifiability,
               "solver": dataclasses.asdict(job.options), "map_size": list(problem.map_size),
               "frame": problem.frame, "derivatives": problem.derivatives,

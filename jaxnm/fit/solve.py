@@ -422,15 +422,16 @@ def _upsample(slopes: Array, size: tuple[int, int]) -> Array:
 
 
 class _Progress:
-    """Per-step progress on stderr: a tqdm bar (loss, error, ETA), or a line per step where
-    tqdm is not installed; nothing when disabled."""
+    """Per-step progress on stderr: a tqdm bar (loss, error, ETA) for ``mode`` True where
+    tqdm is installed, else a line per step (``mode`` ``"lines"``, or no tqdm); nothing for
+    ``mode`` False."""
 
-    def __init__(self, total: int, enabled: bool, done: int = 0):
+    def __init__(self, total: int, mode: bool | str, done: int = 0):
         self.bar = None
-        self.enabled = enabled
+        self.enabled = bool(mode)
         self.total = total
         self.count = done
-        if enabled:
+        if mode is True:
             try:
                 from tqdm import tqdm
             except ImportError:
@@ -537,7 +538,7 @@ def _layout(prep: Prepared) -> list:
 
 
 def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
-                   ground_truth: np.ndarray | None = None, progress: bool = True,
+                   ground_truth: np.ndarray | None = None, progress: bool | str = True,
                    prepared: Prepared | None = None, strength: float = 1.0,
                    time_limit: float | None = None,
                    error_texels: np.ndarray | None = None,
@@ -552,7 +553,8 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     - `ground_truth`: optional (h, w, 3) decoded unit normals: the history then
       records the mean angular error at every step, over `error_texels` ((h, w)
       bool; default `seen_texels`).
-    - `progress`: show a progress bar (loss, step, elapsed, ETA).
+    - `progress`: True: a progress bar on stderr (loss, step, elapsed, ETA; tqdm, else a
+      line per step); ``"lines"``: a line per step; False: nothing.
     - `prepared`: reuse a `prepare(problem)` result.
     - `strength`: the map's x/y scale used when rendering (1: as fitted).
     - `time_limit`: stop (keeping the best map) after this many seconds.
@@ -600,7 +602,8 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
         raise ValueError(f"{problem.source}: coarse_to_fine is not available for a fit across "
                          "processes (solve.coarse_to_fine must be 0)")
     writer = not spread or jax.process_index() == 0  # who writes the checkpoints
-    identifiability = check_identifiability(prep)  # warns when the lights cannot determine it
+    # (warns when the lights cannot determine the map)
+    identifiability = check_identifiability(prep, source=problem.source)
     h, w = problem.map_size
     if prep.options[0].normal_map_shape != (h, w):
         raise ValueError(f"{problem.source}: `prepared` was made for a "

@@ -34,6 +34,7 @@ import functools
 import os
 import sys
 import time
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -270,7 +271,8 @@ def fit_stored_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                    steps: int = 6, cg_steps: int | None = None,
                    ground_truth: np.ndarray | None = None,
                    error_texels: np.ndarray | None = None,
-                   prepared: Prepared | None = None, progress: bool = False) -> StoredFit:
+                   prepared: Prepared | None = None, progress: bool = False,
+                   should_stop: Callable[[], bool] | None = None) -> StoredFit:
     """Fit ``problem``'s normal map as it will be stored: BC5 blocks or 8-bit codes whose
     decoded map best matches the targets' shading (see `jaxnm.fit.stored`).
 
@@ -289,6 +291,8 @@ def fit_stored_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     - `ground_truth`, `error_texels`: (h, w, 3) normals and (h, w) bool texels
       (default: `seen_texels`) for `StoredFit.errors`.
     - `prepared`: reuse a `prepare(problem)` result. `progress`: a line per round on stderr.
+    - `should_stop`: called after each round; when it returns True the fit ends there,
+      keeping the best data so far (a command line's Ctrl-C).
 
     **Returns:** a `StoredFit`: the stored data, its decoded map, and its loss as stored
     beside the start's (float, and compressed afterwards).
@@ -378,6 +382,8 @@ def fit_stored_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
             best = (loss_now, data)
         elif rnd > 0:
             break  # re-indexing found nothing better
+        if should_stop is not None and should_stop():
+            break
         if storage == "bc5" and rnd + 1 < rounds:
             e, eight = e_q, eight_q
             idx = _reindex(e, eight, tblocks)

@@ -1,0 +1,7 @@
+"""``python -m jaxnm.cli``: the ``jaxnm`` command."""
+
+import sys
+
+from . import main
+
+sys.exit(main())

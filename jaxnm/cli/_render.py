@@ -1,0 +1,214 @@
+"""``jaxnm render``: a scene file (or the built-in scene) to a PNG, its AOVs, and with
+``--light`` one image per light beside a fit file that names them."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import time
+from pathlib import Path
+
+from ._interrupt import CtrlC
+
+__all__ = ["add_parser", "run", "frame_name", "TARGETS_SUFFIX"]
+
+#: With ``--light``, the fit file written beside the images: ``OUT_STEM`` + this.
+TARGETS_SUFFIX = "_targets.json"
+
+
+def frame_name(text: str) -> str:
+    """``--frame``'s value: a frame of `jaxnm.frames.FRAMES` or one of its aliases
+    (``mikktspace``, ``schuler``)."""
+    from ..frames import canonical_frame
+
+    try:
+        return canonical_frame(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _direction(text: str) -> tuple[float, float, float]:
+    """``--light X,Y,Z``: a non-zero direction towards the light."""
+    try:
+        d = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        d = ()
+    if len(d) != 3 or not all(abs(x) < float("inf") for x in d) or not any(d):
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z, three finite numbers not all zero "
+                                         f"(the direction towards the light), got {text!r}")
+    return d
+
+
+def add_parser(sub) -> None:
+    from ..frames import FRAME_ALIASES, FRAMES
+    from ..interpolate import DERIVATIVE_MODES, PRECISIONS
+    from ..render import OUTPUTS
+
+    p = sub.add_parser("render", help="render a scene to a PNG (and optional AOVs)",
+                       description="Render SCENE.json (or the built-in default scene) to a PNG.")
+    p.add_argument("scene", nargs="?", help="scene JSON file (default: the built-in scene)")
+    p.add_argument("-o", "--output", default="render.png", help="output PNG (default: %(default)s)")
+    p.add_argument("--aovs", metavar="OUT.npz",
+                   help="also write per-pixel arrays to an .npz: " + ", ".join(OUTPUTS)
+                   + " (linear); see --aov-list")
+    p.add_argument("--aov-list", default=",".join(OUTPUTS), metavar="NAMES",
+                   help="comma-separated names of the arrays --aovs writes (default: all)")
+    p.add_argument("--derivatives", choices=DERIVATIVE_MODES, help="screen-space derivative mode")
+    p.add_argument("--frame", type=frame_name, metavar="FRAME",
+                   help="tangent frame: " + ", ".join(FRAMES) + " (also "
+                   + ", ".join(a for a in FRAME_ALIASES if a.isascii()) + ")")
+    p.add_argument("--precision", choices=PRECISIONS,
+                   help="shader arithmetic of the frame and perturbation (float16: mediump)")
+    p.add_argument("--light", type=_direction, action="append", metavar="X,Y,Z",
+                   help="render under a white directional light from this world direction "
+                   "instead of the scene's lights; repeat it for one image per light "
+                   f"(OUT_00.png, ...), with a fit file naming them (OUT{TARGETS_SUFFIX})")
+    p.add_argument("--normal-map", metavar="PATH",
+                   help="use this tangent-space normal map (an 8/16-bit PNG, or a BC5 or DXT5nm "
+                   "DDS; unsigned, green up; the scene's uv origin, wrap, filter and strength)")
+    p.add_argument("--height-map", metavar="PATH", dest="height_map",
+                   help="bump the surface with this height map instead (grayscale image)")
+    p.add_argument("--height-scale", type=float, default=0.02, dest="height_scale",
+                   help="world units per unit of the height map (default: %(default)s)")
+    p.add_argument("--width", type=int)
+    p.add_argument("--height", type=int)
+    p.add_argument("--exposure", type=float, default=1.0, help="linear scale before sRGB")
+    p.add_argument("--bits", type=int, choices=(8, 16), default=8, help="PNG bit depth")
+
+
+def _rescaled_camera(scene, width: int, height: int):
+    """The scene's camera with the projection's aspect ratio adapted to a new image size."""
+    import numpy as np
+
+    from ..camera import Camera
+
+    proj = np.array(scene.camera.projection, np.float64)
+    proj[0, :] *= (scene.width / scene.height) / (width / height)  # x scale ~ 1 / aspect
+    return Camera.from_matrices(np.asarray(scene.camera.view, np.float64), proj)
+
+
+def _aov_names(args) -> tuple[str, ...]:
+    """The arrays ``--aovs`` writes, checked before anything is loaded."""
+    from ..render import OUTPUTS
+
+    if not args.aovs:
+        return ()
+    asked = tuple(dict.fromkeys(n.strip() for n in args.aov_list.split(",") if n.strip()))
+    bad = [n for n in asked if n not in OUTPUTS]
+    if bad or not asked:
+        raise ValueError(f"--aov-list: unknown AOV names {bad}; known: {', '.join(OUTPUTS)}")
+    return asked
+
+
+def _scene(args):
+    """The scene of ``args``: the file's or the built-in one, with the options applied."""
+    from .. import io
+    from ..config import _load_height_map, load_scene
+    from ..procedural import default_scene
+
+    if args.scene:
+        scene = load_scene(args.scene)
+    else:
+        scene = default_scene(width=args.width or 512, height=args.height or 512)
+    changes = {}
+    if args.width or args.height:
+        w, h = args.width or scene.width, args.height or scene.height
+        if (w, h) != (scene.width, scene.height):
+            changes.update(width=w, height=h, camera=_rescaled_camera(scene, w, h))
+    if args.normal_map and Path(args.normal_map).suffix.lower() == ".dds":
+        from ..storage import load_dds_normal_map
+
+        m = load_dds_normal_map(args.normal_map)  # BC5 or DXT5nm: two channels, z rebuilt
+        changes.update(normal_map=m.texels, normal_map_options=dataclasses.replace(
+            m.options(scene.normal_map_options), green="up"))
+    elif args.normal_map:
+        raw, bits = io.load_texture(args.normal_map, channels=3)
+        changes.update(normal_map=raw, normal_map_options=dataclasses.replace(
+            scene.normal_map_options, encoding="unsigned", channels=3, green="up",
+            space="tangent", bits=bits if bits in (8, 16) else 8))
+    if args.height_map:
+        d, opts = _load_height_map({"path": args.height_map, "scale": args.height_scale},
+                                   where="--height-map: ")
+        changes.update(normal_map=d, normal_map_options=opts)
+    if changes:
+        scene = scene.replace(**changes)
+    frame = args.frame or scene.frame
+    if frame == "vertex" and scene.mesh.tangents is None and scene.mesh.uv is not None:
+        scene = scene.replace(mesh=scene.mesh.with_tangents())  # MikkTSpace
+    return scene, frame
+
+
+def _numbered(path: str, i: int, count: int) -> Path:
+    """``path`` itself for one image, else ``STEM_NN.EXT``."""
+    p = Path(path)
+    return p if count == 1 else p.with_name(f"{p.stem}_{i:02d}{p.suffix}")
+
+
+def _targets_file(args, scene, images: list[Path]) -> Path:
+    """With ``--light``: a fit file naming the scene, its view and each image with its light,
+    beside the images (``OUT_STEM`` + `TARGETS_SUFFIX`); paths relative to it."""
+    import numpy as np
+
+    from .. import io
+
+    out = Path(args.output)
+    path = out.with_name(out.stem + TARGETS_SUFFIX)
+    folder = path.parent.resolve()
+    fit = {}
+    if args.scene:
+        fit["scene"] = os.path.relpath(Path(args.scene).resolve(), folder)
+    fit["views"] = [{"camera": {"view": np.asarray(scene.camera.view, np.float64).tolist(),
+                                "projection": np.asarray(scene.camera.projection,
+                                                         np.float64).tolist()},
+                     "width": scene.width, "height": scene.height}]
+    fit["targets"] = [{"image": os.path.relpath(img.resolve(), folder), "view": 0,
+                       "lights": [{"type": "directional", "direction": list(d)}]}
+                      for img, d in zip(images, args.light, strict=True)]
+    io.save_json(path, fit)
+    return path
+
+
+def run(args, ctrl_c: CtrlC) -> int:
+    """Render and write the image(s); Ctrl-C stops before anything is written."""
+    import numpy as np
+
+    from .. import io
+    from ..render import render
+    from ..shading import directional_light, to_display
+
+    t0 = time.perf_counter()
+    aovs = _aov_names(args)
+    for flag, v in (("--width", args.width), ("--height", args.height)):
+        if v is not None and v <= 0:
+            raise ValueError(f"{flag} must be positive, got {v}")
+    scene, frame = _scene(args)
+    ctrl_c.check()
+    lights = ([directional_light(d) for d in args.light] if args.light
+              else [scene.lights])
+    outputs = tuple(dict.fromkeys(("color", *aovs)))
+    results = []
+    for lit in lights:
+        results.append(render(scene.replace(lights=lit), outputs=outputs,
+                              derivatives=args.derivatives, frame=args.frame,
+                              precision=args.precision))
+        ctrl_c.check()
+    written = []
+    for i, result in enumerate(results):
+        png = _numbered(args.output, i, len(results))
+        io.save_png(png, np.asarray(to_display(result["color"], exposure=args.exposure)),
+                    bits=args.bits)
+        written.append(png)
+        if aovs:
+            npz = _numbered(args.aovs, i, len(results))
+            io.save_aovs(npz, {k: result[k] for k in aovs})
+            written.append(npz)
+    if args.light:
+        written.append(_targets_file(args, scene, written[::2 if aovs else 1]))
+    what = f"{scene.width}x{scene.height}, frame {frame}"
+    if frame == "vertex":
+        what += f", tangents: {scene.mesh.tangent_source}"
+    if aovs:
+        what += f"; arrays: {', '.join(aovs)}"
+    print(f"wrote {', '.join(map(str, written))} ({what}) in {time.perf_counter() - t0:.2f} s")
+    return 0

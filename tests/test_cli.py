@@ -1,0 +1,372 @@
+"""The command line as a user meets it: Ctrl-C at any moment (no crash, exit code 130,
+nothing lost), progress lines, one-line warnings and errors, files checked before anything
+is loaded, frame aliases, one image per light, the outputs asked for."""
+
+from __future__ import annotations
+
+import gc
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import jaxnm
+from jaxnm import fit as F
+from jaxnm import io
+from jaxnm.cli import main
+from jaxnm.cli._fit import CHECKPOINT_NAME
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def sigint():
+    """SIGINT handled by Python while the test runs (it is ignored in background jobs)."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
+def _fit_folder(folder: Path, *, size: int = 24, lights: int = 4, target_size=None) -> Path:
+    """A small fit file: the built-in plane seen head-on at ``size`` px under ``lights``
+    directional lights, its targets rendered with the built-in rivet map (as .npy)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    scene = {"mesh": "builtin:plane", "width": size, "height": size,
+             "camera": {"eye": [0.3, -0.4, 2.6], "target": [0, 0, 0], "up": [0, 1, 0]},
+             "normal_map": "builtin:rivets"}
+    (folder / "scene.json").write_text(json.dumps(scene))
+    s = jaxnm.load_scene(folder / "scene.json")
+    targets = []
+    for i in range(lights):
+        a = 2 * np.pi * i / lights
+        d = [float(np.cos(a)), float(np.sin(a)), 1.2]
+        img = np.asarray(jaxnm.render(s.replace(lights=jaxnm.directional_light(d)))["color"])
+        if target_size is not None and i == lights - 1:
+            img = img[:target_size, :target_size]
+        np.save(folder / f"t{i}.npy", img.astype(np.float32))
+        targets.append({"image": f"t{i}.npy",
+                        "lights": [{"type": "directional", "direction": d}]})
+    (folder / "scene_plain.json").write_text(json.dumps({**scene, "normal_map": None}))
+    fit = {"scene": "scene_plain.json", "targets": targets, "map": {"size": 16},
+           "solver": {"method": "lm-texel", "max_steps": 3, "lsmr_steps": 5, "ftol": 0}}
+    (folder / "fit.json").write_text(json.dumps(fit))
+    return folder / "fit.json"
+
+
+def _fit(*args) -> int:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", F.FitWarning)
+        return main(["fit", *map(str, args)])
+
+
+def _no_temporaries(folder: Path) -> None:
+    assert not [p.name for p in folder.rglob("*.tmp")]
+
+
+# ----------------------------------------------------------------------------- Ctrl-C
+
+
+def _default_sigint() -> None:  # (a child of a background job starts with SIGINT ignored)
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _interrupt(out: Path, *, after: str | None, delay: float, count: int = 1):
+    """Run ``jaxnm fit --quick -o out --no-progress`` through the ``jaxnm`` launcher with no
+    compilation cache (so that XLA compiles while it runs), send it ``count`` SIGINTs
+    ``delay`` seconds after the stderr line starting with ``after`` (after the start for
+    None); returns the exit code and stderr."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "jaxnm_launcher", "fit", "--quick", "-o", str(out),
+         "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        cwd=ROOT, env={**os.environ, "JAXNM_COMPILATION_CACHE": "off"},
+        preexec_fn=_default_sigint)
+    lines, seen = [], threading.Event()
+
+    def read():
+        for line in proc.stderr:
+            lines.append(line)
+            if after is not None and line.startswith(after):
+                seen.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        if after is not None:
+            assert seen.wait(300), "".join(lines)
+        time.sleep(delay)
+        for _ in range(count):
+            proc.send_signal(signal.SIGINT)
+            time.sleep(0.05)
+        rc = proc.wait(300)
+    finally:
+        proc.kill()
+    reader.join(10)
+    proc.stdout.close()
+    proc.stderr.close()
+    return rc, "".join(lines)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("after,delay", [
+    (None, 0.3),  # while JAX is imported
+    ("rendering the built-in problem's targets", 0.7),  # XLA compiling the renders
+    ("preparing", 0.2),
+    ("compiling the fit's step", 0.3),
+    ("fit step 1/", 0.0),
+    ("writing outputs", 0.0),
+])
+def test_ctrl_c_at_any_moment_exits_130_and_loses_nothing(tmp_path, after, delay):
+    """Ctrl-C at any moment of ``jaxnm fit``: exit code 130, no crash, no Python traceback
+    or ignored exception; before the fit nothing is written and what was in the folder
+    stays; once the fit has run, its map and report are written, the report saying it was
+    interrupted; never a temporary file left."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "earlier.txt").write_text("kept")
+    rc, err = _interrupt(out, after=after, delay=delay)
+    assert rc == 130, err
+    for bad in ("Traceback", "Exception ignored", "Fatal Python error", "Segmentation"):
+        assert bad not in err, err
+    assert (out / "earlier.txt").read_text() == "kept"
+    _no_temporaries(out)
+    if (out / "report.json").exists():
+        report = json.loads((out / "report.json").read_text())
+        assert report["interrupted"] is True, report
+        with np.load(out / "normal_map.npz") as z:
+            assert np.isfinite(z["normals"]).all()
+    else:
+        assert err.rstrip().endswith("jaxnm fit: interrupted"), err
+        assert sorted(p.name for p in out.iterdir()) == ["earlier.txt"]
+    if after in ("fit step 1/", "writing outputs"):
+        assert (out / "report.json").exists(), err
+
+
+@pytest.mark.slow
+def test_a_second_ctrl_c_while_xla_compiles_stops_at_once(tmp_path):
+    out = tmp_path / "out"
+    rc, err = _interrupt(out, after="rendering the built-in problem's targets", delay=0.7,
+                         count=2)
+    assert rc == 130 and "jaxnm fit: stopped" in err, err
+    for bad in ("Traceback", "Exception ignored", "Fatal Python error"):
+        assert bad not in err, err
+    assert not out.exists() or not list(out.iterdir())
+
+
+def test_a_ctrl_c_inside_a_garbage_collector_callback_is_not_lost(tmp_path, monkeypatch,
+                                                                  sigint):
+    """Python runs a signal handler wherever the main thread is, a garbage-collector callback
+    included, where an exception would only be printed and the command would go on: the
+    Ctrl-C that arrives there still stops the command (130, nothing written)."""
+    path = _fit_folder(tmp_path / "job")
+    prepare = F.prepare
+
+    def callback(phase, info):
+        if phase == "start" and not fired:
+            fired.append(True)
+            signal.raise_signal(signal.SIGINT)
+
+    def prepare_with_a_collection(*a, **k):
+        gc.callbacks.append(callback)
+        try:
+            gc.collect()
+        finally:
+            gc.callbacks.remove(callback)
+        return prepare(*a, **k)
+
+    fired: list = []
+    monkeypatch.setattr(F, "prepare", prepare_with_a_collection)
+    out = tmp_path / "out"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an ignored exception would be a warning
+        assert _fit(path, "-o", out, "--no-progress") == 130
+    assert fired and not out.exists()
+
+
+# ----------------------------------------------------------------------------- output
+
+
+def test_no_progress_prints_a_line_per_stage_and_per_step(tmp_path, capsys):
+    path = _fit_folder(tmp_path / "job")
+    assert _fit(path, "-o", tmp_path / "out", "--no-progress") == 0
+    err = capsys.readouterr().err.splitlines()
+    stages = [line for line in err if not line.startswith("fit step")]
+    assert stages == [f"reading {path} ...",
+                      "preparing 4 targets (rasterizing each view once) ...",
+                      "compiling the fit's step ...", "fitting ...", "writing outputs ..."], err
+    steps = [line for line in err if line.startswith("fit step")]
+    assert [s.split(" (")[0] for s in steps] == ["fit step 1/3", "fit step 2/3",
+                                                 "fit step 3/3"], err
+    assert all("): loss " in s for s in steps)
+
+
+def _quad_obj(path: Path) -> None:
+    """A unit quad with uvs and no vertex normals."""
+    path.write_text("v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\n"
+                    "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n")
+
+
+def test_warnings_are_one_line_naming_the_file(tmp_path, capsys):
+    """A warning from the library (a mesh without normals; lights that cannot determine a
+    map) is one line, ``jaxnm render: warning: FILE: ...``, without Python's source line."""
+    _quad_obj(tmp_path / "quad.obj")
+    (tmp_path / "scene.json").write_text(json.dumps({
+        "mesh": "quad.obj", "width": 16, "height": 16,
+        "camera": {"eye": [0, 0, 3], "target": [0, 0, 0]}}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")
+        assert main(["render", str(tmp_path / "scene.json"), "-o",
+                     str(tmp_path / "r.png")]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert err == [f"jaxnm render: warning: {tmp_path / 'quad.obj'}: no vertex normals in "
+                   "the file; computed angle-weighted normals"], err
+    path = _fit_folder(tmp_path / "job", lights=1)  # one light: not identifiable
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")
+        assert main(["fit", str(path), "-o", str(tmp_path / "out"), "--max-steps", "1"]) == 0
+    warned = [line for line in capsys.readouterr().err.splitlines() if ": warning: " in line]
+    assert len(warned) == 1 and warned[0].startswith(f"jaxnm fit: warning: {path}: "), warned
+    assert "no view has at least three lights" in warned[0]
+
+
+def _scene_folder(tmp_path: Path, **changes) -> Path:
+    _quad_obj(tmp_path / "quad.obj")
+    io.save_png(tmp_path / "map.png", np.full((8, 8, 3), 0.5, np.float32))
+    scene = {"mesh": "quad.obj", "width": 16, "height": 16,
+             "camera": {"eye": [0, 0, 3], "target": [0, 0, 0]},
+             "normal_map": {"path": "map.png", "encoding": "unsigned"}}
+    scene.update(changes)
+    (tmp_path / "scene.json").write_text(json.dumps(scene))
+    return tmp_path / "scene.json"
+
+
+@pytest.mark.parametrize("changes,message", [
+    ({"normal_map": {"path": "map.png", "encodng": "unsigned"}},
+     "normal_map: unknown keys ['encodng']; known keys are ['channels', 'encoding', 'filter', "
+     "'green', 'path', 'space', 'strength', 'uv_origin', 'wrap']"),
+    ({"normal_map": {"path": "map.png", "wrap": "around"}}, "normal_map: unknown wrap="),
+    ({"normal_map": {"path": "map.png", "encoding": "sideways"}}, "normal_map: unknown encoding="),
+    ({"normal_map": "mapp.png"}, "normal_map: {dir}/mapp.png: no such file"),
+    ({"mesh": "quadd.obj"}, "mesh: {dir}/quadd.obj: no such file"),
+    ({"albedo": {"path": "albedo.png"}}, "albedo: {dir}/albedo.png: no such file"),
+    ({"frame": "sideways"}, "unknown frame 'sideways'"),
+])
+def test_a_scene_file_is_checked_whole_before_any_file_is_read(tmp_path, monkeypatch, capsys,
+                                                               changes, message):
+    """A fault anywhere in a scene file, a missing file included, is one line naming the
+    file and the field, before any file (the mesh, the map) is read."""
+    path = _scene_folder(tmp_path, **changes)
+    read = []
+    monkeypatch.setattr(io, "load_mesh", lambda *a, **k: read.append(a) or pytest.fail("read"))
+    monkeypatch.setattr(io, "load_texture", lambda *a, **k: read.append(a) or pytest.fail("read"))
+    assert main(["render", str(path), "-o", str(tmp_path / "r.png")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(f"jaxnm render: error: {path}: "), err
+    assert message.format(dir=tmp_path) in err, err
+    assert not read
+
+
+def test_a_fit_file_is_checked_whole_and_targets_against_their_view(tmp_path, monkeypatch,
+                                                                    capsys):
+    """A target image of the wrong size is reported when it is read, before the scene's mesh
+    is read and anything prepared; a missing target names its field."""
+    path = _fit_folder(tmp_path / "job", target_size=20)
+    loaded = []
+    real = io.load_mesh
+    monkeypatch.setattr(io, "load_mesh", lambda *a, **k: loaded.append(a) or real(*a, **k))
+    assert _fit(path, "-o", tmp_path / "out", "--no-progress") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == (f"jaxnm fit: error: {path}: targets[3]: image: {path.parent / 't3.npy'} "
+                       "is 20x20, but its view renders 24x24"), err
+    assert len(err) == 2 and not loaded
+    fit = json.loads(path.read_text())
+    fit["targets"][1]["image"] = "t9.npy"
+    path.write_text(json.dumps(fit))
+    assert _fit(path, "-o", tmp_path / "out") == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"jaxnm fit: error: {path}: targets[1]: image: {path.parent / 't9.npy'}: no such file")
+
+
+# ----------------------------------------------------------------------------- render
+
+
+def test_frames_answer_to_the_names_users_know(tmp_path, capsys):
+    """``--frame mikktspace`` is ``vertex``, ``--frame schuler`` is ``cotangent`` (the same
+    image, byte for byte); an unknown frame is one line that says which name means what."""
+    def png(frame):
+        out = tmp_path / f"{frame}.png"
+        assert main(["render", "-o", str(out), "--width", "32", "--height", "32",
+                     "--frame", frame]) == 0
+        return out.read_bytes()
+
+    assert png("mikktspace") == png("vertex") != png("cotangent") == png("schuler")
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        main(["render", "--frame", "tbn"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("jaxnm render: error: argument --frame")
+    assert "mikktspace = vertex" in err and "schuler = cotangent" in err, err
+
+
+def test_one_image_per_light_and_a_fit_file_naming_them(tmp_path):
+    """``--light`` twice: two images, each the scene rendered under that light alone, and a
+    fit file whose targets are those images under those lights, seen by the scene's camera;
+    ``jaxnm fit`` runs on it."""
+    scene = tmp_path / "scene.json"
+    scene.write_text(json.dumps({"mesh": "builtin:plane", "width": 24, "height": 20,
+                                 "camera": {"eye": [0, -1, 2.5], "target": [0, 0, 0]},
+                                 "normal_map": "builtin:rivets"}))
+    lights = [(0.0, 0.0, 1.0), (1.0, -0.5, 1.0), (-1.0, -0.5, 1.0)]
+    args = ["--light=" + ",".join(map(str, d)) for d in lights]  # (-1,... is not an option)
+    out = tmp_path / "targets" / "t.png"
+    assert main(["render", str(scene), "-o", str(out), *args]) == 0
+    job = jaxnm.load_fit(out.parent / "t_targets.json")
+    s = jaxnm.load_scene(scene)
+    assert len(job.problem.targets) == 3
+    for i, (d, t) in enumerate(zip(lights, job.problem.targets, strict=True)):
+        ref = np.asarray(jaxnm.render(s.replace(lights=jaxnm.directional_light(d)))["color"])
+        got, _ = io.load_image_float(out.parent / f"t_{i:02d}.png")
+        srgb = np.asarray(jaxnm.shading.to_display(ref))
+        assert np.abs(got - srgb).max() <= 0.5 / 255 + 1e-6
+        np.testing.assert_array_equal(np.asarray(t.lights.directional.direction)[0], d)
+        np.testing.assert_allclose(np.asarray(t.camera.view), np.asarray(s.camera.view))
+        assert (t.width, t.height) == (24, 20)
+    fit = json.loads((out.parent / "t_targets.json").read_text())
+    fit.update(map={"size": 8}, solver={"max_steps": 1})
+    (out.parent / "t_targets.json").write_text(json.dumps(fit))
+    assert _fit(out.parent / "t_targets.json", "-o", tmp_path / "fit") == 0
+
+
+def test_aovs_are_the_ones_asked_for(tmp_path, capsys):
+    out = tmp_path / "a.npz"
+    assert main(["render", "-o", str(tmp_path / "r.png"), "--width", "16", "--height", "16",
+                 "--aovs", str(out), "--aov-list", "uv,mask,duvdx"]) == 0
+    assert sorted(io.load_aovs(out)) == ["duvdx", "mask", "uv"]
+    assert "arrays: uv, mask, duvdx" in capsys.readouterr().out
+
+
+# ----------------------------------------------------------------------------- fit outputs
+
+
+@pytest.mark.parametrize("options,kept", [([], False), (["--keep-checkpoint"], True),
+                                          (["--checkpoint-every", "5"], True),
+                                          (["--checkpoint-every", "0"], False)])
+def test_the_checkpoint_goes_when_the_fit_ends_unless_asked_for(tmp_path, options, kept):
+    path = _fit_folder(tmp_path / "job")
+    out = tmp_path / "out"
+    assert _fit(path, "-o", out, "--no-progress", *options) == 0
+    assert (out / CHECKPOINT_NAME).exists() == kept
+    report = json.loads((out / "report.json").read_text())
+    assert report["checkpoint"]["file"] == (CHECKPOINT_NAME if kept else None)
+    assert report["stopped"] == "max_steps"
+    assert report["stopped_because"] == "reached the step limit (3 steps a level)"
+    if kept:  # and it resumes: nothing left to do
+        assert _fit(path, "-o", out, "--no-progress", "--resume", *options) == 0
