@@ -12,7 +12,7 @@ The pipeline, one verb per stage::
 
 or, for a whole scene, `jaxnm.render(scene, outputs=(...))` (differentiable in the
 scene's arrays) and `jaxnm.fit_normal_map(problem)`. Scene and fit files are read
-by `jaxnm.config`; files are read and written by `jaxnm.io` only.
+by `jaxnm.config`; meshes, images and a fit's outputs by `jaxnm.io`.
 """
 
 from .bake import bake_normal_map as bake_normal_map
