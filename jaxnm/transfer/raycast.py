@@ -59,9 +59,10 @@ import warnings
 import numpy as np
 
 from ..bake import world_to_tangent
-from ..geometry import Mesh, vertex_normals
-from ..io import JaxnmWarning
+from ..geometry import Mesh
 from ._embree import EmbreeScene
+from ._meshes import BakeWarning as BakeWarning
+from ._meshes import check_mesh, prepare_low, warn_overlap, with_normals
 from ._texels import extend_margin, rasterize_uv, uv_box
 
 __all__ = ["RAYCAST_FRAMES", "BakeWarning", "RaycastBake", "raycast_normal_map"]
@@ -72,11 +73,6 @@ RAYCAST_FRAMES = ("vertex", "cotangent")
 _JITTER_TRIES = 10
 #: Texels per chunk of rays at one sample per texel (fewer at more samples).
 _CHUNK = 1 << 18
-
-
-class BakeWarning(JaxnmWarning):
-    """Something in a bake's input deserves attention but the bake went on: rays that hit
-    nothing, overlapping uv islands, degenerate or non-manifold triangles."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,73 +124,6 @@ class RaycastBake:
 # ----------------------------------------------------------------------------- inputs
 
 
-def _check_mesh(mesh: Mesh, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """Host float64 positions and int64 faces, or ValueError naming the mesh."""
-    p = np.asarray(mesh.positions, np.float64)
-    f = np.asarray(mesh.faces)
-    if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
-        raise ValueError(f"{name}: positions must have shape (V, 3), got {p.shape}")
-    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or not np.issubdtype(f.dtype, np.integer):
-        raise ValueError(f"{name}: faces must be integer triangles (F, 3), got {f.shape} "
-                         f"{f.dtype}")
-    if not np.all(np.isfinite(p)):
-        raise ValueError(f"{name}: vertex positions are NaN or infinite")
-    if f.min() < 0 or f.max() >= len(p):
-        raise ValueError(f"{name}: face indices must be in [0, {len(p) - 1}]")
-    return p, f.astype(np.int64)
-
-
-def _with_normals(mesh: Mesh, name: str) -> Mesh:
-    if mesh.normals is not None:
-        n = np.asarray(mesh.normals)
-        if n.shape != np.shape(mesh.positions) or not np.all(np.isfinite(n)):
-            raise ValueError(f"{name}: normals must be finite with shape (V, 3), got {n.shape}")
-        return mesh
-    return dataclasses.replace(mesh, normals=vertex_normals(mesh.positions, mesh.faces))
-
-
-def _prepare_low(low: Mesh, frame: str, name: str) -> Mesh:
-    """LOW with uvs checked, normals (angle-weighted where it has none) and, for
-    ``"vertex"``, MikkTSpace tangents; warns about degenerate and non-manifold triangles."""
-    p, f = _check_mesh(low, name)
-    if low.uv is None:
-        raise ValueError(f"{name}: the mesh has no texture coordinates (uv); a normal map is "
-                         "baked into the low-poly mesh's uv layout")
-    uv = np.asarray(low.uv)
-    if uv.shape != (len(p), 2) or not np.all(np.isfinite(uv)):
-        raise ValueError(f"{name}: uv must be finite with shape ({len(p)}, 2), got {uv.shape}")
-    low = _with_normals(low, name)
-    if frame == "vertex" and low.tangents is None:
-        low = low.with_tangents()
-    _warn_bad_triangles(p, f, name)
-    return low
-
-
-def _warn_bad_triangles(p: np.ndarray, f: np.ndarray, name: str) -> None:
-    """`BakeWarning`s for zero-area triangles and for edges that more than two triangles
-    share (after welding equal positions)."""
-    q = p[f]
-    area2 = np.linalg.norm(np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), axis=-1)
-    scale = max(float(np.abs(p).max()), np.finfo(np.float64).tiny)
-    bad = np.flatnonzero(area2 <= (1e-12 * scale) ** 2)
-    if bad.size:
-        warnings.warn(f"{name}: {bad.size} degenerate (zero-area) triangles (first: face "
-                      f"{bad[0]}); their texels have no tangent frame and keep (0, 0, 1)",
-                      BakeWarning, stacklevel=4)
-    _, weld = np.unique(p, axis=0, return_inverse=True)
-    t = weld.reshape(-1)[f]
-    e = np.sort(np.stack([t, np.roll(t, -1, axis=1)], -1).reshape(-1, 2), axis=1)
-    e = e[e[:, 0] != e[:, 1]]
-    edges, counts = np.unique(e, axis=0, return_counts=True)
-    many = counts > 2
-    if many.any():
-        a, b = edges[np.argmax(many)]
-        warnings.warn(f"{name}: {int(many.sum())} edges are shared by more than two triangles "
-                      f"(non-manifold; first: the edge at {p[np.argmax(weld == a)].round(4)} - "
-                      f"{p[np.argmax(weld == b)].round(4)}); rays near them leave from every "
-                      "sheet", BakeWarning, stacklevel=4)
-
-
 def _check_options(size, frame, cage, cage_mesh, max_distance, samples, margin):
     hw = (size, size) if np.ndim(size) == 0 else tuple(size)
     if len(hw) != 2 or not all(int(x) == x and x > 0 for x in hw):
@@ -218,22 +147,12 @@ def _check_options(size, frame, cage, cage_mesh, max_distance, samples, margin):
 def _check_cage_mesh(cage_mesh: Mesh | None, low: Mesh, name: str) -> np.ndarray | None:
     if cage_mesh is None:
         return None
-    p, f = _check_mesh(cage_mesh, name)
+    p, f = check_mesh(cage_mesh, name)
     if f.shape != np.shape(low.faces) or not np.array_equal(f, np.asarray(low.faces)):
         raise ValueError(f"{name}: a cage mesh must have the low-poly mesh's triangles "
                          f"({np.shape(low.faces)[0]} faces, the same vertex indices), got "
                          f"{f.shape[0]} faces")
     return p
-
-
-def _warn_overlap(cover, name: str) -> None:
-    k = int(cover.overlapping.sum())
-    if k:
-        faces = " and ".join(str(i) for i in cover.overlap_faces)
-        warnings.warn(f"{name}: {k} texels lie inside more than one uv triangle (overlapping "
-                      f"uv islands; first: faces {faces}); each such texel is baked from the "
-                      "triangle with the highest index, as Blender does", BakeWarning,
-                      stacklevel=4)
 
 
 # ----------------------------------------------------------------------------- per texel
@@ -486,9 +405,9 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
         lap[0] = now
 
     hw = _check_options(size, frame, cage, cage_mesh, max_distance, samples, margin)
-    low = _prepare_low(low, frame, low_name)
-    hp, hf = _check_mesh(high, high_name)
-    hn = np.asarray(_with_normals(high, high_name).normals, np.float64)
+    low = prepare_low(low, frame, low_name)
+    hp, hf = check_mesh(high, high_name)
+    hn = np.asarray(with_normals(high, high_name).normals, np.float64)
     geo = _Low.build(low, _check_cage_mesh(cage_mesh, low, "cage mesh"), hw)
     tick("inputs")
     cover, texels, tri, bary = _texels(low, hw, low_name)
@@ -522,7 +441,7 @@ def _texels(low: Mesh, hw: tuple[int, int], name: str):
     """LOW's uv layout over the map: the cover, and the covered texels' (flat image index,
     face, barycentrics)."""
     cover = rasterize_uv(low.uv, low.faces, hw)
-    _warn_overlap(cover, name)
+    warn_overlap(cover, name)
     texels = np.flatnonzero(cover.face.ravel() >= 0)
     if texels.size == 0:
         raise ValueError(f"{name}: no texel centre of the {hw[0]}x{hw[1]} map lies in a uv "
