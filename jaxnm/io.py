@@ -48,7 +48,8 @@ __all__ = [
     "JaxnmWarning", "load_mesh", "load_texture", "load_image_float", "save_png", "save_aovs",
     "load_aovs", "load_json", "save_json", "save_loss_plot", "write_fit_outputs",
     "write_fit_renders", "atomic_write", "unfinished_writes", "PathLike", "MESH_EXTENSIONS",
-    "TEXTURE_EXTENSIONS", "IMAGE_EXTENSIONS"
+    "TEXTURE_EXTENSIONS", "IMAGE_EXTENSIONS", "save_obj", "save_normal_map_npz",
+    "save_figure_grid"
 ]
 
 PathLike = str | os.PathLike
@@ -225,6 +226,31 @@ def load_mesh(path: PathLike, *, require_uv: bool = False,
     return Mesh(positions=jnp.asarray(pos), faces=jnp.asarray(faces),
                 uv=None if uv is None else jnp.asarray(uv), normals=jnp.asarray(n),
                 tangents=tangents, tangent_source=None if tangents is None else "file")
+
+
+def save_obj(path: PathLike, mesh: Mesh) -> None:
+    """Write ``mesh`` as a Wavefront OBJ, atomically (`atomic_write`): ``v``, and ``vt`` and
+    ``vn`` where it has uvs and normals (origin of the uvs at the bottom left, as OBJ's),
+    one ``f v/vt/vn`` corner per vertex index, counter-clockwise as ``mesh.faces``. Read
+    back by `load_mesh` (which orders vertices by position index: the same vertices)."""
+    p = Path(os.fspath(path))
+    if p.suffix.lower() != ".obj":
+        raise ValueError(f"{p}: save_obj writes OBJ files; the name must end in .obj")
+    pos = np.asarray(mesh.positions, np.float64)
+    faces = np.asarray(mesh.faces, np.int64) + 1
+    parts = ["# jaxnm\n", "".join(f"v {x:.9g} {y:.9g} {z:.9g}\n" for x, y, z in pos)]
+    corner = "{0}"
+    if mesh.uv is not None:
+        parts.append("".join(f"vt {u:.9g} {v:.9g}\n" for u, v in np.asarray(mesh.uv, np.float64)))
+        corner += "/{0}"
+    if mesh.normals is not None:
+        parts.append("".join(f"vn {x:.9g} {y:.9g} {z:.9g}\n"
+                             for x, y, z in np.asarray(mesh.normals, np.float64)))
+        corner += "/{0}" if mesh.uv is not None else "//{0}"
+    parts.append("".join("f " + " ".join(corner.format(int(i)) for i in f) + "\n"
+                         for f in faces))
+    with atomic_write(p) as fh:
+        fh.write("".join(parts).encode())
 
 
 def _load_scene(p: Path, ext: str) -> trimesh.Scene:
@@ -797,6 +823,55 @@ def write_fit_outputs(outdir: PathLike, outputs, *, plot: bool = True) -> list[s
     if plot and save_loss_plot(out / "loss.png", outputs.history):
         written.append("loss.png")
     return written
+
+
+def save_normal_map_npz(path: PathLike, normals, **extra) -> None:
+    """Write a tangent-space map as ``jaxnm fit`` writes ``normal_map.npz``, atomically:
+    ``normals`` ``(h, w, 3)`` float32 unit vectors, row 0 on top, and any ``extra`` arrays
+    (e.g. ``slopes``, masks) under their names."""
+    arrays = {"normals": np.asarray(normals, np.float32)}
+    arrays.update({k: np.asarray(v) for k, v in extra.items()})
+    with atomic_write(path) as f:
+        np.savez_compressed(f, **arrays)
+
+
+def save_figure_grid(path: PathLike, rows: list[list], *, titles: list[str],
+                     row_labels: list[str], note: str = "") -> bool:
+    """A grid of images (each ``(H, W)`` grey, with its colour scale, or ``(H, W, 3)`` RGB
+    in [0, 1]; None leaves a cell empty) as a PNG with column titles and row labels,
+    atomically. A grey cell is given as ``(array, vmax, label)`` and drawn from 0 to
+    ``vmax`` with a colour bar. Needs matplotlib (the ``cli`` extra); returns False, writing
+    nothing, without it."""
+    try:
+        from matplotlib.figure import Figure
+    except ImportError:
+        return False
+    n_rows, n_cols = len(rows), max(len(r) for r in rows)
+    fig = Figure(figsize=(3.0 * n_cols, 3.0 * n_rows + 0.4), dpi=100)
+    for i, row in enumerate(rows):
+        for j, cell in enumerate(row):
+            ax = fig.add_subplot(n_rows, n_cols, i * n_cols + j + 1)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if i == 0:
+                ax.set_title(titles[j], fontsize=9)
+            if j == 0:
+                ax.set_ylabel(row_labels[i], fontsize=9)
+            if cell is None:
+                ax.set_frame_on(False)
+            elif isinstance(cell, tuple):
+                img, vmax, label = cell
+                im = ax.imshow(np.ma.masked_invalid(img), vmin=0, vmax=vmax, cmap="magma",
+                               interpolation="nearest")
+                fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02).set_label(label, fontsize=7)
+            else:
+                ax.imshow(np.clip(cell, 0, 1), interpolation="nearest")
+    if note:
+        fig.suptitle(note, fontsize=8)
+    fig.tight_layout()
+    with atomic_write(path) as f:
+        fig.savefig(f, format="png")
+    return True
 
 
 def write_fit_renders(outdir: PathLike, renders: list) -> list[str]:

@@ -103,12 +103,13 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _parser() -> argparse.ArgumentParser:
-    from . import _fit, _render
+    from . import _bake, _fit, _render
 
     parser = _Parser(prog="jaxnm", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _render.add_parser(sub)
     _fit.add_parser(sub)
+    _bake.add_parser(sub)
     for p in sub.choices.values():
         p.add_argument("--no-compile-cache", action="store_true", dest="no_compile_cache",
                        help="do not use the persistent compilation cache (default: "
@@ -149,14 +150,15 @@ def main(argv=None, *, interrupted: int = 0) -> int:
 
 def _run(args, ctrl_c: CtrlC) -> int:
     """The command of ``args``, after the process settings it opts in to."""
-    from . import _fit, _render
+    from . import _bake, _fit, _render
 
     if not args.nondeterministic:
         _add_xla_flag(_DETERMINISTIC_FLAG)  # before JAX starts a backend
     if not args.no_compile_cache:
         _use_compilation_cache()
     ctrl_c.check()
-    return (_render.run if args.command == "render" else _fit.run)(args, ctrl_c)
+    run = {"render": _render.run, "fit": _fit.run, "bake": _bake.run}[args.command]
+    return run(args, ctrl_c)
 
 
 def _distributed_fit(args) -> int:

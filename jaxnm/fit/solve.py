@@ -333,15 +333,33 @@ def _host_preconditioner(prep: Prepared) -> np.ndarray:
     return np.sqrt(c_ref / (c + 0.01 * c_ref))[..., None].astype(np.float32)
 
 
-def _start_slopes(size: tuple[int, int], options: FitOptions) -> np.ndarray:
-    """The slopes a fit starts from, (h, w, 2) float32: the flat map, jittered by
+def _start_slopes(size: tuple[int, int], options: FitOptions, start=None,
+                  source: str = "fit") -> np.ndarray:
+    """The slopes a fit starts from, (h, w, 2) float32: the flat map, or the slopes of the
+    unit normals ``start`` (resized to ``size`` where it differs), jittered by
     ``options.init_noise`` (standard deviation) from NumPy's generator seeded with
     ``options.seed`` — on the host, so no XLA program is compiled for it."""
     z = np.zeros(tuple(size) + (2,), np.float32)
+    if start is not None:
+        n = np.asarray(start, np.float64)
+        if n.ndim != 3 or n.shape[-1] != 3 or not np.all(np.isfinite(n)):
+            raise ValueError(f"{source}: the start must be finite (h, w, 3) normals, got shape "
+                             f"{n.shape}")
+        # normals_to_slopes on the host (z clamped to 1e-3: slopes of at most 1e3)
+        z = np.clip(n[..., :2] / np.maximum(n[..., 2:], 1e-3), -1e3, 1e3).astype(np.float32)
+        if z.shape[:2] != tuple(size):
+            z = np.asarray(_upsample(jax.device_put(z), tuple(size)), np.float32)
     if options.init_noise > 0:
         rng = np.random.default_rng(options.seed)
-        z = (options.init_noise * rng.standard_normal(z.shape)).astype(np.float32)
+        z = z + (options.init_noise * rng.standard_normal(z.shape)).astype(np.float32)
     return z
+
+
+def _digest(x: np.ndarray) -> str:
+    """A hash of an array's bytes (a fit's start, in its checkpoint's fingerprint)."""
+    import hashlib
+
+    return hashlib.sha256(np.ascontiguousarray(x).tobytes()).hexdigest()
 
 
 def level_sizes(map_size: tuple[int, int], coarse_to_fine: int) -> list[tuple[int, int]]:
@@ -545,7 +563,8 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                    should_stop: Callable[[dict], bool] | None = None,
                    checkpoint: str | os.PathLike | None = None,
                    checkpoint_every: float = 30.0,
-                   resume: bool | str | os.PathLike = False) -> FitResult:
+                   resume: bool | str | os.PathLike = False,
+                   start: np.ndarray | None = None) -> FitResult:
     """Fit the normal map of ``problem`` (see `jaxnm.fit`).
 
     **Arguments:**
@@ -575,6 +594,11 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
       a one-line `ValueError` names the file and what differs; the stopping rule and the
       time limit (counted over the whole fit) may change. A checkpoint of a fit that had
       converged returns its result without a step.
+    - `start`: (h, w, 3) unit tangent-space normals to start from (e.g. a ray-cast bake)
+      instead of the flat map; a normal with ``z <= 0``, which the slopes cannot hold, starts
+      from its direction tilted to ``z = 1e-3`` (`normals_to_slopes`). With coarse-to-fine
+      levels the first level starts from its slopes resized; `options.init_noise` adds to
+      them.
 
     **Returns:** a `FitResult`; its `stopped` says why the fit ended, `stop_test` which
     test ended it (`STOP_TESTS`; see the module's "When a fit stops" for the stopping rule
@@ -608,8 +632,12 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     if prep.options[0].normal_map_shape != (h, w):
         raise ValueError(f"{problem.source}: `prepared` was made for a "
                          f"{prep.options[0].normal_map_shape} map, not {(h, w)}")
+    if start is not None and np.shape(start) != (h, w, 3):
+        raise ValueError(f"{problem.source}: the start is {np.shape(start)}, not the map's "
+                         f"{(h, w, 3)}")
     sizes = level_sizes((h, w), options.coarse_to_fine)
-    slopes = _start_slopes(sizes[0], options)  # (host; the device gets z below)
+    slopes = _start_slopes(sizes[0], options, start, problem.source)  # (host; the device
+    # gets z below)
     seen = gt = None
     if ground_truth is not None:
         gt = np.asarray(ground_truth, np.float64)
@@ -620,7 +648,8 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                              f"{seen.shape} must match the map size {(h, w)}")
     fingerprint = saved = None
     if checkpoint is not None or source is not None:
-        fingerprint = _fit_fingerprint(problem, options, strength=strength, layout=_layout(prep))
+        layout = _layout(prep) if start is None else [_layout(prep), _digest(slopes)]
+        fingerprint = _fit_fingerprint(problem, options, strength=strength, layout=layout)
         if spread:  # each process hashed its own targets' images
             fingerprint = _fingerprint_across_processes(fingerprint)
     if source is not None:

@@ -1,0 +1,128 @@
+"""What a view sees of a mesh, and its shading under several lights: the pieces the fitting
+baker (`jaxnm.transfer.pair`) and its scoring (`jaxnm.transfer.evaluate`) share, so that
+targets, fitted renders and scores all come from one path through `jaxnm.render` and
+`jaxnm.shading.shade`."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..camera import Camera
+from ..geometry import Mesh
+from ..render import render
+from ..scene import Scene
+from ..shading import DirectionalLight, Lights, Material, shade, stack_lights
+from ..textures import NormalMapOptions
+
+__all__ = ["Surface", "surface", "shade_lights", "directional_lights", "pair_mask",
+           "pair_tolerance", "facing", "angles_deg"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Surface:
+    """One view of a mesh, host arrays in image layout (row 0 on top): `mask` and
+    `front_facing` ``(H, W)`` bool, `position` and `normal` ``(H, W, 3)`` (the normal the
+    shading uses: the interpolated one, face-forwarded, perturbed by the map where there is
+    one), `uv` ``(H, W, 2)`` or None, and the camera's `eye`."""
+
+    mask: np.ndarray
+    front_facing: np.ndarray
+    position: np.ndarray
+    normal: np.ndarray
+    uv: np.ndarray | None
+    eye: np.ndarray
+
+
+def surface(mesh: Mesh, camera: Camera, size: int, *, frame: str = "none",
+            normal_map: np.ndarray | None = None,
+            sampling: NormalMapOptions | None = None, uv: bool = False,
+            source: str = "mesh") -> Surface:
+    """`Surface` of ``mesh`` from ``camera`` at ``size`` x ``size`` pixels, by `jaxnm.render`:
+    with ``normal_map`` ((h, w, 3) signed unit normals sampled as ``sampling`` says) the
+    normal is the perturbed one in ``frame``; without, the interpolated normal."""
+    scene = Scene(mesh=mesh, camera=camera, width=size, height=size, frame=frame,
+                  normal_map=None if normal_map is None else jnp.asarray(normal_map,
+                                                                          jnp.float32),
+                  normal_map_options=sampling or NormalMapOptions(encoding="signed"),
+                  source=source)
+    outputs = ("mask", "front_facing", "position", "perturbed_normal") + (
+        ("uv",) if uv else ())
+    out = render(scene, outputs=outputs)
+    return Surface(mask=np.asarray(out["mask"])[..., 0] > 0,
+                   front_facing=np.asarray(out["front_facing"])[..., 0] > 0,
+                   position=np.asarray(out["position"], np.float32),
+                   normal=np.asarray(out["perturbed_normal"], np.float32),
+                   uv=np.asarray(out["uv"], np.float32) if uv else None,
+                   eye=np.asarray(camera.eye, np.float64))
+
+
+def directional_lights(directions: np.ndarray) -> Lights:
+    """White directional lights of unit intensity towards ``directions`` ``(L, 3)``,
+    stacked."""
+    return Lights(directional=stack_lights([
+        DirectionalLight(jnp.asarray(d, jnp.float32), jnp.ones(3), jnp.asarray(1.0))
+        for d in np.asarray(directions, np.float64)]))
+
+
+@functools.partial(jax.jit, static_argnames="shading")
+def _shade_each(normal, position, eye, lights: Lights, material, albedo, *, shading):
+    def one(light):
+        return shade(shading, normal, position, eye, Lights(directional=light), material,
+                     albedo=albedo)
+
+    return jax.vmap(one)(lights.directional)
+
+
+def shade_lights(s: Surface, directions: np.ndarray, material: Material, albedo,
+                 shading: str) -> np.ndarray:
+    """``(L, H, W, 3)`` float32 linear colour of `Surface` ``s`` under each of the directional
+    lights towards ``directions`` ``(L, 3)`` on its own (`jaxnm.shading.shade`, as
+    `jaxnm.render` shades), 0 off the mesh."""
+    lights = directional_lights(directions)
+    c = _shade_each(jax.device_put(s.normal), jax.device_put(s.position),
+                    jnp.asarray(s.eye, jnp.float32), lights, material,
+                    jnp.broadcast_to(jnp.asarray(albedo, jnp.float32), (3,)), shading=shading)
+    return np.where(s.mask[None, ..., None], np.asarray(c, np.float32), np.float32(0.0))
+
+
+def pair_mask(high: Surface, low: Surface, tolerance: float) -> np.ndarray:
+    """``(H, W)`` bool: the pixels both meshes cover where the points they show are at most
+    ``tolerance`` apart (elsewhere one mesh's silhouette or an occlusion shows a surface
+    the other does not have there)."""
+    d = np.linalg.norm(high.position - low.position, axis=-1)
+    return high.mask & low.mask & (d <= tolerance)
+
+
+def facing(s: Surface, max_angle_deg: float) -> np.ndarray:
+    """``(H, W)`` bool: the front-facing pixels of ``s`` whose normal is within
+    ``max_angle_deg`` of the direction to the camera."""
+    to_eye = s.eye[None, None] - s.position
+    cos = np.einsum("hwi,hwi->hw", s.normal, to_eye) / np.maximum(
+        np.linalg.norm(to_eye, axis=-1), 1e-30)
+    return s.mask & s.front_facing & (cos >= math.cos(math.radians(max_angle_deg)))
+
+
+def pair_tolerance(pairs, max_angle_deg: float = 60.0) -> float:
+    """The distance `pair_mask` allows between the points HIGH and LOW show at a pixel, from
+    ``pairs`` of their `Surface`s (one per view): twice the 99th percentile of that distance
+    over the pixels both cover where LOW faces the camera within ``max_angle_deg`` (0 where
+    there are none)."""
+    d = [np.linalg.norm(hi.position - lo.position, axis=-1)[hi.mask & facing(lo, max_angle_deg)]
+         for hi, lo in pairs]
+    d = np.concatenate(d) if d else np.zeros(0)
+    return 2.0 * float(np.percentile(d, 99)) if d.size else 0.0
+
+
+def angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The angle in degrees between the vectors ``a`` and ``b`` (..., 3), as ``atan2(|a x b|,
+    a . b)`` in float64."""
+    a = np.asarray(a, np.float64)
+    b = np.asarray(b, np.float64)
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1),
+                                 np.einsum("...i,...i->...", a, b)))
