@@ -110,13 +110,17 @@ def facing(s: Surface, max_angle_deg: float) -> np.ndarray:
 
 def pair_tolerance(pairs, max_angle_deg: float = 60.0) -> float:
     """The distance `pair_mask` allows between the points HIGH and LOW show at a pixel, from
-    ``pairs`` of their `Surface`s (one per view): twice the 99th percentile of that distance
-    over the pixels both cover where LOW faces the camera within ``max_angle_deg`` (0 where
-    there are none)."""
+    ``pairs`` of their `Surface`s (one per view): three times the 95th percentile of that
+    distance over the pixels both cover where LOW faces the camera within ``max_angle_deg``
+    (0 where there are none). The 95th percentile measures how far the surfaces lie apart
+    where they face the views (a point seen at 60 degrees lies up to twice as far along the
+    ray); the few pixels past it that show another surface altogether (an ear in front of
+    the head, a hole in a scan: on the Stanford Bunny the 98th percentile is 2.6 mm, the
+    99th 49 mm) do not move it."""
     d = [np.linalg.norm(hi.position - lo.position, axis=-1)[hi.mask & facing(lo, max_angle_deg)]
          for hi, lo in pairs]
     d = np.concatenate(d) if d else np.zeros(0)
-    return 2.0 * float(np.percentile(d, 99)) if d.size else 0.0
+    return 3.0 * float(np.percentile(d, 95)) if d.size else 0.0
 
 
 def angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -4,13 +4,12 @@ lights a fit never used (`evaluate_maps`).
 Per held-out view, HIGH and LOW are rendered by jaxnm (`jaxnm.render`), LOW once per map and
 once with no map (the floor every map should beat), and shaded under each of the view's
 lights with the bake's material (`jaxnm.shading.shade`). A pixel is scored where both meshes
-cover it and the points they show lie within the tolerance (`_surfaces.pair_mask`: twice the
-99th percentile of their distance over the pixels where LOW faces the camera within 60
-degrees, unless given). Per method:
+cover it and the points they show lie within the tolerance (`_surfaces.pair_mask`, with
+`_surfaces.pair_tolerance` of the held-out views unless given). Per method:
 
 - **PSNR** of the linear colour against HIGH's over every scored pixel and channel of every
   held-out image together, the peak being 1 (white): ``10 log10(1 / MSE)``.
-- **FLIP** (NVIDIA's ꟻLIP, the ``flip-evaluator`` package, LDR, 67 pixels per degree) of the
+- **FLIP** (NVIDIA's FLIP, the ``flip-evaluator`` package, LDR, 67 pixels per degree) of the
   sRGB images (`jaxnm.shading.to_display`), the test image taking the reference's pixels
   where it is not scored, averaged over the scored pixels of every image.
 - **The normal's angle** between HIGH's shading normal (interpolated, face-forwarded) and
@@ -41,7 +40,7 @@ NO_MAP = "none"
 
 def flip_error(reference: np.ndarray, test: np.ndarray) -> np.ndarray:
     """``(H, W)`` FLIP error of the sRGB image ``test`` against ``reference`` (both
-    ``(H, W, 3)`` in [0, 1]): NVIDIA's ꟻLIP for LDR images at its default 67 pixels per
+    ``(H, W, 3)`` in [0, 1]): NVIDIA's FLIP for LDR images at its default 67 pixels per
     degree (``flip-evaluator``, the ``bake`` extra)."""
     try:
         import flip_evaluator

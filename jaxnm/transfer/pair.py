@@ -14,9 +14,9 @@ normal where a ray from LOW meets it, Blender's selected-to-active bake.
    normals, no map) and shaded under each light with the material and albedo the map is
    fitted with (`jaxnm.shading.shade`, as `jaxnm.render` shades). A pixel counts where
    both meshes cover it, LOW faces the camera within ``max_angle_deg`` (as the plan
-   counted), and the points HIGH and LOW show there are close (`_surfaces.pair_mask`: at
-   most twice the 99th percentile of that distance over such pixels, which leaves out
-   silhouettes and occlusions that a map cannot reproduce).
+   counted), and the points HIGH and LOW show there are close (`_surfaces.pair_mask`, within
+   `_surfaces.pair_tolerance`: three times the 95th percentile of that distance over such
+   pixels), which leaves out silhouettes and occlusions a map cannot reproduce.
 3. **The fit.** `jaxnm.fit.fit_normal_map` fits LOW's map to those targets in ``frame``
    (MikkTSpace for ``"vertex"``: LOW's tangents are computed once and carried by the
    problem), from the flat map (``"fit"``) or from the ray-cast map (``"both"``). Texels
@@ -106,7 +106,7 @@ class PairBakeOptions:
     max_distance: float = 0.0
     samples: int = 1
     margin: int = 16
-    views: int = 8
+    views: int = 12
     lights: int = 4
     render_size: int | None = None
     candidates: int = 48
