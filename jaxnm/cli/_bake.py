@@ -60,21 +60,21 @@ def add_parser(sub) -> None:
                       help="rays start on this mesh (LOW's triangles, moved) towards LOW")
     p.add_argument("--max-distance", dest="max_distance", type=float, default=0.0,
                    metavar="D", help="rays longer than D miss (default: 0, no limit)")
-    p.add_argument("--margin", type=int, default=16, metavar="PX",
-                   help="texels filled around the uv islands (default: %(default)s)")
-    p.add_argument("--samples", type=int, default=1, metavar="K",
-                   help="ray-cast samples per texel (default: %(default)s)")
-    p.add_argument("--views", type=int, default=12, metavar="K",
-                   help="views the fit plans (default: %(default)s)")
-    p.add_argument("--lights", type=int, default=4, metavar="L",
-                   help="directional lights per view, at least 3 (default: %(default)s)")
+    p.add_argument("--margin", type=int, metavar="PX",
+                   help="texels filled around the uv islands (default: 16)")
+    p.add_argument("--samples", type=int, metavar="K",
+                   help="ray-cast samples per texel (default: 1)")
+    p.add_argument("--views", type=int, metavar="K",
+                   help="views the fit plans (default: 12)")
+    p.add_argument("--lights", type=int, metavar="L",
+                   help="directional lights per view, at least 3 (default: 4)")
     p.add_argument("--render-size", dest="render_size", type=int, metavar="N",
                    help="the side of each view's image (default: the map's)")
     p.add_argument("--max-steps", dest="max_steps", type=int, metavar="N",
                    help="the fit's steps at most (default: 12)")
-    p.add_argument("--eval-views", dest="eval_views", type=int, default=4, metavar="E",
-                   help="held-out views that score the maps, 2 lights each (default: "
-                   "%(default)s; 0: no scores)")
+    p.add_argument("--eval-views", dest="eval_views", type=int, metavar="E",
+                   help="held-out views that score the maps, 2 lights each (default: 4; 0: "
+                   "no scores)")
     p.add_argument("--store", choices=STORES, default="png8",
                    help="how the maps are stored: 8- or 16-bit PNG, or also a BC5 DDS (the "
                    "storage extra; the map's side a multiple of 4) (default: %(default)s)")
@@ -90,10 +90,16 @@ def _say(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def _options(args):
-    """The `PairBakeOptions` of ``args``, or a one-line ValueError naming the option."""
-    from ..transfer import PairBakeOptions
+#: The options ``jaxnm bake`` passes on to `jaxnm.transfer.PairBakeOptions` where given
+#: (their defaults are the dataclass's), with their flags.
+_FLAGS = {"method": "--method", "size": "--size", "frame": "--frame", "cage": "--cage",
+          "max_distance": "--max-distance", "samples": "--samples", "margin": "--margin",
+          "views": "--views", "lights": "--lights", "render_size": "--render-size",
+          "eval_views": "--eval-views"}
 
+
+def _check_shape(args) -> None:
+    """One-line errors for the arguments' shape (which meshes) and plain ranges."""
     if args.low is not None and args.decimate is not None:
         raise ValueError("give LOW or --decimate N (LOW made from HIGH), not both")
     if args.low is None and args.decimate is None:
@@ -101,36 +107,32 @@ def _options(args):
                          "one from HIGH")
     if args.decimate is not None and not args.unwrap:
         raise ValueError("--decimate makes a LOW without uvs: add --unwrap to give it some")
-    flags = {"size": "--size", "frame": "--frame", "method": "--method", "views": "--views",
-             "lights": "--lights", "render_size": "--render-size", "samples": "--samples",
-             "margin": "--margin", "eval_views": "--eval-views", "max_steps": "--max-steps"}
-    for name in ("size", "margin", "samples", "views", "lights", "eval_views"):
-        if getattr(args, name) < (4 if name == "size" else 0):
-            raise ValueError(f"{flags[name]} must be at least {4 if name == 'size' else 0}, "
-                             f"got {getattr(args, name)}")
     for flag, v in (("--cage", args.cage), ("--max-distance", args.max_distance)):
         if v is not None and not (v >= 0 and v < float("inf")):
             raise ValueError(f"{flag} must be a finite distance >= 0, got {v}")
+    if args.max_steps is not None and args.max_steps < 1:
+        raise ValueError(f"--max-steps must be at least 1, got {args.max_steps}")
     if args.store == "bc5" and args.size % 4:
         raise ValueError(f"--store bc5: a BC5 map's side must be a multiple of 4, got "
                          f"--size {args.size}")
-    from ..fit import FitOptions
+    if args.method != "raycast" and args.lights is not None and args.lights < 3:
+        raise ValueError(f"--lights: a fit needs at least 3 lights per view (three "
+                         f"non-coplanar directions determine a normal), got {args.lights}")
 
-    fit = FitOptions(max_steps=12, lsmr_steps=10)
+
+def _options(args):
+    """The `PairBakeOptions` of ``args``, or a one-line ValueError naming the option."""
+    from ..transfer import PairBakeOptions
+
+    _check_shape(args)
+    given = {k: getattr(args, k) for k in _FLAGS if getattr(args, k) is not None}
+    if args.max_steps is not None:
+        given["fit"] = dataclasses.replace(PairBakeOptions.fit, max_steps=args.max_steps)
     try:
-        if args.max_steps is not None:
-            fit = dataclasses.replace(fit, max_steps=args.max_steps)
-        if args.method != "raycast" and args.lights < 3:
-            raise ValueError(f"--lights: a fit needs at least 3 lights per view (three "
-                             f"non-coplanar directions determine a normal), got {args.lights}")
-        return PairBakeOptions(method=args.method, size=args.size, frame=args.frame,
-                               cage=args.cage, max_distance=args.max_distance,
-                               samples=args.samples, margin=args.margin, views=args.views,
-                               lights=args.lights, render_size=args.render_size, fit=fit,
-                               eval_views=args.eval_views)
+        return PairBakeOptions(**given)
     except ValueError as e:
-        text = str(e).removeprefix("PairBakeOptions: ").removeprefix("FitOptions: ")
-        for name, flag in flags.items():
+        text = str(e).removeprefix("PairBakeOptions: ")
+        for name, flag in _FLAGS.items():
             if text.startswith(name + " "):
                 text = f"{flag} {text[len(name) + 1:]}"
         raise ValueError(text) from None

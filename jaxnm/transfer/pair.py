@@ -125,13 +125,13 @@ class PairBakeOptions:
             raise ValueError(f"PairBakeOptions: frame must be one of "
                              f"{', '.join(f for f in FRAMES if f != 'none')}, got {self.frame!r}")
         if self.method != "fit" and self.frame not in RAYCAST_FRAMES:
-            raise ValueError(f"PairBakeOptions: ray casting bakes for the frames "
-                             f"{', '.join(RAYCAST_FRAMES)}, not {self.frame!r} (method 'fit' "
-                             "fits a map for any frame)")
+            raise ValueError(f"PairBakeOptions: frame {self.frame!r}: ray casting bakes for "
+                             f"the frames {', '.join(RAYCAST_FRAMES)} only (method 'fit' fits "
+                             "a map for any frame)")
         hw = self.map_size
         if len(hw) != 2 or not all(isinstance(s, (int, np.integer)) and s >= 4 for s in hw):
-            raise ValueError(f"PairBakeOptions: size must be an integer >= 4 or two, got "
-                             f"{self.size!r}")
+            raise ValueError(f"PairBakeOptions: size must be an integer >= 4 or a pair of "
+                             f"them, got {self.size!r}")
         for name, lo in (("views", 0 if self.method == "raycast" else 1),
                          ("lights", 1), ("candidates", 1), ("eval_views", 0),
                          ("eval_lights", 1), ("samples", 1), ("margin", 0)):
