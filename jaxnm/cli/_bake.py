@@ -19,6 +19,7 @@ low-poly mesh and its map. Writes (each file atomically, the maps first):
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 import time
 from pathlib import Path
@@ -184,8 +185,8 @@ def run(args, ctrl_c: CtrlC) -> int:
     ctrl_c.check()
 
     def stage(key: str, message: str) -> None:
-        _say(message)
         ctrl_c.check()
+        _say(message)
         if key == "fit":
             ctrl_c.phase = "fit"
         elif key == "evaluate":
@@ -213,7 +214,7 @@ def _summary(report: dict) -> str:
     for name in ("none", "raycast", "fit"):
         if name not in scores:
             continue
-        s = scores[name]
+        s = {k: math.nan if v is None else v for k, v in scores[name].items()}
         lines.append(f"{'no map' if name == 'none' else name:>8}: held-out PSNR "
                      f"{s['psnr_db']:.2f} dB, FLIP {s['flip']:.4f}, normal angle mean "
                      f"{s['angle_mean_deg']:.2f} deg")

@@ -72,6 +72,11 @@ def texel_means(values: np.ndarray, uv: np.ndarray, map_size: tuple[int, int]):
             np.bincount(idx, minlength=h * w))
 
 
+def _finite(x: float, digits: int) -> float | None:
+    """``x`` rounded, or None where it is not finite (JSON has no NaN or infinity)."""
+    return round(float(x), digits) if math.isfinite(x) else None
+
+
 @dataclasses.dataclass
 class MethodScores:
     """One map's held-out scores (see the module docstring).
@@ -92,11 +97,12 @@ class MethodScores:
     per_image: list
 
     def summary(self) -> dict:
-        """The scores as a JSON-ready dict (no per-texel map)."""
-        return {"psnr_db": round(self.psnr_db, 3), "flip": round(self.flip, 5),
-                "angle_mean_deg": round(self.angle_mean_deg, 4),
-                "angle_median_deg": round(self.angle_median_deg, 4),
-                "angle_p95_deg": round(self.angle_p95_deg, 4),
+        """The scores as a JSON-ready dict (no per-texel map; a score that is not finite,
+        e.g. where no pixel was scored, or the PSNR of identical images, is None)."""
+        return {"psnr_db": _finite(self.psnr_db, 3), "flip": _finite(self.flip, 5),
+                "angle_mean_deg": _finite(self.angle_mean_deg, 4),
+                "angle_median_deg": _finite(self.angle_median_deg, 4),
+                "angle_p95_deg": _finite(self.angle_p95_deg, 4),
                 "texels_scored": int(np.isfinite(self.texel_error_deg).sum()),
                 "per_image": self.per_image}
 
@@ -153,9 +159,9 @@ class _Tally:
             self.count += diff.size
             self.flip_sum += float(f[mask].sum(dtype=np.float64))
             self.flip_count += int(mask.sum())
-            self.per_image.append({"view": k, "light": j,
-                                   "psnr_db": round(pooled_psnr(sq, diff.size), 3),
-                                   "flip": round(float(f[mask].mean()), 5)})
+            self.per_image.append({
+                "view": k, "light": j, "psnr_db": _finite(pooled_psnr(sq, diff.size), 3),
+                "flip": _finite(float(f[mask].mean()) if mask.any() else math.nan, 5)})
             if example is not None and j == 0:
                 example["image"], example["flip"] = test_srgb, f
         self.angles.append(angles[mask])

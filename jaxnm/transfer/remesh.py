@@ -54,8 +54,9 @@ def _mesh(positions, faces, uv=None, normals=None) -> Mesh:
 
 def decimate(mesh: Mesh, triangles: int, *, name: str = "HIGH") -> Mesh:
     """``mesh`` welded (`weld`) and simplified to about ``triangles`` triangles by quadric
-    edge collapses (``fast_simplification.simplify``), with angle-weighted normals and no
-    uvs (`unwrap` makes them).
+    edge collapses (``fast_simplification.simplify``), without the slivers the collapses
+    leave (triangles of three nearly collinear vertices), with angle-weighted normals and
+    no uvs (`unwrap` makes them).
 
     Raises ValueError (naming ``name``) when ``triangles`` is not below the welded mesh's
     count or is under 4; ImportError without the ``bake`` extra."""
@@ -74,9 +75,11 @@ def decimate(mesh: Mesh, triangles: int, *, name: str = "HIGH") -> Mesh:
                          f"{int(triangles)} asked for; nothing to decimate")
     q, g = fast_simplification.simplify(p, f.astype(np.int32), target_count=int(triangles))
     q, g = weld(q, np.asarray(g, np.int64))  # (drops any vertex no triangle uses)
-    keep = np.linalg.norm(np.cross(q[g[:, 1]] - q[g[:, 0]], q[g[:, 2]] - q[g[:, 0]]),
-                          axis=-1) > 0
-    g = g[keep & (g[:, 0] != g[:, 1]) & (g[:, 1] != g[:, 2]) & (g[:, 0] != g[:, 2])]
+    # collapses along a border leave slivers of three collinear vertices: no area in space,
+    # some in the uv layout, and rays from them graze HIGH's border edge
+    area2 = np.linalg.norm(np.cross(q[g[:, 1]] - q[g[:, 0]], q[g[:, 2]] - q[g[:, 0]]), axis=-1)
+    diag = float(np.linalg.norm(np.ptp(q, axis=0)))
+    g = g[area2 > 1e-10 * diag * diag]
     q, g = weld(q, g)
     return _mesh(q, g)
 

@@ -1,0 +1,299 @@
+"""``jaxnm bake`` as a user meets it: the output folder's layout and report, the maps' convention
+(row 0 on top, green up) checked by decoding them and by re-rendering LOW with them against
+HIGH's own normals, a low-poly mesh made from the high-poly one, one-line errors and warnings
+naming the file for bad input, and Ctrl-C at a stage boundary and during the fit."""
+
+from __future__ import annotations
+
+import json
+import signal
+import warnings
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxnm
+from jaxnm import io
+from jaxnm.cli import main
+
+#: A quad's normals vary in x and y: n(x, y) = normalize(0.6 (x - 1/2), -0.4 (y - 1/2), 1).
+_TILT = (0.6, -0.4)
+
+
+def _normal(x, y):
+    n = np.stack([_TILT[0] * (x - 0.5), _TILT[1] * (y - 0.5), np.ones_like(x)], -1)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def _grid(n: int, z: float = 0.0, x_max: float = 1.0):
+    """An n x n grid over [0, x_max] x [0, 1] at height z, uv = xy, normals `_normal`."""
+    x, y = np.meshgrid(np.linspace(0, x_max, n + 1), np.linspace(0, 1, n + 1), indexing="xy")
+    p = np.stack([x, y, np.full_like(x, z)], -1).reshape(-1, 3)
+    j, i = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    a = (j * (n + 1) + i).ravel()
+    faces = np.concatenate([np.stack([a, a + 1, a + n + 2], 1),
+                            np.stack([a, a + n + 2, a + n + 1], 1)])
+    return p, faces, p[:, :2].copy(), _normal(p[:, 0], p[:, 1])
+
+
+def _mesh(p, f, uv=None, n=None):
+    return jaxnm.Mesh(jnp.asarray(p, jnp.float32), jnp.asarray(f, jnp.int32),
+                      None if uv is None else jnp.asarray(uv, jnp.float32),
+                      None if n is None else jnp.asarray(n, jnp.float32))
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    """HIGH: a 16 x 16 grid whose normals tilt with x and y; LOW: a 2 x 2 grid 0.01 above it
+    with uv = xy and straight-up normals (MikkTSpace then gives the frame x, y, z, so a
+    texel's stored normal is HIGH's normal there)."""
+    d = tmp_path_factory.mktemp("bake")
+    p, f, _, n = _grid(16)
+    io.save_obj(d / "hi.obj", _mesh(p, f, None, n))
+    p, f, uv, _ = _grid(2, z=0.01)
+    up = np.tile([0.0, 0.0, 1.0], (len(p), 1))
+    io.save_obj(d / "lo.obj", _mesh(p, f, uv, up))
+    io.save_obj(d / "lo_nouv.obj", _mesh(p, f, None, up))
+    io.save_obj(d / "far.obj", _mesh(p + [10, 0, 0], f, uv, up))
+    two = np.concatenate([p, p + [0, 0, 0.02]])  # a second LOW over the first, same uvs
+    io.save_obj(d / "lo_twice.obj", _mesh(two, np.concatenate([f, f + len(p)]),
+                                          np.concatenate([uv, uv]), np.concatenate([up, up])))
+    q, g, _, m = _grid(16, x_max=0.5)  # HIGH over the left half only
+    io.save_obj(d / "hi_half.obj", _mesh(q, g, None, m))
+    line = np.array([[0.2, 0.2, 0.01], [0.3, 0.3, 0.01], [0.4, 0.4, 0.01]])  # collinear
+    io.save_obj(d / "lo_degenerate.obj", _mesh(
+        np.concatenate([p, line]), np.concatenate([f, [[len(p), len(p) + 1, len(p) + 2]]]),
+        np.concatenate([uv, line[:, :2]]), np.concatenate([up, up[:3]])))
+    from scripts.benchmarks import bake_pairs as P
+
+    io.save_obj(d / "torus.obj", P.high_mesh(P.torus_pair((8, 4), (48, 24))))  # closed
+    return d
+
+
+_SMALL = ["--size", "16", "--render-size", "64", "--views", "4", "--lights", "4",
+          "--eval-views", "2", "--max-steps", "3", "--no-progress"]
+
+
+def _bake(*args) -> int:
+    return main(["bake", *map(str, args)])
+
+
+@pytest.fixture(scope="module")
+def baked(files, tmp_path_factory):
+    out = tmp_path_factory.mktemp("out") / "o"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rc = _bake(files / "hi.obj", files / "lo.obj", "-o", out, *_SMALL)
+    return rc, out
+
+
+# ----------------------------------------------------------------------------- outputs
+
+
+@pytest.mark.slow
+def test_the_output_folder_and_its_report(baked):
+    rc, out = baked
+    assert rc == 0
+    for method in ("raycast", "fit"):
+        for name in ("normal_map.png", "normal_map.npz", "error_map.png"):
+            assert (out / method / name).is_file(), (method, name)
+    assert (out / "fit" / "coverage.png").is_file() and (out / "report.json").is_file()
+    assert (out / "figure.png").is_file()
+    assert not [p.name for p in out.rglob("*.tmp")]
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["frame"] == "vertex" and rep["tangents"] == "mikktspace"
+    assert rep["method"] == "both" and rep["map_size"] == [16, 16]
+    assert rep["interrupted"] is False and rep["skipped"] == []
+    assert rep["raycast"]["texels_missed"] == 0 and rep["raycast"]["cage_source"] == "automatic"
+    f = rep["fit"]
+    assert f["views"] == 4 and f["lights_per_view"] == 4 and f["start"] == "raycast"
+    assert 0 <= f["unseen_texels"] <= f["chart_texels"] == 256
+    assert sum(f["views_per_texel"]) == f["chart_texels"]
+    ev = rep["evaluation"]["methods"]
+    assert set(ev) == {"none", "raycast", "fit"}
+    for s in ev.values():
+        assert {"psnr_db", "flip", "angle_mean_deg", "angle_median_deg",
+                "angle_p95_deg"} <= set(s)
+    assert ev["raycast"]["psnr_db"] > ev["none"]["psnr_db"] + 3
+    assert ev["fit"]["psnr_db"] > ev["none"]["psnr_db"] + 3
+    assert set(rep["seconds"]) >= {"read", "raycast", "plan", "targets", "prepare", "fit",
+                                   "evaluate"}
+    listed = set(rep["files"])
+    assert {"raycast/normal_map.png", "fit/normal_map.npz", "figure.png",
+            "report.json"} <= listed
+    assert all((out / name).is_file() for name in listed)
+
+
+@pytest.mark.slow
+def test_the_maps_have_row_0_on_top_and_green_up(baked):
+    """Texel (r, c) of an h x w map sits at u = (c + 1/2) / w, v = 1 - (r + 1/2) / h: the
+    stored normals there are HIGH's (LOW's frame is x, y, z); the PNG decodes to them within
+    its 8 bits; and LOW rendered head-on with the PNG as a scene's normal map shows HIGH's
+    normals pixel by pixel."""
+    _, out = baked
+    h = w = 16
+    c, r = np.meshgrid(np.arange(w), np.arange(h), indexing="xy")
+    want = _normal((c + 0.5) / w, 1 - (r + 0.5) / h)
+    for method, tol in (("raycast", 0.5), ("fit", 3.0)):
+        n = np.load(out / method / "normal_map.npz")["normals"]
+        assert n.shape == (h, w, 3) and n.dtype == np.float32
+        err = _angle(n, want)
+        assert np.median(err) < tol, (method, np.median(err))
+        png, bits = io.load_texture(out / method / "normal_map.png", channels=3)
+        decoded = np.asarray(jaxnm.decode_normal_map(jnp.asarray(png), encoding="unsigned"))
+        assert bits == 8 and _angle(decoded, n).max() < 0.8
+    png, _ = io.load_texture(out / "raycast" / "normal_map.png", channels=3)
+    cam = jaxnm.Camera.look_at([0.5, 0.5, 2.0], [0.5, 0.5, 0.0], fov_y_deg=30)
+    lo_p, lo_f, lo_uv, _ = _grid(2, z=0.01)
+    lo = _mesh(lo_p, lo_f, lo_uv, np.tile([0.0, 0.0, 1.0], (len(lo_p), 1))).with_tangents()
+    scene = jaxnm.Scene(mesh=lo, camera=cam, width=48, height=48, frame="vertex",
+                        normal_map=jnp.asarray(png),
+                        normal_map_options=jaxnm.NormalMapOptions(encoding="unsigned",
+                                                                  wrap="clamp"))
+    got = jaxnm.render(scene, outputs=("mask", "position", "perturbed_normal"))
+    mask = np.asarray(got["mask"])[..., 0] > 0
+    pos = np.asarray(got["position"], np.float64)[mask]
+    err = _angle(np.asarray(got["perturbed_normal"])[mask], _normal(pos[:, 0], pos[:, 1]))
+    assert mask.sum() > 500 and np.median(err) < 0.5 and np.percentile(err, 99) < 2.0
+
+
+def _angle(a, b):
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, -1)))
+
+
+def test_decimate_and_unwrap_write_the_low_poly_mesh(files, tmp_path, capsys):
+    out = tmp_path / "o"
+    assert _bake(files / "torus.obj", "--decimate", "300", "--unwrap", "--method", "raycast",
+                 "--eval-views", "0", "--size", "32", "-o", out) == 0
+    low = io.load_mesh(out / "low.obj")
+    assert 280 <= low.num_faces <= 300 and low.uv is not None and low.normals is not None
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["low_file"] == "low.obj" and rep["unwrapped"] is True
+    assert "low.obj" in rep["files"] and not (out / "fit").exists()
+    n = np.load(out / "raycast" / "normal_map.npz")["normals"]
+    assert n.shape == (32, 32, 3)
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["{d}/hi.obj"], "jaxnm bake: error: no LOW: give the low-poly mesh, or --decimate N "
+                     "--unwrap to make one from HIGH"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--decimate", "10", "--unwrap"],
+     "jaxnm bake: error: give LOW or --decimate N (LOW made from HIGH), not both"),
+    (["{d}/hi.obj", "--decimate", "10"],
+     "jaxnm bake: error: --decimate makes a LOW without uvs: add --unwrap to give it some"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--frame", "nonperspective"],
+     "jaxnm bake: error: --frame 'nonperspective': ray casting bakes for the frames vertex, "
+     "cotangent only (method 'fit' fits a map for any frame)"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--lights", "2"],
+     "jaxnm bake: error: --lights: a fit needs at least 3 lights per view"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--store", "bc5", "--size", "30"],
+     "jaxnm bake: error: --store bc5: a BC5 map's side must be a multiple of 4, got --size 30"),
+    (["{d}/hi.obj", "{d}/nope.obj"], "jaxnm bake: error: {d}/nope.obj: no such file"),
+    (["{d}/hi.obj", "{d}/lo_nouv.obj", "--method", "raycast"],
+     "jaxnm bake: error: {d}/lo_nouv.obj: the mesh has no texture coordinates (uv); a normal "
+     "map is baked into LOW's uv layout (--unwrap makes one with xatlas)"),
+    (["{d}/hi.obj", "{d}/far.obj", "--method", "raycast", "--eval-views", "0"],
+     "jaxnm bake: error: {d}/hi.obj and {d}/far.obj do not overlap: none of the"),
+])
+def test_bad_input_is_one_line_naming_the_file(files, tmp_path, capsys, argv, message):
+    out = tmp_path / "o"
+    rc = _bake("-o", out, "--size", "16", *[a.format(d=files) for a in argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and err[-1].startswith(message.format(d=files)), err
+    assert [line for line in err if ": error: " in line] == [err[-1]]
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("low,high,extra,warning", [
+    ("lo_twice.obj", "hi.obj", [], r"{d}/lo_twice.obj: \d+ texels lie inside more than one uv "
+                                   r"triangle \(overlapping uv islands"),
+    ("lo.obj", "hi_half.obj", ["--cage", "0.05", "--max-distance", "0.1"],
+     r"{d}/lo.obj: the rays of \d+ of 256 texels hit nothing on {d}/hi_half.obj \(given cage "
+     r"0.05\): uv \[0.5"),
+    ("lo_degenerate.obj", "hi.obj", [], r"{d}/lo_degenerate.obj: 1 degenerate \(zero-area\) "
+                                        r"triangles \(first: face 8\)"),
+])
+def test_suspicious_input_is_a_one_line_warning(files, tmp_path, capsys, low, high, extra,
+                                                warning):
+    import re
+
+    out = tmp_path / "o"
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")
+        rc = _bake(files / high, files / low, "-o", out, "--method", "raycast",
+                   "--eval-views", "0", "--size", "16", *extra)
+    err = capsys.readouterr().err.splitlines()
+    warned = [line for line in err if ": warning: " in line]
+    assert rc == 0 and len(warned) == 1, err
+    assert re.match("jaxnm bake: warning: " + warning.format(d=re.escape(str(files))),
+                    warned[0]), warned
+    if high == "hi_half.obj":
+        rep = json.loads((out / "report.json").read_text())
+        r = rep["raycast"]
+        assert r["missed_mask"] == "raycast/missed.png" and r["texels_missed"] > 0
+        missed = io.load_texture(out / "raycast" / "missed.png", channels=1)[0][..., 0] > 0.5
+        assert missed.sum() == r["texels_missed"]
+        cols = np.nonzero(missed)[1]
+        assert (cols + 0.5).min() / 16 > 0.5  # the right half, where HIGH is not
+
+
+# ----------------------------------------------------------------------------- Ctrl-C
+
+
+@pytest.fixture
+def sigint():
+    """SIGINT handled by Python while the test runs (it is ignored in background jobs)."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
+def _ctrl_c_before(monkeypatch, module, name):
+    """Press Ctrl-C (SIGINT to this process) just before ``module.name`` runs."""
+    real = getattr(module, name)
+
+    def pressed(*a, **k):
+        signal.raise_signal(signal.SIGINT)
+        return real(*a, **k)
+
+    monkeypatch.setattr(module, name, pressed)
+
+
+def test_ctrl_c_at_a_stage_boundary_stops_with_130_and_writes_nothing(files, tmp_path,
+                                                                      monkeypatch, sigint,
+                                                                      capfd):
+    from jaxnm.transfer import pair
+
+    _ctrl_c_before(monkeypatch, pair, "raycast_normal_map")
+    out = tmp_path / "o"
+    assert _bake(files / "hi.obj", files / "lo.obj", "-o", out, *_SMALL) == 130
+    err = capfd.readouterr().err  # (the handler writes to the file descriptor)
+    assert "Ctrl-C: stopping after this stage" in err and err.rstrip().endswith(
+        "jaxnm bake: interrupted")
+    assert "planning" not in err and not out.exists()
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_the_fit_keeps_the_maps_and_the_report(files, baked, tmp_path,
+                                                            monkeypatch, sigint, capsys):
+    """The fit stops after the step it is in; the maps and the report are written, the
+    scores left out, and the exit code is 130."""
+    from jaxnm.transfer import pair
+
+    _ctrl_c_before(monkeypatch, pair, "fit_normal_map")
+    out = tmp_path / "o"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert _bake(files / "hi.obj", files / "lo.obj", "-o", out, *_SMALL) == 130
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["interrupted"] is True and "evaluation" in rep["skipped"]
+    assert rep["fit"]["stopped"] == "interrupted" and rep["fit"]["steps"] <= 1
+    assert "evaluation" not in rep and not (out / "figure.png").exists()
+    for method in ("raycast", "fit"):
+        assert (out / method / "normal_map.npz").is_file()
+    assert not [p.name for p in out.rglob("*.tmp")]
