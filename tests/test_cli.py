@@ -7,6 +7,7 @@ from __future__ import annotations
 import gc
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -370,3 +371,27 @@ def test_the_checkpoint_goes_when_the_fit_ends_unless_asked_for(tmp_path, option
     assert report["stopped_because"] == "reached the step limit (3 steps a level)"
     if kept:  # and it resumes: nothing left to do
         assert _fit(path, "-o", out, "--no-progress", "--resume", *options) == 0
+
+
+def test_every_key_of_the_report_is_documented(tmp_path):
+    """Each key a fit's ``report.json`` holds is explained on the command-line page, and each
+    key the page explains is one the code writes."""
+    path = _fit_folder(tmp_path / "job")
+    assert _fit(path, "-o", tmp_path / "out", "--no-progress") == 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    page = (ROOT / "docs" / "getting-started" / "cli.md").read_text()
+    table = page[page.index("`report.json` holds:"):]
+    table = table[:table.index("\n\n", table.index("| key |"))]
+    documented = set(re.findall(r"`(\w+)`", "\n".join(
+        line.split(" | ")[0] for line in table.splitlines() if line.startswith("| `"))))
+    assert set(report) <= documented, sorted(set(report) - documented)
+    code = "".join(p.read_text() for p in (ROOT / "jaxnm").rglob("*.py"))
+    assert not [k for k in documented if f'"{k}"' not in code]
+
+
+def test_the_command_line_page_names_every_frame_and_alias():
+    from jaxnm.frames import FRAME_ALIASES, FRAMES
+
+    page = (ROOT / "docs" / "getting-started" / "cli.md").read_text()
+    names = list(FRAMES) + [a for a in FRAME_ALIASES if a.isascii()]
+    assert not [n for n in names if f"`{n}`" not in page]

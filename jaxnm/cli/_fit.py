@@ -11,7 +11,8 @@ from pathlib import Path
 
 from ._interrupt import CtrlC
 
-__all__ = ["add_parser", "run", "CHECKPOINT_NAME", "OVERRIDES", "release_freed_memory"]
+__all__ = ["add_parser", "run", "check_arguments", "read_job", "write_outputs",
+           "CHECKPOINT_NAME", "OVERRIDES", "release_freed_memory"]
 
 #: The checkpoint ``jaxnm fit`` keeps in its output folder (`jaxnm.fit.checkpoint`).
 CHECKPOINT_NAME = "checkpoint.npz"
@@ -26,6 +27,7 @@ _DEFAULT_CHECKPOINT_SECONDS = 30.0
 
 
 def add_parser(sub) -> None:
+    """Add ``jaxnm fit`` and its options to the subcommands ``sub``."""
     from ..fit import SOLVERS, TEXEL_SUMS
 
     p = sub.add_parser("fit", help="fit a normal map to target shading",

@@ -41,6 +41,7 @@ def _direction(text: str) -> tuple[float, float, float]:
 
 
 def add_parser(sub) -> None:
+    """Add ``jaxnm render`` and its options to the subcommands ``sub``."""
     from ..frames import FRAME_ALIASES, FRAMES
     from ..interpolate import DERIVATIVE_MODES, PRECISIONS
     from ..render import OUTPUTS
