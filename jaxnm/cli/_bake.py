@@ -33,6 +33,7 @@ STORES = ("png8", "png16", "bc5")
 
 
 def add_parser(sub) -> None:
+    """Add ``jaxnm bake`` and its options to the subcommands ``sub``."""
     from ._render import frame_name
 
     p = sub.add_parser(

@@ -9,6 +9,10 @@ maps under views and lights the fit never saw (`jaxnm.transfer.evaluate`); `deci
 `unwrap` (`jaxnm.transfer.remesh`) make the low-poly mesh from the high-poly one. It all
 needs the ``bake`` extra (``pip install -e ".[bake]"``: Embree through ``embreex``, xatlas,
 fast-simplification, flip-evaluator), which ``import jaxnm`` does not load.
+
+`BakeWarning` (a `jaxnm.io.JaxnmWarning`) is what the bakers warn with when the bake goes on
+but something deserves attention: rays that hit nothing, overlapping uv islands, degenerate
+or non-manifold triangles.
 """
 
 from ._meshes import BakeWarning as BakeWarning
