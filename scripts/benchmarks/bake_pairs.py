@@ -14,7 +14,8 @@ import numpy as np
 
 import jaxnm
 
-__all__ = ["torus_pair", "displaced", "angle_normals", "low_mesh", "high_mesh"]
+__all__ = ["torus_pair", "displaced", "angle_normals", "low_mesh", "high_mesh", "suzanne_pair",
+           "suzanne_height"]
 
 
 def _grid(n: int, m: int) -> np.ndarray:
@@ -111,3 +112,29 @@ def high_mesh(pair: dict) -> jaxnm.Mesh:
     faces = np.asarray(pair["hi_faces"])
     return jaxnm.Mesh(jnp.asarray(pos, jnp.float32), jnp.asarray(faces, jnp.int32), None,
                       jnp.asarray(angle_normals(pos, faces), jnp.float32))
+
+
+def suzanne_height(p: np.ndarray) -> np.ndarray:
+    """The detail the Suzanne pair adds to the subdivided head (0.02 at most)."""
+    return 0.02 * np.sin(9 * p[:, 0]) * np.sin(8 * p[:, 1] + 0.5) * np.sin(7 * p[:, 2] + 1)
+
+
+def suzanne_pair(blender: str, levels: int = 3) -> dict:
+    """Blender's Suzanne (LOW, its own uvs) and the same head subdivided ``levels`` times
+    (Catmull-Clark) and displaced by `suzanne_height` along its normals (HIGH), built by
+    ``tests/blender_ref.py suzanne`` in Blender's Python ``blender``."""
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "suzanne.npz"
+        run = subprocess.run([blender, str(root / "tests" / "blender_ref.py"), "suzanne",
+                              str(levels), str(out)], capture_output=True, text=True)
+        if run.returncode != 0:
+            raise RuntimeError(f"Blender failed: {run.stderr[-2000:]}")
+        s = dict(np.load(out))
+    return dict(hi_positions=displaced(s["sub_positions"], s["sub_faces"], suzanne_height),
+                hi_faces=s["sub_faces"], lo_positions=s["positions"], lo_faces=s["faces"],
+                lo_corner_uv=s["corner_uv"])
