@@ -335,3 +335,16 @@ def test_decimate_and_unwrap_make_a_mesh_to_bake_onto():
         assert np.allclose(same, same[0], atol=1e-6)
     with pytest.raises(ValueError, match="not more than the 10000 asked for"):
         decimate(high, 10000)
+
+
+def test_rays_that_went_astray_do_not_start_a_fit():
+    """A ray-cast normal facing into LOW (z < 0), or tilted past 75 degrees, starts the fit
+    flat; the others start it as they are."""
+    from jaxnm.transfer.pair import START_MAX_TILT_DEG, fit_start
+
+    tilt = np.radians([0.0, 30.0, 74.0, 76.0, 120.0, 180.0])
+    n = np.stack([np.sin(tilt), np.zeros_like(tilt), np.cos(tilt)], -1)[None].astype(np.float32)
+    out = fit_start(n)
+    keep = np.degrees(tilt) <= START_MAX_TILT_DEG
+    assert np.array_equal(out[0, keep], n[0, keep])
+    assert np.array_equal(out[0, ~keep], np.tile(np.float32([0, 0, 1]), (int((~keep).sum()), 1)))

@@ -1,6 +1,8 @@
-"""Ray-cast baking: jaxnm's `raycast_normal_map` against Blender's Cycles bake of the same pair.
+"""Baking: jaxnm's `raycast_normal_map` against Blender's Cycles bake of the same pair, and
+the time `bake_mesh_pair` takes to answer with a fitted map.
 
     python -m scripts.benchmarks.bench_bake [--size 1024] [--samples 4] [--repeats 3]
+                                            [--parts raycast,blender,fit] [--fit-size 512]
 
 The pair is `bake_pairs.torus_pair`: a displaced torus of ``--hi`` quads (two triangles each;
 1000 x 500 = 1,000,000 triangles) over a plain one of ``--lo`` quads (64 x 40 = 5,120
@@ -15,6 +17,14 @@ and a 16-texel margin, on this machine, one after the other in one run of this s
   or ``.venv-blender``): the ``bpy.ops.object.bake`` call itself, first and median of the
   same repeats in one Blender process, the whole process's wall time (start, scene set-up,
   every bake) and its peak RSS.
+
+- **the fit** (``--parts fit``): `bake_mesh_pair` with ``method="both"`` (the rays, then the
+  fit from them; ``--fit-method fit``: from flat) at ``--fit-size`` squared, its default
+  views, lights and steps, no scoring (``eval_views=0``): the time to answer (from the meshes
+  to the fitted map) of the first call (XLA's compilation included, as a first ``jaxnm
+  bake`` without a compilation cache) and of a second one, the seconds per stage, and the
+  process's peak RSS during them, restarted before (HIGH's renders and the fit's prepared
+  views dominate it).
 
 Prints JSON: the settings, the machine (with its load average before and after: run it on a
 quiet machine), both sides' figures and the ratio of the medians.
@@ -84,6 +94,34 @@ def run_jaxnm(pair: dict, args) -> dict:
                 peak_rss_mib=_status_mib("VmHWM") if reset else None)
 
 
+def run_fit(pair: dict, args) -> dict:
+    """`bake_mesh_pair`'s time to answer and peak memory (see the module docstring)."""
+    from jaxnm.transfer import PairBakeOptions, bake_mesh_pair
+
+    low, high = bake_pairs.low_mesh(pair), bake_pairs.high_mesh(pair)
+    options = PairBakeOptions(method=args.fit_method, size=args.fit_size, eval_views=0,
+                              cage=args.cage)
+    rss_before = _status_mib("VmRSS")
+    reset = _reset_peak()
+    calls = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", BakeWarning)
+        for _ in range(2):
+            t = time.perf_counter()
+            bake = bake_mesh_pair(high, low, options)
+            calls.append(dict(seconds=round(time.perf_counter() - t, 3),
+                              stages_s={k: round(v, 3) for k, v in bake.timings.items()},
+                              steps=sum(1 for h in bake.fit.history if h["step"] > 0),
+                              stopped=bake.fit.stopped))
+    return dict(method=args.fit_method, map_size=args.fit_size,
+                render_size=options.views_render_size, views=options.views,
+                lights=options.lights, targets=options.views * options.lights,
+                fit_options=repr(options.fit), first=calls[0], second=calls[1],
+                unseen_texels=bake.unseen_texels, chart_texels=int(bake.plan.chart.sum()),
+                rss_before_mib=rss_before,
+                peak_rss_mib=_status_mib("VmHWM") if reset else None)
+
+
 def run_blender(pair: dict, args, blender: str) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         spec, out = Path(tmp) / "spec.npz", Path(tmp) / "out.npz"
@@ -114,7 +152,12 @@ def main(argv=None) -> None:
     ap.add_argument("--lo", type=int, nargs=2, default=(64, 40))
     ap.add_argument("--cage", type=float, default=0.08)
     ap.add_argument("--no-blender", action="store_true")
+    ap.add_argument("--parts", default="raycast,blender,fit",
+                    help="what to time: raycast, blender, fit (default: %(default)s)")
+    ap.add_argument("--fit-size", type=int, default=512, dest="fit_size")
+    ap.add_argument("--fit-method", choices=("both", "fit"), default="both", dest="fit_method")
     args = ap.parse_args(argv)
+    parts = set(args.parts.split(","))
     pair = bake_pairs.torus_pair(tuple(args.lo), tuple(args.hi))
     out = dict(settings=dict(size=args.size, samples=args.samples, repeats=args.repeats,
                              hi_triangles=len(pair["hi_faces"]),
@@ -122,12 +165,16 @@ def main(argv=None) -> None:
                machine=dict(cpus=os.cpu_count(), processor=platform.processor() or
                             platform.machine(), python=platform.python_version()))
     out["machine"]["load_average_before"] = [round(x, 2) for x in os.getloadavg()]
-    out["jaxnm"] = run_jaxnm(pair, args)
-    blender = None if args.no_blender else blender_python()
+    if "raycast" in parts:
+        out["jaxnm"] = run_jaxnm(pair, args)
+    blender = None if args.no_blender or "blender" not in parts else blender_python()
     if blender is not None:
         out["blender"] = run_blender(pair, args, blender)
-        out["blender_bake_over_jaxnm"] = round(out["blender"]["bake_median_s"]
-                                               / out["jaxnm"]["median_s"], 2)
+        if "jaxnm" in out:
+            out["blender_bake_over_jaxnm"] = round(out["blender"]["bake_median_s"]
+                                                   / out["jaxnm"]["median_s"], 2)
+    if "fit" in parts:
+        out["fit"] = run_fit(pair, args)
     out["machine"]["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
     print(json.dumps(out, indent=1))
 
