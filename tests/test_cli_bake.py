@@ -297,3 +297,37 @@ def test_ctrl_c_during_the_fit_keeps_the_maps_and_the_report(files, baked, tmp_p
     for method in ("raycast", "fit"):
         assert (out / method / "normal_map.npz").is_file()
     assert not [p.name for p in out.rglob("*.tmp")]
+
+
+def test_the_help_states_the_library_defaults(capsys):
+    from jaxnm.transfer import PairBakeOptions
+
+    with pytest.raises(SystemExit):
+        main(["bake", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    o = PairBakeOptions()
+    for flag, value in (("--views K views the fit plans", o.views),
+                        ("--lights L directional lights per view, at least 3", o.lights),
+                        ("--max-steps N the fit's steps at most", o.fit.max_steps),
+                        ("--margin PX texels filled around the uv islands", o.margin),
+                        ("--samples K ray-cast samples per texel", o.samples),
+                        ("--eval-views E held-out views that score the maps, 2 lights each",
+                         o.eval_views), ("--size N the map's side", o.size)):
+        assert f"{flag} (default: {value}" in text, flag
+    assert o.eval_lights == 2 and o.frame == "vertex" and o.method == "both"
+
+
+def test_store_bc5_writes_a_dds_beside_the_png(files, tmp_path):
+    pytest.importorskip("quicktex")
+    from jaxnm.storage import load_dds_normal_map
+
+    out = tmp_path / "o"
+    assert _bake(files / "hi.obj", files / "lo.obj", "-o", out, "--method", "raycast",
+                 "--eval-views", "0", "--size", "16", "--store", "bc5") == 0
+    n = np.load(out / "raycast" / "normal_map.npz")["normals"]
+    dds = load_dds_normal_map(out / "raycast" / "normal_map.dds")
+    decoded = np.asarray(jaxnm.decode_normal_map(
+        jnp.asarray(dds.texels), encoding="unsigned", channels=2))
+    assert decoded.shape == (16, 16, 3) and np.median(_angle(decoded, n)) < 1.0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["store"] == "bc5" and "raycast/normal_map.dds" in rep["files"]
