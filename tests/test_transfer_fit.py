@@ -348,3 +348,19 @@ def test_rays_that_went_astray_do_not_start_a_fit():
     keep = np.degrees(tilt) <= START_MAX_TILT_DEG
     assert np.array_equal(out[0, keep], n[0, keep])
     assert np.array_equal(out[0, ~keep], np.tile(np.float32([0, 0, 1]), (int((~keep).sum()), 1)))
+
+
+def test_a_large_mesh_renders_in_pieces_as_it_renders_whole():
+    """HIGH's views are rendered a bounded number of triangles at a time and merged by
+    depth: the same pixels, points and normals as one render of the whole mesh (up to pixels
+    where two pieces' fragments lie at the same depth)."""
+    from jaxnm.transfer._surfaces import surface
+
+    high, _ = _torus(hi=(48, 24))
+    cam = jaxnm.Camera.look_at([0.4, -2.5, 2.2], [0, 0, 0], (0, 0, 1), fov_y_deg=40)
+    whole = surface(high, cam, 64)
+    pieces = surface(high, cam, 64, chunk=700)  # 2304 triangles: 4 pieces of 576
+    assert np.array_equal(whole.mask, pieces.mask) and whole.mask.sum() > 1000
+    same = np.all(whole.position == pieces.position, axis=-1)[whole.mask]
+    assert same.mean() > 0.999
+    assert np.abs(whole.normal - pieces.normal)[whole.mask][same].max() == 0
