@@ -11,7 +11,9 @@ map's size, 12 texel-space Levenberg-Marquardt steps, MikkTSpace frame), and eve
 scored under the same 4 held-out views x 2 lights (`jaxnm.transfer.evaluate`: PSNR of the
 linear colour, FLIP, the angle between HIGH's and LOW's shading normals). Seconds are the
 bake's own stages (the first bake in the process includes XLA's compilation; the second
-reuses it). The pairs:
+reuses it). Then the maps of ``method="both"`` are scored again at the fit's own views,
+and at those views turned by 10 and 25 degrees, under lights the fit did not use: how far
+from its views a fit's gain carries. The pairs:
 
 - **suzanne**: Blender's Suzanne onto the same head subdivided three times and displaced
   (`scripts.benchmarks.bake_pairs.suzanne_pair`: needs Blender's Python,
@@ -42,7 +44,16 @@ from pathlib import Path
 import numpy as np
 
 from jaxnm import io
-from jaxnm.transfer import BakeWarning, PairBakeOptions, bake_mesh_pair, decimate, unwrap
+from jaxnm.transfer import (
+    BakeWarning,
+    PairBakeOptions,
+    bake_mesh_pair,
+    decimate,
+    evaluate_maps,
+    unwrap,
+)
+from jaxnm.transfer.pair import bake_material
+from jaxnm.transfer.views import framing_camera, held_out_views
 from scripts.benchmarks import bake_pairs
 from scripts.studies.blender_bake_cases import blender_python
 
@@ -87,6 +98,35 @@ def _row(bake, method: str, name: str) -> dict:
             "angle_median_deg": round(s.angle_median_deg, 3), "seconds": round(seconds, 2)}
 
 
+def _turned(d: np.ndarray, degrees: float) -> np.ndarray:
+    """The unit direction ``d`` turned by ``degrees`` about an axis perpendicular to it."""
+    axis = np.cross(d, np.eye(3)[int(np.argmin(np.abs(d)))])
+    axis /= np.linalg.norm(axis)
+    a = np.radians(degrees)
+    return d * np.cos(a) + np.cross(axis, d) * np.sin(a)
+
+
+def near_the_fit(bake, high, turns=(0.0, 10.0, 25.0)) -> dict:
+    """Held-out PSNR, FLIP and normal angle of each map at the fit's own views (turned by
+    ``turns`` degrees) under lights the fit did not use: how far from its views a fit
+    carries."""
+    plan, o = bake.plan, bake.options
+    _, lights = held_out_views(plan.centre, plan.radius, plan.directions, len(plan.cameras),
+                               o.eval_lights)
+    out = {}
+    for turn in turns:
+        cams = [framing_camera(plan.centre, plan.radius, _turned(d, turn))
+                for d in plan.directions]
+        ev = evaluate_maps(high, bake.low, bake.maps, cams, lights, frame=o.frame,
+                           size=o.views_render_size, map_size=o.map_size,
+                           material=bake_material(), albedo=np.full(3, o.albedo, np.float32),
+                           shading=o.shading)
+        out[f"{turn:g} deg"] = {k: [round(v.psnr_db, 3), round(v.flip, 5),
+                                    round(v.angle_mean_deg, 3)]
+                                for k, v in ev.methods.items()}
+    return out
+
+
 def study_pair(name: str, args) -> dict:
     high, low, extra = load_pair(name, args)
     runs = {}
@@ -116,6 +156,10 @@ def study_pair(name: str, args) -> dict:
                for k, v in both.evaluation.methods.items()}}
     out["held_out_texel_error_deg"]["fit (from flat)"] = float(
         np.nanmean(flat.evaluation.methods["fit"].texel_error_deg))
+    out["near_the_fit_views"] = {
+        "what": "[PSNR dB, FLIP, normal angle deg] at the fit's own views turned by this much, "
+                "under lights the fit did not use; 'fit' is the fit from the ray cast",
+        **near_the_fit(both, high)}
     return out
 
 
