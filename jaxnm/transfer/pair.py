@@ -177,7 +177,7 @@ class PairBake:
     - `low`: LOW as baked for (normals, and MikkTSpace tangents for ``"vertex"``).
     - `options`, `frame`; `timings`: seconds per stage; `seconds`: in all.
     - `tolerance`: the distance within which HIGH's and LOW's points count as the same
-      pixel (`_surfaces.pair_mask`).
+      pixel in the fit's targets (`_surfaces.pair_mask`; None without a fit).
     - `interrupted`: `should_stop` ended the bake early; `skipped`: what was left out.
     """
 
@@ -371,6 +371,7 @@ def bake_mesh_pair(high: Mesh, low: Mesh, options: PairBakeOptions = PairBakeOpt
 
 
 def _fit_stage(result: PairBake, high, low, clock: _Clock, stop, progress, names) -> None:
+    """Steps 1 to 3 of the module: plan, targets, fit; the results go into ``result``."""
     o = result.options
     r = o.views_render_size
     clock.start("plan", f"planning {o.views} views of {names[1]} ({o.candidates} candidates "
@@ -402,6 +403,7 @@ def _fit_stage(result: PairBake, high, low, clock: _Clock, stop, progress, names
 
 
 def _evaluate(result: PairBake, high, low, stop) -> PairEvaluation | None:
+    """The held-out scores of ``result``'s maps (None when stopped)."""
     o = result.options
     if result.plan is not None:
         centre, radius, used = result.plan.centre, result.plan.radius, result.plan.directions

@@ -17,8 +17,8 @@ view sees:
    count (`jaxnm.transfer._texels.rasterize_uv`).
 3. **Greedy cover.** ``views`` times, the candidate that adds most to the texels still seen
    by fewer than ``min_views`` chosen views (a texel counts once per view) is chosen; once
-   every texel is covered, further views go where the fewest views overlap (a small weight
-   for texels seen exactly ``min_views`` times).
+   no candidate adds to those, the next gives a third view to the most texels that have
+   only ``min_views`` (their weight is 1/100 of a texel still short of views).
 4. **Lights.** Each view gets ``lights`` directional lights on two cones about its
    direction (30 and 60 degrees off it, alternately), their azimuths evenly spread and
    turned from view to view by the golden angle, so that three or more never lie in one
