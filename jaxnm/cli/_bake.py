@@ -150,7 +150,7 @@ def _meshes(args, say):
     made = args.decimate is not None or args.unwrap
     if args.decimate is not None:
         say(f"decimating {args.high} to {args.decimate} triangles ...")
-        low, low_name = decimate(high, args.decimate, name=args.high), "LOW"
+        low, low_name = decimate(high, args.decimate, name=args.high), f"LOW (from {args.high})"
     else:
         say(f"reading {args.low} ...")
         low, low_name = io.load_mesh(args.low), args.low
@@ -202,7 +202,7 @@ def run(args, ctrl_c: CtrlC) -> int:
     ctrl_c.phase = "writing"
     _say(f"writing outputs to {out}/ ...")
     report = _write(out, bake, args, ctrl_c, low_written=made,
-                        read_seconds=time.perf_counter() - t0 - bake.seconds)
+                    read_seconds=time.perf_counter() - t0 - bake.seconds)
     print(_summary(report))
     print(f"outputs in {out}/ ({', '.join(report['files'])})")
     return 130 if report["interrupted"] else 0
@@ -386,7 +386,8 @@ def _report(bake, args, files: list, low_written: bool) -> dict:
            "low_file": "low.obj" if low_written else args.low,
            "low_triangles": int(bake.low.faces.shape[0]), "unwrapped": bool(args.unwrap),
            "method": o.method, "map_size": list(o.map_size), "frame": bake.frame,
-           "tangents": "mikktspace" if bake.frame == "vertex" else None,
+           "tangents": (bake.low.tangent_source or "mikktspace") if bake.frame == "vertex"
+           else None,
            "map_encoding": {"encoding": "unsigned", "green": "up", "uv_origin": "bottom_left",
                             "bits": 16 if args.store == "png16" else 8,
                             "npz": "normals: unit tangent-space vectors, row 0 on top"},
