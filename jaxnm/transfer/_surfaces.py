@@ -21,7 +21,7 @@ from ..shading import DirectionalLight, Lights, Material, shade, stack_lights
 from ..textures import NormalMapOptions
 
 __all__ = ["Surface", "surface", "shade_lights", "directional_lights", "pair_mask",
-           "pair_tolerance", "facing", "angles_deg"]
+           "pair_tolerance", "facing", "angles_deg", "TRIANGLE_CHUNK"]
 
 
 @dataclasses.dataclass(frozen=True)
