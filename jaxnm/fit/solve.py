@@ -333,26 +333,30 @@ def _host_preconditioner(prep: Prepared) -> np.ndarray:
     return np.sqrt(c_ref / (c + 0.01 * c_ref))[..., None].astype(np.float32)
 
 
-def _start_slopes(size: tuple[int, int], options: FitOptions, start=None,
-                  source: str = "fit") -> np.ndarray:
-    """The slopes a fit starts from, (h, w, 2) float32: the flat map, or the slopes of the
-    unit normals ``start`` (resized to ``size`` where it differs), jittered by
+def _start_slopes(size: tuple[int, int], options: FitOptions) -> np.ndarray:
+    """The slopes a fit starts from, (h, w, 2) float32: the flat map, jittered by
     ``options.init_noise`` (standard deviation) from NumPy's generator seeded with
     ``options.seed`` — on the host, so no XLA program is compiled for it."""
     z = np.zeros(tuple(size) + (2,), np.float32)
-    if start is not None:
-        n = np.asarray(start, np.float64)
-        if n.ndim != 3 or n.shape[-1] != 3 or not np.all(np.isfinite(n)):
-            raise ValueError(f"{source}: the start must be finite (h, w, 3) normals, got shape "
-                             f"{n.shape}")
-        # normals_to_slopes on the host (z clamped to 1e-3: slopes of at most 1e3)
-        z = np.clip(n[..., :2] / np.maximum(n[..., 2:], 1e-3), -1e3, 1e3).astype(np.float32)
-        if z.shape[:2] != tuple(size):
-            z = np.asarray(_upsample(jax.device_put(z), tuple(size)), np.float32)
     if options.init_noise > 0:
         rng = np.random.default_rng(options.seed)
-        z = z + (options.init_noise * rng.standard_normal(z.shape)).astype(np.float32)
+        z = (options.init_noise * rng.standard_normal(z.shape)).astype(np.float32)
     return z
+
+
+def _given_start(start, size: tuple[int, int], options: FitOptions,
+                 source: str) -> np.ndarray:
+    """`_start_slopes` for a fit given its start: the slopes of the unit normals ``start``
+    (`normals_to_slopes` on the host: z clamped to 1e-3), resized to ``size`` where it
+    differs, plus `_start_slopes`' jitter."""
+    n = np.asarray(start, np.float64)
+    if n.ndim != 3 or n.shape[-1] != 3 or not np.all(np.isfinite(n)):
+        raise ValueError(f"{source}: the start must be finite (h, w, 3) normals, got shape "
+                         f"{n.shape}")
+    z = np.clip(n[..., :2] / np.maximum(n[..., 2:], 1e-3), -1e3, 1e3).astype(np.float32)
+    if z.shape[:2] != tuple(size):
+        z = np.asarray(_upsample(jax.device_put(z), tuple(size)), np.float32)
+    return z + _start_slopes(size, options)
 
 
 def _digest(x: np.ndarray) -> str:
@@ -636,8 +640,9 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
         raise ValueError(f"{problem.source}: the start is {np.shape(start)}, not the map's "
                          f"{(h, w, 3)}")
     sizes = level_sizes((h, w), options.coarse_to_fine)
-    slopes = _start_slopes(sizes[0], options, start, problem.source)  # (host; the device
-    # gets z below)
+    # (on the host; the device gets z below)
+    slopes = (_start_slopes(sizes[0], options) if start is None
+              else _given_start(start, sizes[0], options, problem.source))
     seen = gt = None
     if ground_truth is not None:
         gt = np.asarray(ground_truth, np.float64)
