@@ -36,7 +36,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-import warnings
 from collections.abc import Callable
 
 import numpy as np
@@ -46,7 +45,6 @@ from ..fit import (
     FitProblem,
     FitResult,
     FitTarget,
-    FitWarning,
     fit_normal_map,
     prepare,
     seen_texels,
@@ -281,9 +279,7 @@ def fit_pair_map(problem: FitProblem, options: PairBakeOptions, start: np.ndarra
     texels."""
     from ..fit import compile_fit
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FitWarning)  # the plan gives every view >= 3 lights
-        prep = prepare(problem)
+    prep = prepare(problem)
     compile_fit(problem, options.fit, prepared=prep)
     if on_compiled is not None:
         on_compiled()
