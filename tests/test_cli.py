@@ -8,6 +8,7 @@ import gc
 import json
 import os
 import re
+import shlex
 import signal
 import subprocess
 import sys
@@ -395,3 +396,23 @@ def test_the_command_line_page_names_every_frame_and_alias():
     page = (ROOT / "docs" / "getting-started" / "cli.md").read_text()
     names = list(FRAMES) + [a for a in FRAME_ALIASES if a.isascii()]
     assert not [n for n in names if f"`{n}`" not in page]
+
+
+def test_the_targets_example_on_the_command_line_page_runs(tmp_path, monkeypatch):
+    """The page's "Targets for a fit" commands, as written, on a small scene of one's own."""
+    page = (ROOT / "docs" / "getting-started" / "cli.md").read_text()
+    section = page[page.index("### Targets for a fit"):]
+    block = section[section.index("```sh\n") + 6:]
+    block = block[:block.index("```")]
+    monkeypatch.chdir(tmp_path)
+    Path("scene.json").write_text(json.dumps({
+        "mesh": "builtin:plane", "width": 16, "height": 16, "normal_map": "builtin:rivets",
+        "camera": {"eye": [0, -1, 2.5], "target": [0, 0, 0]}}))
+    commands = [shlex.split(line) for line in block.strip().splitlines()]
+    assert [c[:2] for c in commands] == [["jaxnm", "render"], ["jaxnm", "fit"]]
+    for command in commands:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", F.FitWarning)
+            assert main(command[1:]) == 0, command
+    assert len(list(Path("targets").glob("t_0?.png"))) == 4
+    assert json.loads(Path("fit_out/report.json").read_text())["steps"] > 0

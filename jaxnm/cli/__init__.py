@@ -120,21 +120,21 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv=None, *, interrupted: int = 0) -> int:
+def main(argv=None, *, sigint=None) -> int:
     """Run ``jaxnm render`` or ``jaxnm fit`` with ``argv`` (default: ``sys.argv[1:]``);
     returns the exit code (2 for bad input, with a one-line error on stderr; 130 after
-    Ctrl-C). ``interrupted``: Ctrl-Cs that came before (the ``jaxnm`` launcher's, while JAX
-    was imported). The command handles SIGINT while it runs (`CtrlC`; not where SIGINT is
-    ignored, nor outside the main thread), shows warnings as one line each, and puts the
-    previous handler and warning display back."""
-    ctrl_c = CtrlC(earlier=interrupted).install()
+    Ctrl-C). ``sigint``: the ``jaxnm`` launcher's `jaxnm_launcher.SigintThread`, which
+    receives SIGINT on a thread of its own. The command handles SIGINT while it runs
+    (`CtrlC`; not where SIGINT is ignored, nor outside the main thread), shows warnings as
+    one line each, and puts the previous handler and warning display back."""
+    ctrl_c = CtrlC().install(sigint)
     try:
         args = _parser().parse_args(argv)
         ctrl_c.command = command = f"jaxnm {args.command}"
         if args.command == "fit" and (args.distributed or args.coordinator is not None
                                       or args.num_processes is not None
                                       or args.process_id is not None):
-            ctrl_c.uninstall()  # a stop must reach every process: the scheduler signals all
+            ctrl_c.as_keyboard_interrupt()  # the scheduler signals every process
             return _distributed_fit(args)
         with one_line_warnings(command):
             return _run(args, ctrl_c)

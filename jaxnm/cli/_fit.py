@@ -163,7 +163,7 @@ def run(args, ctrl_c: CtrlC, *, process: tuple[int, int] = (0, 1), images=None) 
     across processes, whose `jaxnm.fit.prepare_processes` it uses). Stage lines go to stderr
     (process 0's); Ctrl-C is noticed between the stages, between the fit's steps and between
     the outputs (`CtrlC`). Returns the exit code."""
-    from ..fit import compile_fit, fit_normal_map, prepare, prepare_held_out
+    from ..fit import fit_normal_map
 
     me, count = process
     say = _say(me == 0)
@@ -175,26 +175,7 @@ def run(args, ctrl_c: CtrlC, *, process: tuple[int, int] = (0, 1), images=None) 
         raise FileNotFoundError(f"{checkpoint}: no checkpoint to resume from (--resume)")
     job = read_job(args, overrides, say, images)
     ctrl_c.check()
-    say(f"preparing {len(job.problem.targets)} targets (rasterizing each view once) ...")
-    t0 = time.perf_counter()
-    if count > 1:
-        from ..fit import prepare_processes
-
-        prep = prepare_processes(job.problem)
-    else:
-        prep = prepare(job.problem)
-    t_prep = time.perf_counter() - t0
-    # with the same compiled G-buffer program; across processes, process 0 scores them
-    held_out = prepare_held_out(job) if me == 0 else ()
-    ctrl_c.check()
-    if not args.resume and me == 0:
-        checkpoint.unlink(missing_ok=True)  # a new fit: an old checkpoint is not its own
-    release_freed_memory()
-    if not args.resume:
-        say("compiling the fit's step ...")
-        compile_fit(job.problem, job.options, prepared=prep)
-        release_freed_memory()  # the compiler's, before the step's buffers are allocated
-        ctrl_c.check()
+    prep, t_prep, held_out = _prepare(args, job, ctrl_c, say, process)
     say(f"resuming from {checkpoint} ..." if args.resume else "fitting ...")
     ctrl_c.phase = "fit"
     every = (_DEFAULT_CHECKPOINT_SECONDS if args.checkpoint_every is None
@@ -217,7 +198,6 @@ def run(args, ctrl_c: CtrlC, *, process: tuple[int, int] = (0, 1), images=None) 
             return 0  # process 0 writes the outputs
         prep = local_prepared(prep)[0]  # its renders: its own views
     say("writing outputs ...")
-    keep = every > 0 and (args.keep_checkpoint or args.checkpoint_every is not None)
     rep, written = write_outputs(
         out, job, prep, result, t_prep, held_out, ctrl_c,
         checkpoint={"file": CHECKPOINT_NAME if every > 0 else None, "resumed": args.resume},
@@ -225,14 +205,48 @@ def run(args, ctrl_c: CtrlC, *, process: tuple[int, int] = (0, 1), images=None) 
     if args.store and not rep["interrupted"]:
         written.append(_store(out, job, prep, result, args.store, ctrl_c, say,
                               "lines" if args.no_progress else True))
-    if every > 0 and not keep and not rep["interrupted"]:
-        checkpoint.unlink(missing_ok=True)  # the fit is over: nothing to resume
-        _mark_checkpoint_removed(out)
-    elif every > 0 and checkpoint.is_file():
-        written.append(CHECKPOINT_NAME)
+    if every > 0:
+        written += _settle_checkpoint(args, out, rep["interrupted"])
     print(_summary(rep))
     print(f"outputs in {out}/ ({', '.join(written)})")
     return 130 if rep["interrupted"] else 0
+
+
+def _prepare(args, job, ctrl_c: CtrlC, say, process: tuple[int, int]):
+    """Rasterize the views once (`jaxnm.fit.prepare`, or `prepare_processes` across
+    processes) and the held-out ones (on process 0), then compile the fit's step (unless it
+    resumes: the checkpoint's fit compiled it); returns the prepared views, their seconds
+    and the held-out views."""
+    from ..fit import compile_fit, prepare, prepare_held_out, prepare_processes
+
+    me, count = process
+    say(f"preparing {len(job.problem.targets)} targets (rasterizing each view once) ...")
+    t0 = time.perf_counter()
+    prep = prepare_processes(job.problem) if count > 1 else prepare(job.problem)
+    t_prep = time.perf_counter() - t0
+    # with the same compiled G-buffer program; across processes, process 0 scores them
+    held_out = prepare_held_out(job) if me == 0 else ()
+    ctrl_c.check()
+    if not args.resume and me == 0:  # a new fit: an old checkpoint is not its own
+        (Path(args.output) / CHECKPOINT_NAME).unlink(missing_ok=True)
+    release_freed_memory()
+    if not args.resume:
+        say("compiling the fit's step ...")
+        compile_fit(job.problem, job.options, prepared=prep)
+        release_freed_memory()  # the compiler's, before the step's buffers are allocated
+        ctrl_c.check()
+    return prep, t_prep, held_out
+
+
+def _settle_checkpoint(args, out: Path, interrupted: bool) -> list[str]:
+    """Remove the checkpoint of a fit that ended, unless asked to keep it (``report.json``
+    then says so); returns its name where it stays."""
+    checkpoint = out / CHECKPOINT_NAME
+    if interrupted or args.keep_checkpoint or args.checkpoint_every is not None:
+        return [CHECKPOINT_NAME] if checkpoint.is_file() else []
+    checkpoint.unlink(missing_ok=True)  # the fit is over: nothing to resume
+    _mark_checkpoint_removed(out)
+    return []
 
 
 def _mark_checkpoint_removed(out: Path) -> None:

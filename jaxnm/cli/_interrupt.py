@@ -1,5 +1,11 @@
 """Ctrl-C and warnings for the command line's own process.
 
+**Where SIGINT arrives.** Run as the ``jaxnm`` command, through `jaxnm_launcher`, SIGINT
+comes on a thread of its own, at once, whatever the main thread is doing; `CtrlC.install`
+takes it from there. Called from Python (`jaxnm.cli.main`), the handler is Python's signal
+handler, which runs in the main thread when that thread next runs Python code (after a
+compilation it is waiting for, say).
+
 **Why the SIGINT handler never raises.** Python runs a signal handler in the main thread
 between two bytecodes, wherever that thread is: in the middle of an import of JAX's compiled
 extensions, in a garbage-collector callback of XLA's, or while JAX waits for a program that
@@ -48,23 +54,46 @@ class CtrlC:
     - `output`: the folder whose unfinished temporary files a second Ctrl-C removes.
     """
 
-    def __init__(self, command: str = "jaxnm", *, earlier: int = 0):
+    def __init__(self, command: str = "jaxnm"):
         self.command = command
         self.phase = "prepare"
-        self.requested = "prepare" if earlier else None
+        self.requested = None
         self.output: Path | None = None
         self._previous = None
+        self._receiver = None
 
-    def install(self) -> CtrlC:
-        """Handle SIGINT from now on (not where it is ignored, nor outside the main thread);
+    def install(self, receiver=None) -> CtrlC:
+        """Handle SIGINT from now on: from ``receiver`` (the launcher's
+        `jaxnm_launcher.SigintThread`, whose Ctrl-Cs so far count as the first) or else as
+        Python's signal handler (not where SIGINT is ignored, nor outside the main thread).
         `uninstall` puts the previous handler back."""
-        if (threading.current_thread() is threading.main_thread()
+        if receiver is not None:
+            self._receiver = receiver
+            if receiver.count:
+                self.requested = "prepare"
+            receiver.handler = self
+        elif (threading.current_thread() is threading.main_thread()
                 and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN):
             self._previous = signal.signal(signal.SIGINT, self)
         return self
 
     def uninstall(self) -> None:
+        if self._receiver is not None:
+            self._receiver.handler = None
+            self._receiver = None
         if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+            self._previous = None
+
+    def as_keyboard_interrupt(self) -> None:
+        """From now on, a Ctrl-C raises ``KeyboardInterrupt`` in the main thread, as Python
+        does by default (a fit across processes: the scheduler signals every process)."""
+        if self._receiver is not None:
+            import _thread
+
+            self._receiver.handler = lambda signum, frame: _thread.interrupt_main()
+            self._receiver = None
+        elif self._previous is not None:
             signal.signal(signal.SIGINT, self._previous)
             self._previous = None
 
