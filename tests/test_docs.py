@@ -215,7 +215,7 @@ def test_the_file_formats_page_names_every_key_and_value():
                                                              if f"`{v}`" not in page]
 
 
-@pytest.mark.parametrize("command", ["fit", "render"])
+@pytest.mark.parametrize("command", ["fit", "bake", "render"])
 def test_the_command_line_page_names_every_option(command, capsys):
     from jaxnm import cli
 
