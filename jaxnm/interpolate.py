@@ -60,7 +60,9 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from .numerics import _materialize, _xyw, safe_div
+from ._exec.arrays import xyw
+from ._exec.fusion import materialize
+from .numerics import safe_div
 from .raster import Fragments, _window_homogeneous
 
 __all__ = [
@@ -215,7 +217,7 @@ def _pixel_setup(frags: Fragments):
     height, width = frags.image_shape
     mask = frags.mask
     tri = jnp.maximum(frags.triangle_id, 0)
-    h = (_xyw(_window_homogeneous(frags.clip, width, height)) if frags.window is None
+    h = (xyw(_window_homogeneous(frags.clip, width, height)) if frags.window is None
          else frags.window)  # (V, 3): x, y, w
     corner = frags.faces[tri]
     hv = [h[corner[..., v]] for v in range(3)]  # each vertex's (..., 3)
@@ -388,7 +390,7 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
     if bary is None:
         # materialised once: fused into the (H, W, C) consumers below, XLA would recompute
         # the barycentrics for every attribute channel
-        bary = _materialize(barycentrics(frags, derivatives=derivatives))
+        bary = materialize(barycentrics(frags, derivatives=derivatives))
     elif derivatives is not None and bary.mode != derivatives:  # values: any mode will do
         raise ValueError(f"interpolate: `bary` was computed for derivatives={bary.mode!r}, "
                          f"not {derivatives!r}")
@@ -402,13 +404,13 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
 
     value = jnp.where(mask, corners[..., 0, :] + combine(bary.value), 0.0)
     if derivatives is None:
-        return _materialize(Attribute(value))
+        return materialize(Attribute(value))
     if derivatives == "gbuffer":
         if frags.pixels is not None:
             raise ValueError("interpolate: 'gbuffer' derivatives difference the stored "
                              "neighbours, which packed fragments (`compact`) do not have")
-        return _materialize(Attribute(value, *_gbuffer_derivatives(value, frags.mask)))
+        return materialize(Attribute(value, *_gbuffer_derivatives(value, frags.mask)))
     # materialised: consumers (frames, shading) read each channel many times, and a fused
     # consumer would redo the corner gathers for every read
-    return _materialize(Attribute(value, jnp.where(mask, combine(bary.ddx), 0.0),
+    return materialize(Attribute(value, jnp.where(mask, combine(bary.ddx), 0.0),
                                  jnp.where(mask, combine(bary.ddy), 0.0)))

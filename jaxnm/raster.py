@@ -56,7 +56,10 @@ import numpy as np
 from jax import Array
 from jaxtyping import ArrayLike, Float, Int, Integer
 
-from .numerics import _cumsum, _flat_nonzero, _materialize, _roll_last, _xyw, dot
+from ._exec.arrays import cumsum, div, roll_last, xyw
+from ._exec.compaction import flat_nonzero
+from ._exec.fusion import materialize
+from .numerics import dot
 
 __all__ = [
     "Fragments", "RasterStrategy", "default_strategy", "rasterize", "triangle_ids", "overdraw",
@@ -227,8 +230,8 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
     - `orientation`: each triangle's orientation sign (F,) as `triangle_ids` gives it, if
       known; else the facing is computed from each fragment's corners again.
     - `index`: the (capacity,) flat image indices of the pixels to pack, if chosen by the
-      caller (``H * W`` for unused slots; e.g. a later window of the covered pixels from
-      `jaxnm.numerics._ranked_nonzero`); by default the first ``capacity`` covered pixels.
+      caller (``H * W`` for unused slots; e.g. the covered pixels ranked ``k`` to
+      ``k + capacity - 1``); by default the first ``capacity`` covered pixels.
 
     **Returns:** the packed `Fragments` (per-pixel fields of shape (capacity,); depth and
     facing as `rasterize` computes them) and the (capacity,) flat image index of each
@@ -238,16 +241,16 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
     n = height * width
     ids = triangle_id.reshape(-1)
     if index is None:
-        index = _flat_nonzero(ids >= 0, capacity, n)
+        index = flat_nonzero(ids >= 0, capacity, n)
     used = index < n
     at = jnp.minimum(index, n - 1)
-    row = _div(at, width)
+    row = div(at, width)
     col = at - row * width
     tid = jnp.where(used, ids[at], -1)
     placed = Fragments(triangle_id=tid, depth=None, front_facing=None, clip=clip, faces=faces,
                        pixels=jnp.stack([col, height - 1 - row], -1),
                        packed_from=(height, width),
-                       window=_materialize(_xyw(_window_homogeneous(clip, width, height))))
+                       window=materialize(xyw(_window_homogeneous(clip, width, height))))
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     covered = tid >= 0
@@ -293,13 +296,6 @@ def _window_homogeneous(clip: Array, width: int, height: int) -> Array:
 # --------------------------------------------------------------------------------------
 # per-triangle setup
 # --------------------------------------------------------------------------------------
-
-
-def _div(a: Array, b) -> Array:
-    """``a // b`` for non-negative integers ``a`` and positive ``b``, as C division: jnp's
-    floor division adds sign fix-ups to every loop it is in (the rasterizer's tile and
-    pixel index arithmetic)."""
-    return jax.lax.div(a, jnp.asarray(b, a.dtype))
 
 
 def _lex_less(a, b) -> Array:
@@ -384,7 +380,7 @@ class _Corners:
         where the same arithmetic on (F, 3, 4) or (F, 6, 4) arrays (minor axes of 3 to 6)
         ran an order of magnitude slower on XLA's CPU backend.
         """
-        return _materialize([[self.vertices[:, c][self.faces[:, k]] for c in range(4)]
+        return materialize([[self.vertices[:, c][self.faces[:, k]] for c in range(4)]
                             for k in range(3)])
 
 
@@ -412,7 +408,7 @@ def _window_box(pts, keep):
             k, py, -big))
     # computed once: XLA would otherwise recompute the box (its divisions) in each fusion
     # that uses it (four at first)
-    return (*_materialize((xmin, xmax, ymin, ymax)), bad_w)
+    return (*materialize((xmin, xmax, ymin, ymax)), bad_w)
 
 
 def _triangle_setup(tri: _Corners, width: int, height: int, block: int, cull_back: bool):
@@ -458,9 +454,9 @@ def _snapped_setup(h: Array, faces: Array, on_grid: Array, *, width, height, blo
     misses (`_misses_centre`): a dense mesh's many sub-pixel triangles cover no pixel at
     all (the 200k torus at 512^2: 28,787 of its 72,897 triangles with a box, 36 % of the
     (triangle, tile) slots), and the test costs less than their slots."""
-    xy = _materialize(h[:, :2])
+    xy = materialize(h[:, :2])
     rows = [xy[faces[:, k]] for k in range(3)]
-    x, y = _materialize(([r[:, 0] for r in rows], [r[:, 1] for r in rows]))
+    x, y = materialize(([r[:, 0] for r in rows], [r[:, 1] for r in rows]))
     one = jnp.ones_like(x[0])
     sigma = jnp.sign(_orientation([[x[k], y[k], None, one] for k in range(3)]))
     valid = (sigma > 0) if cull_back else (sigma != 0)
@@ -574,9 +570,9 @@ def _box_tiles(i0, i1, j0, j1, valid, block: int):
     also the width's, XLA evaluated it, and the centre tests in it, twice.)"""
     # the tiles of the image's block x block grid that the box touches
     # (i0, j0 >= 0, and i1, j1 too wherever the box holds a centre)
-    tx0, ty0 = _div(i0, block), _div(j0, block)
-    nbx = _div(i1, block) - tx0 + 1
-    nby = _div(j1, block) - ty0 + 1
+    tx0, ty0 = div(i0, block), div(j0, block)
+    nbx = div(i1, block) - tx0 + 1
+    nby = div(j1, block) - ty0 + 1
     count = jnp.where(valid & (i0 <= i1) & (j0 <= j1), nbx * nby, 0)
     return tx0, ty0, nbx, count
 
@@ -629,11 +625,11 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     k0 = jnp.searchsorted(ends, slot0, side="right").astype(jnp.int32)
     ahead = jax.lax.dynamic_slice_in_dim(starts_ahead, k0 + 1, slots)
     marks = jnp.zeros((slots,), jnp.int32).at[ahead - slot0].add(1, mode="drop")
-    k = jnp.minimum(k0 + _cumsum(marks), order.shape[0] - 1)
+    k = jnp.minimum(k0 + cumsum(marks), order.shape[0] - 1)
     t = order[k]
     local = s - starts[k]
     nx = jnp.maximum(nbx[t], 1)
-    row = _div(local, nx)  # local >= 0, nx >= 1
+    row = div(local, nx)  # local >= 0, nx >= 1
     tx = tx0[t] + (local - row * nx)
     ty = ty0[t] + row
     bx, by = tx * block, ty * block  # the tile's first pixel
@@ -655,7 +651,7 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     tiles_x = -(-width // block)
     # Per-slot values computed once into their own buffers: fused into the per-pixel kernel,
     # XLA would recompute them for every pixel of the tile.
-    a, b, c, tie, dz_c, dz_a, dz_b, live, bx, by = _materialize(
+    a, b, c, tie, dz_c, dz_a, dz_b, live, bx, by = materialize(
         (a, b, c, tie, dz_c, dz_a, dz_b, live, bx, by))
     fx = jnp.tile(jnp.arange(block, dtype=jnp.int32), block)[None, :]  # (1, block**2):
     fy = jnp.repeat(jnp.arange(block, dtype=jnp.int32), block)[None, :]  # dx, then dy
@@ -668,9 +664,9 @@ def _slot_fragments(slot0, tri_h, tri_depth, sigma, tx0, ty0, nbx, order, starts
     inside = inside & (depth >= 0.0) & (depth <= 1.0)
     # (the reshape after the barrier: the loop runs over the (S, block**2) shape, whose minor
     # axis of 16 vectorises better than (S, block, block)'s 4)
-    depth = _materialize(jnp.where(inside, depth, jnp.inf)).reshape(slots, block, block)
+    depth = materialize(jnp.where(inside, depth, jnp.inf)).reshape(slots, block, block)
     # (from the materialised bx, by >= 0)
-    tile = _div(by, block) * tiles_x + _div(bx, block)
+    tile = div(by, block) * tiles_x + div(bx, block)
     return tile, depth, t
 
 
@@ -679,7 +675,7 @@ def _window_corners(clip, faces, *, width, height, subpixel_bits):
     (coverage) and unsnapped (depth)."""
     h_unsnapped = _window_homogeneous(jax.lax.stop_gradient(clip), width, height)
     h = _snap_vertices(h_unsnapped, subpixel_bits)
-    return _Corners(_materialize(h), faces), _Corners(h_unsnapped, faces)
+    return _Corners(materialize(h), faces), _Corners(h_unsnapped, faces)
 
 
 def _with_slots(counts: Array) -> tuple[Array, Array]:
@@ -687,7 +683,7 @@ def _with_slots(counts: Array) -> tuple[Array, Array]:
     each (F,) (padded with triangle 0 and no slots): a dense mesh has far fewer such
     triangles than triangles, and the slots' bookkeeping runs over this list."""
     n = counts.shape[0]
-    order = _flat_nonzero(counts > 0, n, 0)
+    order = flat_nonzero(counts > 0, n, 0)
     live = jnp.arange(n) < jnp.sum(counts > 0)
     return order, jnp.where(live, counts[order], 0)
 
@@ -697,7 +693,7 @@ def _fragment_source(tri, tri_depth, setup, order, counts, *, width, height, blo
     (coverage), ``tri_depth`` (depth) and `_triangle_setup` result ``setup``, taking
     ``counts`` slots of each triangle ``order`` (`_with_slots`)."""
     sigma, tx0, ty0, nbx, _ = setup  # (the slot counts come as `counts`)
-    ends = _cumsum(counts)
+    ends = cumsum(counts)
     starts = ends - counts
     total = ends[-1]
     # the starts again, padded so that any `slots` of them after one triangle can be sliced
@@ -916,7 +912,7 @@ def _pixel_depth(tri_depth: _Corners, tid: Array, x: Array, y: Array) -> Array:
     x, y = x[..., None], y[..., None]
     hx = hv[..., 0] - x * hv[..., 3]
     hy = hv[..., 1] - y * hv[..., 3]
-    e = _roll_last(hx, 1) * _roll_last(hy, 2) - _roll_last(hy, 1) * _roll_last(hx, 2)
+    e = roll_last(hx, 1) * roll_last(hy, 2) - roll_last(hy, 1) * roll_last(hx, 2)
     num = dot(e, hv[..., 2])
     den = dot(e, hv[..., 3])
     return num / jnp.where(den == 0, 1.0, den)

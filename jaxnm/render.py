@@ -28,6 +28,8 @@ from jax import Array
 from . import frames as _frames
 from . import maps as _maps
 from . import textures as _tex
+from ._exec.compaction import ranked_nonzero
+from ._exec.fusion import materialize
 from .camera import Camera, to_clip
 from .geometry import Mesh
 from .interpolate import (
@@ -40,7 +42,7 @@ from .interpolate import (
     barycentrics,
     interpolate,
 )
-from .numerics import _materialize, _ranked_nonzero, safe_normalize
+from .numerics import safe_normalize
 from .raster import Fragments, compact, rasterize, triangle_ids
 from .scene import Scene, _check_scene_shapes, default_lights, default_material
 from .shading import Lights, Material, _check_shading_model, shade
@@ -261,7 +263,7 @@ def _gbuffer_from_fragments(mesh: Mesh, camera: Camera, albedo: Array, frags: Fr
     # one evaluation of the barycentrics (the per-pixel corner gather and edge functions)
     # for every attribute interpolated below
     needs_bary = attrs or need_n or (need_tb and opts.frame in ("vertex", "vertex_area"))
-    bary = (_materialize(barycentrics(frags, derivatives=mode if attrs else None)) if needs_bary
+    bary = (materialize(barycentrics(frags, derivatives=mode if attrs else None)) if needs_bary
             else None)
     if attrs:
         out = interpolate(attrs, frags, derivatives=mode, bary=bary)
@@ -273,10 +275,10 @@ def _gbuffer_from_fragments(mesh: Mesh, camera: Camera, albedo: Array, frags: Fr
             gb["uv"] = out["uv"]
     if need_n:
         n = interpolate(mesh.normals, frags, derivatives=None, bary=bary).value
-        gb["normal"] = _materialize(safe_normalize(n))
+        gb["normal"] = materialize(safe_normalize(n))
     if need_frame:
         frame_opts = opts if need_tb else dataclasses.replace(opts, frame="none")
-        gb["frame"] = _materialize(_tangent_frame(frame_opts, mesh, frags, gb, bary))
+        gb["frame"] = materialize(_tangent_frame(frame_opts, mesh, frags, gb, bary))
     if has_map:
         nm = opts.normal_map
         gb["plan"] = _tex.plan_sample(gb["uv"], size_hw=opts.normal_map_shape, levels=opts.levels,
@@ -338,7 +340,7 @@ def _perturbed_normal(gb: GBuffer, normal_map: Array, opts: RenderOptions,
     nm = opts.normal_map
     mips = (_tex.build_mipmaps(normal_map, levels=opts.levels) if opts.levels > 1
             else (normal_map,))
-    raw = _materialize(_tex.apply_plan(gb.plan, mips))  # else refused into each use
+    raw = materialize(_tex.apply_plan(gb.plan, mips))  # else refused into each use
     if nm.space == "derivative":  # surface-gradient bump mapping (Mikkelsen)
         s = nm.strength if strength is None else strength
         return _maps.derivative_map_normal(gb.frame.N, gb.view.ddx, gb.view.ddy, gb.uv.ddx,
@@ -519,7 +521,7 @@ def _frame(mesh: Mesh, camera: Camera, normal_map, albedo, lights, material, ori
     (`_place`) relative to ``camera`` (at the origin), ``origin`` is the camera's world
     position."""
     mesh = _place(mesh, placement, affine)
-    clip = _materialize(to_clip(mesh.positions, camera))
+    clip = materialize(to_clip(mesh.positions, camera))
     frags = rasterize(clip, mesh.faces.astype(jnp.int32), width=opts.width, height=opts.height,
                       cull_back=opts.cull_back)
     result = {"mask": frags.mask, "triangle_id": frags.triangle_id, "depth": frags.depth,
@@ -540,7 +542,7 @@ def _visible_placed(mesh: Mesh, camera: Camera, placement, *, width: int, height
     per-pixel stages: each keeps its own temporary buffers, which for a 200k-triangle mesh
     together passed glibc's 32 MiB threshold (`_packed_passes`)."""
     mesh = _place(mesh, placement, affine)
-    clip = _materialize(to_clip(mesh.positions, camera))
+    clip = materialize(to_clip(mesh.positions, camera))
     tid, orientation = triangle_ids(clip, mesh.faces.astype(jnp.int32), width=width,
                                     height=height, cull_back=cull_back)
     return tid, clip, orientation
@@ -598,7 +600,7 @@ def _packed_passes(per_pixel, tid: Array, clip: Array, faces: Array, orientation
                    opts: RenderOptions) -> dict[str, Array]:
     """``opts.outputs`` of the image whose triangle ids are ``tid``, with ``per_pixel`` run on
     its covered pixels only: in passes of a quarter of the image's pixels (the covered
-    pixels ranked ``p * Q`` to ``(p + 1) * Q - 1`` in pass ``p``, `_ranked_nonzero`), each
+    pixels ranked ``p * Q`` to ``(p + 1) * Q - 1`` in pass ``p``, `ranked_nonzero`), each
     packed (`compact`) and evaluated in chunks (`_over_chunks`), its results written into
     the images; the passes past the covered pixels are skipped. A frame with at most a
     quarter of the image covered runs one pass, and every pass's buffers are a quarter of
@@ -608,7 +610,7 @@ def _packed_passes(per_pixel, tid: Array, clip: Array, faces: Array, orientation
     height, width = opts.height, opts.width
     pixels = height * width
     slots = min(-(-pixels // 4), PASS_SLOTS)
-    total, window = _ranked_nonzero(tid.reshape(-1) >= 0)
+    total, window = ranked_nonzero(tid.reshape(-1) >= 0)
     names = [n for n in opts.outputs if n not in ("mask", "triangle_id")]
     shapes = jax.eval_shape(
         lambda: per_pixel(compact(tid, clip, faces, slots, orientation=orientation)[0]))

@@ -44,8 +44,9 @@ from jax.custom_derivatives import SymbolicZero
 from jax.typing import ArrayLike
 from jaxtyping import Float, Real
 
+from ._exec.sums import SumTables, sum_by_tables, sum_tables
 from .interpolate import Attribute
-from .numerics import _sum_by_tables, _sum_tables, _SumTables, safe_normalize, safe_sqrt, tiny
+from .numerics import safe_normalize, safe_sqrt, tiny
 
 __all__ = [
     "NormalMapOptions", "MAP_SPACES", "FILTERS", "WRAPS", "UV_ORIGINS", "ENCODINGS", "GREENS",
@@ -490,18 +491,18 @@ def _apply_plan(plan: SamplePlan, used: tuple[Array, ...]) -> Array:
     return _gather_weighted(flat, plan.index, plan.weight.astype(dtype))
 
 
-def _plan_sum_tables(plan: SamplePlan, indices: Sequence[ArrayLike] | None = None) -> _SumTables:
-    """The fixed-order texel sums (`jaxnm.numerics._sum_tables`) of ``plan``'s gather: what
+def _plan_sum_tables(plan: SamplePlan, indices: Sequence[ArrayLike] | None = None) -> SumTables:
+    """The fixed-order texel sums (`jaxnm._exec.sums.sum_tables`) of ``plan``'s gather: what
     `_transpose_plan` needs. Built on the host from the plan's concrete indices, or from
     ``indices`` (a list of index arrays of plans with ``plan``'s levels, e.g. the chunks of
     one: the tables are then stacked, one per array)."""
     size = sum(h * w for h, w in plan.level_shapes)
     if indices is None:
-        return _sum_tables(np.asarray(plan.index), size)
-    return _sum_tables([np.asarray(i) for i in indices], size)
+        return sum_tables(np.asarray(plan.index), size)
+    return sum_tables([np.asarray(i) for i in indices], size)
 
 
-def _transpose_plan(plan: SamplePlan, tables: _SumTables, cotangent: ArrayLike,
+def _transpose_plan(plan: SamplePlan, tables: SumTables, cotangent: ArrayLike,
                    mips: Sequence[ArrayLike]) -> tuple[Array, ...]:
     """The cotangent of `apply_plan` ``(plan, mips)`` w.r.t. ``mips`` for the output
     cotangent ``cotangent`` (..., C): what ``jax.vjp`` gives (a scatter-add of the weighted
@@ -511,7 +512,7 @@ def _transpose_plan(plan: SamplePlan, tables: _SumTables, cotangent: ArrayLike,
     cot = jnp.asarray(cotangent)
     channels = cot.shape[-1]
     parts = (plan.weight.astype(cot.dtype)[..., None] * cot[..., None, :]).reshape(-1, channels)
-    flat = _sum_by_tables(parts, tables)
+    flat = sum_by_tables(parts, tables)
     out, offset = [], 0
     for k, m in enumerate(mips):
         if k < len(plan.level_shapes):

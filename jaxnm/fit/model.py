@@ -27,8 +27,9 @@ from jax import Array
 from jax.custom_derivatives import SymbolicZero
 
 from .. import textures as _tex
+from .._exec.fusion import materialize
 from ..frames import perturb_normal
-from ..numerics import _materialize, safe_normalize, safe_sqrt, tiny
+from ..numerics import safe_normalize, safe_sqrt, tiny
 from ..render import GBuffer, RenderOptions
 from ..shading import Lights, Material, shade
 from .prepare import Prepared, ViewBatch
@@ -289,7 +290,7 @@ def _over_chunks(batch: ViewBatch, fn, pixel_axis: int) -> Array:
 def _sample(plan: _tex.SamplePlan, mips, taps: int | None) -> Array:
     """The pixels' map vectors (K, 3) from the first ``taps`` taps of ``plan`` (None: all),
     materialised: fused into the shading, the gather would be recomputed per use."""
-    return _materialize(_tex.apply_plan(_first_taps(plan, taps), mips))
+    return materialize(_tex.apply_plan(_first_taps(plan, taps), mips))
 
 
 def _shade_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptions,

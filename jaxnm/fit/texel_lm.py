@@ -40,7 +40,7 @@ import optimistix as optx
 from jax import Array
 
 from .. import textures as _tex
-from ..numerics import _SumTables
+from .._exec.sums import SumTables
 from .model import (
     ModelArgs,
     _first_taps,
@@ -77,7 +77,7 @@ class TexelLMState:
 
 
 def _fold(batch: ViewBatch, body, carry, per_pixel: tuple[Array, ...] | None = None,
-          sums: tuple[_SumTables, ...] | None = None):
+          sums: tuple[SumTables, ...] | None = None):
     """Run ``body(carry, gbuffer, lights, images, weights, taps, per_pixel_chunk, sums_chunk)``
     over every chunk of every view of ``batch`` (one chunk of all views at a time), threading
     ``carry``.
@@ -106,7 +106,7 @@ def _fold(batch: ViewBatch, body, carry, per_pixel: tuple[Array, ...] | None = N
     return carry, None if outs[0] is None else tuple(outs)
 
 
-def _texel_sum_tables(prepared: Prepared) -> tuple[tuple[_SumTables, ...], ...]:
+def _texel_sum_tables(prepared: Prepared) -> tuple[tuple[SumTables, ...], ...]:
     """For each `ViewBatch` of ``prepared`` and each of its pixel groups, the fixed-order
     texel sums (`jaxnm.textures._plan_sum_tables`) of every chunk's taps, stacked by chunk:
     what a step's texel-space sums use in place of scatter-adds (`FitOptions.texel_sums`).
@@ -126,7 +126,7 @@ def _texel_sum_tables(prepared: Prepared) -> tuple[tuple[_SumTables, ...], ...]:
     return tuple(out)
 
 
-def _sampler(plan: _tex.SamplePlan, mips, tables: _SumTables | None):
+def _sampler(plan: _tex.SamplePlan, mips, tables: SumTables | None):
     """``apply_plan(plan, mips)`` and its transpose w.r.t. ``mips`` (a function of the
     output's cotangent): a scatter-add (``jax.vjp``), or the fixed-order sums of
     ``tables``."""
