@@ -28,7 +28,7 @@ from jax import Array
 from . import frames as _frames
 from . import maps as _maps
 from . import textures as _tex
-from ._exec.compaction import ranked_nonzero
+from ._exec import pixels
 from ._exec.fusion import materialize
 from .camera import Camera, to_clip
 from .geometry import Mesh
@@ -48,10 +48,8 @@ from .scene import Scene, _check_scene_shapes, default_lights, default_material
 from .shading import Lights, Material, _check_shading_model, shade
 from .textures import NormalMapOptions
 
-__all__ = [
-    "OUTPUTS", "PACK_MIN_PIXELS", "PIXEL_CHUNK", "GBuffer", "RenderOptions", "build_gbuffer",
-    "covered_gbuffer", "shade_gbuffer", "render", "PASS_SLOTS"
-]
+__all__ = ["OUTPUTS", "GBuffer", "RenderOptions", "build_gbuffer", "covered_gbuffer",
+           "shade_gbuffer", "render"]
 
 #: Every output `render` can produce (image layout, row 0 = top, float32 (H, W, C)).
 OUTPUTS = ("mask", "triangle_id", "depth", "front_facing", "position", "view", "uv", "normal",
@@ -218,7 +216,7 @@ def covered_gbuffer(mesh: Mesh, camera: Camera, albedo: Array, *,
                                              affine=False)
     count = int(np.count_nonzero(np.asarray(tid) >= 0))
     gb, index = _covered(mesh, camera, albedo, tid, clip, orientation, opts=opts,
-                         capacity=_capacity(count, opts.width * opts.height))
+                         capacity=pixels.capacity(count, opts.width * opts.height))
     return gb, index, count
 
 
@@ -399,19 +397,15 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     background; ``dpdx``/``dpdy`` are derivatives of the world position per
     pixel step in window x (right) and y (**up**).
 
-    **How a frame runs.** The scene is made camera-relative (`_camera_relative`: in float64
-    on the host where the camera and model are concrete), the rasterizer finds each
-    pixel's triangle (`jaxnm.raster`), and the per-pixel stages (interpolation,
-    derivatives, frame, texture, shading) run either on the whole image, in one compiled
-    program (on a GPU, for images under `PACK_MIN_PIXELS` and for "gbuffer" derivatives,
-    which read stored neighbours), or, on the CPU, in a second program on the covered
-    pixels only: packed (`jaxnm.raster.compact`) a quarter of the image's pixels at a time
-    (one pass where at most a quarter is covered), in chunks of `PIXEL_CHUNK` slots that
-    stay in the caches, the chunks and passes past the covered pixels skipped. Nothing
-    waits for the host between the two, and the same runs under the caller's `jax.jit`
-    or `jax.grad`. Both ways give the same image: coverage, ids and facing exactly, the
-    rest to float32 rounding. Nothing is remembered between calls but the compiled
-    programs.
+    **How a frame runs.** The scene is made camera-relative (in float64 on the host where
+    the camera and the model are concrete), the rasterizer finds each pixel's triangle
+    (`jaxnm.raster`), and the per-pixel stages (interpolation, derivatives, frame, texture,
+    shading) run on the whole image in the same compiled program, or, on the CPU for
+    larger images, in a second program on the covered pixels only (packed with
+    `jaxnm.raster.compact`). Nothing waits for the host between the two, and the same runs
+    under the caller's `jax.jit` or `jax.grad`. Both ways give the same image: coverage,
+    ids and facing exactly, the rest to float32 rounding. Nothing is remembered between
+    calls but the compiled programs.
 
     **Checks.** Options and array shapes are checked here (a `ValueError` naming
     ``scene.source``); array values where scenes are made (`validate_scene`, which
@@ -437,81 +431,11 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     camera, lights, origin, placement, affine = _relative_inputs(scene)
     args = (scene.mesh, camera, scene.normal_map, scene.albedo, lights, scene.material, origin,
             placement)
-    if not _packs(opts):
+    if not pixels.packs(opts.width * opts.height, neighbours=opts.derivatives == "gbuffer"):
         return _frame(*args, opts=opts, affine=affine)
     seen = _visible_placed(scene.mesh, camera, placement, width=opts.width, height=opts.height,
                            cull_back=opts.cull_back, affine=affine)
     return _packed_frame(*args, *seen, opts=opts, affine=affine)
-
-
-#: On the CPU, `render` packs the covered pixels of images of at least this many pixels
-#: (256x256); smaller images run on every pixel, where the packing's own work and a second
-#: branch to compile would cost more than they save.
-PACK_MIN_PIXELS = 1 << 16
-
-#: The packed per-pixel stages run in chunks of this many slots at least and at most (a
-#: `jax.lax.map`; a pass's slots in four chunks within these bounds). Chunks keep their
-#: intermediates, a few (slots, 3) float32 arrays each, in the caches (with 1 MiB of L2 per
-#: core, 2^17 slots took four times as long as 2^16 for the same covered pixels); fewer
-#: chunks mean fewer whole-map gradient sums in a backward pass.
-PIXEL_CHUNK = (1 << 14, 1 << 16)
-
-
-#: The packed per-pixel stages shade at most this many covered pixels at a time (a pass),
-#: and at most a quarter of the image's.
-PASS_SLOTS = 1 << 16
-
-
-def _packs(opts: RenderOptions, backend: str | None = None) -> bool:
-    """Whether `render` runs the per-pixel stages of ``opts`` on packed covered pixels."""
-    backend = jax.default_backend() if backend is None else backend
-    return (backend == "cpu" and opts.width * opts.height >= PACK_MIN_PIXELS
-            and opts.derivatives != "gbuffer")
-
-
-def _chunk(slots: int) -> int:
-    """The chunk size of `PIXEL_CHUNK` for a packed program of ``slots`` slots."""
-    return min(max(PIXEL_CHUNK[0], -(-slots // 4)), PIXEL_CHUNK[1])
-
-
-def _over_chunks(fn, frags: Fragments, chunk: int):
-    """``fn(frags)`` for packed fragments (per-slot fields (S, ...)), evaluated ``chunk``
-    slots at a time (a `jax.lax.map`; one chunk: a plain call). ``fn`` returns a pytree of
-    per-slot arrays (S, ...), zero on background slots; the chunks' results are put back
-    together (padding slots are background and are cut off). A chunk without a covered
-    slot is not evaluated (a `jax.lax.cond`; its results are zeros)."""
-    n = frags.triangle_id.shape[0]
-    k = -(-n // chunk)
-    if k <= 1:
-        return fn(frags)
-    size = -(-n // k)
-    pad = k * size - n
-
-    def split(x, fill):
-        x = jnp.pad(x, [(0, pad)] + [(0, 0)] * (x.ndim - 1), constant_values=fill)
-        return x.reshape((k, size) + x.shape[1:])
-
-    per_slot = (split(frags.triangle_id, -1), split(frags.depth, 1.0),
-                split(frags.front_facing, False), split(frags.pixels, 0))
-
-    def run(chunk_fields):
-        tid, depth, front, pixels = chunk_fields
-        return fn(dataclasses.replace(frags, triangle_id=tid, depth=depth, front_facing=front,
-                                      pixels=pixels))
-
-    shapes = jax.eval_shape(run, jax.tree_util.tree_map(lambda x: x[0], per_slot))
-
-    def one(chunk_fields):
-        return jax.lax.cond(
-            jnp.any(chunk_fields[0] >= 0), run,
-            lambda _: jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes),
-            chunk_fields)
-
-    # (`jax.checkpoint`: under reverse mode each chunk's forward is evaluated again in the
-    # backward pass rather than its intermediates kept; stacking them chunk by chunk
-    # (zero-filled buffers, dynamic updates, copies) cost twice the recomputation)
-    out = jax.lax.map(jax.checkpoint(one), per_slot)
-    return jax.tree_util.tree_map(lambda y: y.reshape((k * size,) + y.shape[2:])[:n], out)
 
 
 @functools.partial(jax.jit, static_argnames=("opts", "affine"))
@@ -540,7 +464,7 @@ def _visible_placed(mesh: Mesh, camera: Camera, placement, *, width: int, height
     again. Only what visibility depends on is static, so `render` and `covered_gbuffer`
     share one compiled program per image size and culling. Two programs, not one with the
     per-pixel stages: each keeps its own temporary buffers, which for a 200k-triangle mesh
-    together passed glibc's 32 MiB threshold (`_packed_passes`)."""
+    together passed glibc's threshold for reusing freed memory."""
     mesh = _place(mesh, placement, affine)
     clip = materialize(to_clip(mesh.positions, camera))
     tid, orientation = triangle_ids(clip, mesh.faces.astype(jnp.int32), width=width,
@@ -553,11 +477,16 @@ def _packed_frame(mesh: Mesh, camera: Camera, normal_map, albedo, lights, materi
                   placement, tid, clip, orientation, *, opts: RenderOptions,
                   affine: bool) -> dict[str, Array]:
     """`render`'s per-pixel stages on the covered pixels of `_visible_placed`'s ``tid``
-    (`_packed_passes`)."""
+    (`jaxnm._exec.pixels.over_covered_pixels`)."""
     mesh = _place(mesh, placement, affine)
     per_pixel = _per_pixel(mesh, camera, normal_map, albedo, lights, material, origin, opts)
-    return _image_layout(_packed_passes(per_pixel, tid, clip, mesh.faces.astype(jnp.int32),
-                                        orientation, opts=opts), opts)
+    faces = mesh.faces.astype(jnp.int32)
+
+    def pack(capacity, index):
+        return compact(tid, clip, faces, capacity, orientation=orientation, index=index)
+
+    return _image_layout(pixels.over_covered_pixels(per_pixel, tid, pack, outputs=opts.outputs),
+                         opts)
 
 
 def _per_pixel(mesh, camera, normal_map, albedo, lights, material, origin, opts):
@@ -594,52 +523,6 @@ def _image_layout(result: dict, opts: RenderOptions) -> dict[str, Array]:
     """``opts.outputs`` of ``result`` as float32 (H, W, C) arrays."""
     return {n: (result[n][..., None] if result[n].ndim == 2 else result[n]).astype(jnp.float32)
             for n in opts.outputs}
-
-
-def _packed_passes(per_pixel, tid: Array, clip: Array, faces: Array, orientation: Array, *,
-                   opts: RenderOptions) -> dict[str, Array]:
-    """``opts.outputs`` of the image whose triangle ids are ``tid``, with ``per_pixel`` run on
-    its covered pixels only: in passes of a quarter of the image's pixels (the covered
-    pixels ranked ``p * Q`` to ``(p + 1) * Q - 1`` in pass ``p``, `ranked_nonzero`), each
-    packed (`compact`) and evaluated in chunks (`_over_chunks`), its results written into
-    the images; the passes past the covered pixels are skipped. A frame with at most a
-    quarter of the image covered runs one pass, and every pass's buffers are a quarter of
-    the image's: on the CPU, XLA's temporary buffers of a 1024^2 frame then stay under
-    glibc's largest threshold for reusing freed memory (32 MiB), where larger ones are
-    mapped and page-faulted in again on every call."""
-    height, width = opts.height, opts.width
-    pixels = height * width
-    slots = min(-(-pixels // 4), PASS_SLOTS)
-    total, window = ranked_nonzero(tid.reshape(-1) >= 0)
-    names = [n for n in opts.outputs if n not in ("mask", "triangle_id")]
-    shapes = jax.eval_shape(
-        lambda: per_pixel(compact(tid, clip, faces, slots, orientation=orientation)[0]))
-    fill = {"depth": 1.0}
-
-    def one_pass(p, images):
-        index = window(p * slots, slots, pixels)
-        frags, index = compact(tid, clip, faces, slots, orientation=orientation, index=index)
-        values = _over_chunks(per_pixel, frags, _chunk(slots))
-        values.update(depth=frags.depth, front_facing=frags.front_facing)
-        # each covered pixel is written once (the unused slots' indices distinct, past the
-        # end: dropped), as XLA is told
-        at = jnp.where(index < pixels, index, pixels + jnp.arange(slots, dtype=index.dtype))
-        return {n: images[n].at[at].set(values[n].astype(images[n].dtype), mode="drop",
-                                        unique_indices=True) for n in names}
-
-    def step(p, images):
-        return jax.lax.cond(p * slots < total, one_pass, lambda p, images: images, p, images)
-
-    def blank(n):
-        if n in ("depth", "front_facing"):
-            return jnp.full((pixels,), fill.get(n, False), jnp.float32 if n == "depth" else bool)
-        s = shapes[n]
-        return jnp.zeros((pixels,) + s.shape[1:], s.dtype)
-
-    images = jax.lax.fori_loop(0, -(-pixels // slots), step, {n: blank(n) for n in names})
-    out = {"mask": tid >= 0, "triangle_id": tid}
-    out.update({n: v.reshape((height, width) + v.shape[1:]) for n, v in images.items()})
-    return {n: out[n] for n in opts.outputs}
 
 
 def _relative_inputs(scene: Scene):
@@ -714,34 +597,7 @@ def _concrete(*xs) -> bool:
                for x in jax.tree_util.tree_leaves(xs))
 
 
-def _camera_relative(scene: Scene) -> tuple[Scene, Array]:
-    """``scene`` with its model matrix applied and everything moved so that the camera sits
-    at the origin, and that origin (the camera's world position), as `render` sees it.
-
-    The model's translation and the eye are subtracted in float64 on the host before
-    anything is rounded to float32 (what engines call camera-relative rendering), so a mesh
-    far from the world origin keeps its precision: its float32 positions are small numbers
-    near the camera. Point lights move with it; directional lights, normals and the view
-    rotation do not change. When the camera or the model is traced (``jax.grad`` with
-    respect to them), the same is done in float32 with JAX.
-    """
-    camera, lights, origin, placement, affine = _relative_inputs(scene)
-    mesh = _place(scene.mesh, placement, affine)
-    return dataclasses.replace(scene, mesh=mesh, camera=camera, lights=lights,
-                               model=None), origin
-
-
 #: The placement of a mesh already where it belongs (`_place`): zero shift.
 _NO_SHIFT = np.zeros(3, np.float32)
 
 
-def _capacity(count: int, pixels: int) -> int:
-    """Slots for ``count`` covered pixels of a ``pixels``-pixel image: the smallest of
-    pixels / 2, / 4, ..., / 64 that holds them, or all of them when more than half the
-    image is covered. Few sizes, because each is one compilation."""
-    capacity = pixels
-    for k in range(1, 7):
-        if (pixels >> k) < max(count, 1):
-            break
-        capacity = pixels >> k
-    return capacity

@@ -407,14 +407,15 @@ def strategy(monkeypatch):
     (whatever the image size), its frame program compiled afresh; the cache is cleared
     again afterwards."""
     R = importlib.import_module("jaxnm.render")
+    P = importlib.import_module("jaxnm._exec.pixels")
 
     def clear():
         for program in (R._frame, R._visible_placed, R._packed_frame):
             program.clear_cache()
 
     def run(packed, chunk, fn):
-        monkeypatch.setattr(R, "PACK_MIN_PIXELS", 1 if packed else 1 << 40)
-        monkeypatch.setattr(R, "PIXEL_CHUNK", (chunk, chunk))
+        monkeypatch.setattr(P, "PACK_MIN_PIXELS", 1 if packed else 1 << 40)
+        monkeypatch.setattr(P, "PIXEL_CHUNK", (chunk, chunk))
         clear()
         return fn()
 
@@ -558,11 +559,10 @@ def test_packing_is_for_large_images_on_the_cpu(backend, size, derivatives, pack
     """`render` packs the covered pixels of images of at least `PACK_MIN_PIXELS` pixels on
     the CPU only (a GPU shades every pixel at once), never for "gbuffer" derivatives (they
     read stored neighbours)."""
-    R = importlib.import_module("jaxnm.render")
-    assert (size * size >= R.PACK_MIN_PIXELS) == (packs or backend != "cpu"
+    P = importlib.import_module("jaxnm._exec.pixels")
+    assert (size * size >= P.PACK_MIN_PIXELS) == (packs or backend != "cpu"
                                                    or derivatives == "gbuffer")
-    opts = R.RenderOptions(width=size, height=size, derivatives=derivatives)
-    assert R._packs(opts, backend) == packs
+    assert P.packs(size * size, neighbours=derivatives == "gbuffer", backend=backend) == packs
 
 
 @pytest.mark.parametrize("eye", [(0.5, -4.5, 3.0), (0.0, -1.6, 1.2)])  # fits a quarter, not
