@@ -20,7 +20,8 @@ from jaxtyping import ArrayLike, Float
 #: Matrix products of geometry are computed in full float32 on every backend.
 _HIGHEST = jax.lax.Precision.HIGHEST
 
-__all__ = ["Camera", "look_at", "perspective", "orthographic", "to_clip", "eye_to_world"]
+__all__ = ["Camera", "look_at", "perspective", "orthographic", "to_clip", "to_window",
+           "eye_to_world"]
 
 
 @jax.tree_util.register_dataclass
@@ -156,6 +157,15 @@ def to_clip(positions: Float[ArrayLike, "V 3"], camera: Camera) -> Float[Array, 
     e = d[:, 0:1] * a[:, :, 0] + d[:, 1:2] * a[:, :, 1] + d[:, 2:3] * a[:, :, 2]
     return (e[:, 0:1] * proj[:, :, 0] + e[:, 1:2] * proj[:, :, 1] + e[:, 2:3] * proj[:, :, 2]
             + proj[:, :, 3])
+
+
+def to_window(clip: Float[ArrayLike, "*batch 4"], width: int,
+              height: int) -> Float[Array, "*batch 4"]:
+    """Homogeneous window coordinates ``((X + W) w/2, (Y + W) h/2, (Z + W)/2, W)`` of clip
+    points ``(X, Y, Z, W)`` in a ``width`` x ``height`` image: dividing the first three by
+    the last gives window x, y (pixels, y up) and the window depth in [0, 1]."""
+    x, y, z, w = jnp.moveaxis(clip, -1, 0)
+    return jnp.stack([(x + w) * (0.5 * width), (y + w) * (0.5 * height), (z + w) * 0.5, w], -1)
 
 
 def _clip_float64(points, camera: Camera, model=None) -> np.ndarray:

@@ -62,8 +62,9 @@ from jax import Array
 
 from ._exec.arrays import xyw
 from ._exec.fusion import materialize
+from .camera import to_window
 from .numerics import safe_div
-from .raster import Fragments, _window_homogeneous
+from .raster import Fragments
 
 __all__ = [
     "Attribute", "Barycentrics", "DERIVATIVE_MODES", "PRECISIONS", "at_precision",
@@ -217,7 +218,7 @@ def _pixel_setup(frags: Fragments):
     height, width = frags.image_shape
     mask = frags.mask
     tri = jnp.maximum(frags.triangle_id, 0)
-    h = (xyw(_window_homogeneous(frags.clip, width, height)) if frags.window is None
+    h = (xyw(to_window(frags.clip, width, height)) if frags.window is None
          else frags.window)  # (V, 3): x, y, w
     corner = frags.faces[tri]
     hv = [h[corner[..., v]] for v in range(3)]  # each vertex's (..., 3)

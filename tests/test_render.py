@@ -516,9 +516,9 @@ def test_compact_and_expand_round_trip():
                                rtol=0, atol=4e-7)  # the same plane, fused differently
     # the vertices' window x, y, w computed once for the per-pixel stages: what they would
     # compute from the clip vertices, and the same interpolation either way
-    from jaxnm.raster import _window_homogeneous
+    from jaxnm.camera import to_window
 
-    np.testing.assert_array_equal(packed.window, np.asarray(_window_homogeneous(
+    np.testing.assert_array_equal(packed.window, np.asarray(to_window(
         frags.clip, 16, 12))[:, [0, 1, 3]])
     at = jaxnm.interpolate(sc.mesh.uv, packed, derivatives="fine")
     again = jaxnm.interpolate(sc.mesh.uv, dataclasses.replace(packed, window=None),
