@@ -29,8 +29,8 @@ from jax.custom_derivatives import SymbolicZero
 from .. import textures as _tex
 from .._exec.fusion import materialize
 from ..frames import perturb_normal
+from ..gbuffer import GBuffer, RenderOptions
 from ..numerics import safe_normalize, safe_sqrt, tiny
-from ..render import GBuffer, RenderOptions
 from ..shading import Lights, Material, shade
 from .prepare import Prepared, ViewBatch
 

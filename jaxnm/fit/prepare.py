@@ -19,8 +19,9 @@ import numpy as np
 from jax import Array
 
 from .. import textures as _tex
+from ..gbuffer import GBuffer, RenderOptions
 from ..geometry import _closed_shape
-from ..render import GBuffer, RenderOptions, _check_mesh, build_gbuffer, covered_gbuffer
+from ..render import build_gbuffer, covered_gbuffer
 from ..scene import _box_in_front
 from ..shading import Lights, Material
 from .problem import FitProblem, FitTarget, validate_problem
@@ -250,7 +251,7 @@ def _rasterize_views(problem: FitProblem) -> tuple[list[View], list[RenderOption
     views, opts_all = [], []
     for ts, opts in zip(groups.values(), _view_options(problem), strict=True):
         t0 = ts[0]
-        _check_mesh(problem.mesh, opts, problem.source)
+        opts.check_mesh(problem.mesh, problem.source)
         albedo = jax.device_put(problem.albedo)  # (jnp.asarray of NumPy compiles per shape)
 
         def flat(x):  # an image-layout array's covered pixels
