@@ -168,20 +168,6 @@ def to_window(clip: Float[ArrayLike, "*batch 4"], width: int,
     return jnp.stack([(x + w) * (0.5 * width), (y + w) * (0.5 * height), (z + w) * 0.5, w], -1)
 
 
-def _clip_float64(points, camera: Camera, model=None) -> np.ndarray:
-    """`to_clip` on the host in float64: clip-space coordinates (N, 4) of object-space
-    ``points`` (N, 3) moved by ``model`` (an affine 4x4 object-to-world matrix, or None)
-    and seen by a concrete ``camera``. For decisions made before a frame's programs run
-    (the near-plane check, back-face culling)."""
-    p = np.asarray(points, np.float64)
-    if model is not None:
-        m = np.asarray(model, np.float64)
-        p = p @ m[:3, :3].T + m[:3, 3]
-    rot = np.asarray(camera.view, np.float64)[:3, :3]
-    proj = np.asarray(camera.projection, np.float64)
-    return ((p - np.asarray(camera.eye, np.float64)) @ rot.T) @ proj[:, :3].T + proj[:, 3]
-
-
 def eye_to_world(camera: Camera, direction) -> np.ndarray:
     """The unit world-space direction (float64) of ``direction`` given in the camera's eye
     frame (x right, y up, z towards the viewer), e.g. a light placed relative to the view."""

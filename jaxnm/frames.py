@@ -62,7 +62,8 @@ from .numerics import dot as _ndot
 from .numerics import eps, safe_norm, safe_normalize, safe_rsqrt, spread, tiny
 
 __all__ = [
-    "FRAMES", "FRAME_ALIASES", "SCREEN_FRAMES", "Frame", "canonical_frame", "axis_frame",
+    "FRAMES", "FRAME_ALIASES", "SCREEN_FRAMES", "Frame", "canonical_frame", "check_frame",
+    "axis_frame",
     "compute_frame", "cotangent_frame",
     "exact_frame", "face_forward", "nonperspective_frame", "perturb_normal", "vertex_frame",
     "vertex_tangents", "mikktspace_frame", "gram_schmidt_frame", "separate_frame", "cross_frame",
@@ -463,7 +464,7 @@ def exact_frame(tri_p: Array, tri_uv: Array, N: Array | None = None, *,
 
     **Arguments:**
     - `tri_p`: ``(..., 3, 3)`` the triangle's corner positions
-      (`jaxnm.interpolate._triangle_corners`).
+      (`jaxnm.interpolate.triangle_corners`).
     - `tri_uv`: ``(..., 3, 2)`` the corner uvs.
     - `N`: ``(..., 3)`` unit interpolated normal, or None for the face normal.
       It is the frame's ``N``, and builds the perpendiculars unless
@@ -510,10 +511,10 @@ def vertex_tangents(positions: Array, normals: Array, uv: Array, faces: Array) -
     made orthogonal to the unit vertex normal (Gram-Schmidt) and normalised;
     the handedness is ``w = sign((N x T) . b_sum)`` (``+1`` when that is 0).
 
-    A vertex whose summed tangent is shorter than `_VERTEX_TANGENT_CANCELLATION`
-    times its summed weights (no valid triangle, tangents parallel to ``N``, or
-    cancelling tangents on a shared mirrored-uv seam) gets the deterministic
-    fallback `axis_frame` tangent of its normal (zero if the normal is zero).
+    A vertex whose summed tangent is shorter than 1e-3 times its summed weights (no valid
+    triangle, tangents parallel to ``N``, or cancelling tangents on a shared mirrored-uv
+    seam) gets the deterministic fallback `axis_frame` tangent of its normal (zero if the
+    normal is zero).
 
     **Arguments:**
     - `positions`: ``(V, 3)``; `normals`: ``(V, 3)``; `uv`: ``(V, 2)``; `faces`: ``(F, 3)`` int.
@@ -692,7 +693,7 @@ def _derivs(attr, name: str, frame: str):
     return attr.ddx, attr.ddy
 
 
-def _check_frame(frame: str) -> None:
+def check_frame(frame: str) -> None:
     """Raise a `ValueError` unless ``frame`` is one of `FRAMES`."""
     if frame not in FRAMES:
         raise ValueError(f"unknown frame {frame!r}; expected one of {', '.join(FRAMES)}"
@@ -732,7 +733,7 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
     - `p_attr`, `uv_attr`: position (world or camera-relative) and uv
       `Attribute`s with derivatives: the `SCREEN_FRAMES`.
     - `tri_p`, `tri_uv`: ``(..., 3, 3)``, ``(..., 3, 2)`` corners
-      (`jaxnm.interpolate._triangle_corners`): ``"exact"``, ``"exact_face"``.
+      (`jaxnm.interpolate.triangle_corners`): ``"exact"``, ``"exact_face"``.
     - `tangent`: ``(..., 4)`` interpolated tangent and sign: per-corner MikkTSpace
       tangents (`jaxnm.tangents`) for ``"vertex"``, `vertex_tangents` for
       ``"vertex_area"``.
@@ -747,7 +748,7 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
     zero, e.g. background pixels, every method returns ``T = B = N = 0``, so
     `perturb_normal` gives the zero vector there (not NaN).
     """
-    _check_frame(frame)
+    check_frame(frame)
     if frame == "cotangent_unnormalized":
         frame, normalize = "cotangent", "none"
     use_face_normal = frame == "exact_face"
@@ -770,7 +771,7 @@ def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None 
     elif frame == "exact":
         if tri_p is None or tri_uv is None:
             raise ValueError("compute_frame(frame='exact') needs `tri_p` and `tri_uv` "
-                             "(see jaxnm.interpolate._triangle_corners)")
+                             "(see jaxnm.interpolate.triangle_corners)")
         out = exact_frame(tri_p, tri_uv, n, use_face_normal=use_face_normal, normalize=normalize)
     elif frame == "vertex":
         if tangent is None:

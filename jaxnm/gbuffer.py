@@ -32,17 +32,17 @@ from .camera import Camera
 from .geometry import Mesh
 from .interpolate import (
     Attribute,
-    _check_derivatives,
-    _check_precision,
-    _triangle_corners,
     at_precision,
     barycentrics,
+    check_derivatives,
+    check_precision,
     interpolate,
+    triangle_corners,
 )
 from .numerics import safe_normalize
 from .raster import Fragments
 from .scene import Scene
-from .shading import Lights, Material, _check_shading_model, shade
+from .shading import Lights, Material, check_shading_model, shade
 from .textures import NormalMapOptions
 
 __all__ = ["OUTPUTS", "GBuffer", "RenderOptions", "gbuffer_from_fragments", "shade_gbuffer"]
@@ -80,10 +80,10 @@ class RenderOptions:
     outputs: tuple[str, ...] = ("color",)
 
     def __post_init__(self):
-        _check_derivatives(self.derivatives, allow_none=False)
-        _check_precision(self.precision)
-        _frames._check_frame(self.frame)
-        _check_shading_model(self.shading)
+        check_derivatives(self.derivatives, allow_none=False)
+        check_precision(self.precision)
+        _frames.check_frame(self.frame)
+        check_shading_model(self.shading)
         bad = [o for o in self.outputs if o not in OUTPUTS]
         if bad or not isinstance(self.outputs, tuple):
             raise ValueError(f"unknown outputs {bad or self.outputs!r}; expected a tuple of "
@@ -263,8 +263,8 @@ def _tangent_frame(opts: RenderOptions, mesh: Mesh, frags, gb, bary) -> _frames.
                                            pixels=quads),
                       ddy_sign=opts.ddy_sign)
     elif kind in ("exact", "exact_face"):
-        inputs = dict(tri_p=low(_triangle_corners(mesh.positions, frags)),
-                      tri_uv=low(_triangle_corners(mesh.uv, frags)))
+        inputs = dict(tri_p=low(triangle_corners(mesh.positions, frags)),
+                      tri_uv=low(triangle_corners(mesh.uv, frags)))
     elif kind == "vertex":  # MikkTSpace: per-corner tangents, the normal as interpolated
         at = interpolate({"t": mesh.tangents, "n": mesh.normals[mesh.faces]}, frags,
                          derivatives=None, bary=bary)

@@ -68,7 +68,8 @@ from .raster import Fragments
 
 __all__ = [
     "Attribute", "Barycentrics", "DERIVATIVE_MODES", "PRECISIONS", "at_precision",
-    "COARSE_REFERENCE", "barycentrics", "interpolate"
+    "COARSE_REFERENCE", "barycentrics", "interpolate", "triangle_corners", "check_derivatives",
+    "check_precision", "require_x64"
 ]
 
 #: The screen-space derivative modes (the scene key ``derivatives``, ``--derivatives``).
@@ -121,7 +122,7 @@ class Barycentrics:
     mode: str | None = dataclasses.field(metadata=dict(static=True), default="fine")
 
 
-def _check_derivatives(derivatives: str | None, *, allow_none: bool = True) -> None:
+def check_derivatives(derivatives: str | None, *, allow_none: bool = True) -> None:
     """Raise a `ValueError` unless ``derivatives`` is one of `DERIVATIVE_MODES` (or None,
     values only, where ``allow_none``)."""
     if derivatives is None and allow_none:
@@ -131,14 +132,14 @@ def _check_derivatives(derivatives: str | None, *, allow_none: bool = True) -> N
                          f"{', '.join(DERIVATIVE_MODES)}")
 
 
-def _check_precision(precision: str) -> None:
+def check_precision(precision: str) -> None:
     """Raise a `ValueError` unless ``precision`` is one of `PRECISIONS`."""
     if precision not in PRECISIONS:
         raise ValueError(f"unknown precision {precision!r}; expected one of "
                          f"{', '.join(PRECISIONS)}")
 
 
-def _require_x64(what: str) -> None:
+def require_x64(what: str) -> None:
     """Raise a `ValueError` naming ``what`` unless 64-bit JAX is enabled (without it a
     float64 array silently becomes float32)."""
     if not jax.config.jax_enable_x64:
@@ -175,11 +176,11 @@ def at_precision(attr: Attribute, precision: str, mask: Array, *,
 
     Returns an `Attribute` whose arrays have ``precision``'s dtype (0 on background).
     """
-    _check_precision(precision)
+    check_precision(precision)
     if precision == "float32":
         return attr
     if precision == "float64":
-        _require_x64("precision 'float64'")
+        require_x64("precision 'float64'")
         f64 = jnp.float64
         return Attribute(attr.value.astype(f64),
                          *(None if d is None else d.astype(f64) for d in (attr.ddx, attr.ddy)))
@@ -258,7 +259,7 @@ def barycentrics(frags: Fragments, *, derivatives: str | None = "fine") -> Baryc
     **Returns:** a `Barycentrics`; interpolating an attribute with it is linear,
     see `interpolate`.
     """
-    _check_derivatives(derivatives)
+    check_derivatives(derivatives)
     e, a, b, mask = _pixel_setup(frags)
     s = jnp.where(mask, _sum3(e), 1.0)  # covered pixels have S != 0 (all E_i share its sign)
 
@@ -298,7 +299,7 @@ def barycentrics(frags: Fragments, *, derivatives: str | None = "fine") -> Baryc
     return Barycentrics(value, ddx, ddy, derivatives)
 
 
-def _triangle_corners(attr: Array, frags: Fragments) -> Array:
+def triangle_corners(attr: Array, frags: Fragments) -> Array:
     """Each pixel's triangle's corner values, ``(H, W, 3, C)``; zero on background.
 
     **Arguments:**
@@ -310,7 +311,7 @@ def _triangle_corners(attr: Array, frags: Fragments) -> Array:
 
 
 def _corners(attr: Array, frags: Fragments) -> Array:
-    """`_triangle_corners` unmasked: background pixels read triangle 0 (finite, unused)."""
+    """`triangle_corners` unmasked: background pixels read triangle 0 (finite, unused)."""
     tri = jnp.maximum(frags.triangle_id, 0)
     num_faces = frags.faces.shape[0]
     if attr.ndim == 3 and attr.shape[:2] == (num_faces, 3):  # face-varying (F, 3, C)
@@ -368,7 +369,7 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
     the barycentric derivatives the same way, so large common offsets (far
     from origin geometry) cancel exactly.
     """
-    _check_derivatives(derivatives)
+    check_derivatives(derivatives)
     if isinstance(attr, Mapping):
         names = list(attr)
         arrays = [jnp.asarray(attr[n]) for n in names]

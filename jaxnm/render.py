@@ -23,9 +23,9 @@ from ._relative import NO_SHIFT, place, relative_inputs
 from .camera import Camera, to_clip
 from .gbuffer import OUTPUTS, GBuffer, RenderOptions, gbuffer_from_fragments, shade_gbuffer
 from .geometry import Mesh
-from .interpolate import _require_x64
+from .interpolate import require_x64
 from .raster import compact, rasterize, triangle_ids
-from .scene import Scene, _check_scene_shapes, default_lights, default_material
+from .scene import Scene, default_lights, default_material
 
 __all__ = ["OUTPUTS", "GBuffer", "RenderOptions", "build_gbuffer", "covered_gbuffer",
            "shade_gbuffer", "render"]
@@ -58,11 +58,12 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     ids and facing exactly, the rest to float32 rounding. Nothing is remembered between
     calls but the compiled programs.
 
-    **Checks.** Options and array shapes are checked here (a `ValueError` naming
-    ``scene.source``); array values where scenes are made (`validate_scene`, which
-    `jaxnm.config.load_scene` and the built-in scenes run: NaN or infinite values, face
-    indices out of range, a camera that sees nothing). Rendered unchecked, a triangle with
-    a non-finite corner or a face index out of range covers nothing, as on a GPU.
+    **Checks.** The call's options are checked here (a `ValueError` naming
+    ``scene.source``); a scene's arrays where scenes are made (`jaxnm.scene.validate_scene`,
+    which `jaxnm.config.load_scene` and the built-in scenes run: shapes, NaN or infinite
+    values, face indices out of range, a camera that sees nothing). Pass a scene assembled
+    by hand through `jaxnm.scene.validate_scene` once. Rendered unchecked, a triangle with a
+    non-finite corner or a face index out of range covers nothing, as on a GPU.
 
     Differentiable: the scene's arrays (normal map, albedo, vertex positions,
     camera, lights, material) may be traced, e.g. ``jax.grad`` of a loss of
@@ -72,11 +73,10 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     """
     opts = RenderOptions.of(scene, outputs=outputs, derivatives=derivatives, frame=frame,
                             precision=precision)
-    _check_scene_shapes(scene)
     opts.check_mesh(scene.mesh, scene.source)
     if opts.precision == "float64":
         try:
-            _require_x64("precision 'float64'")
+            require_x64("precision 'float64'")
         except ValueError as e:
             raise ValueError(f"{scene.source}: {e}") from None
     camera, lights, origin, placement, affine = relative_inputs(scene)

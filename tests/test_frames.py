@@ -21,7 +21,7 @@ import jaxnm
 from jaxnm import frames as F
 from jaxnm.camera import Camera, look_at, orthographic, perspective, to_clip
 from jaxnm.geometry import vertex_normals
-from jaxnm.interpolate import _triangle_corners
+from jaxnm.interpolate import triangle_corners
 from jaxnm.numerics import safe_normalize
 
 SIZE = 48
@@ -89,8 +89,8 @@ def pipeline(frags, pos, uv, nrm, eye, noise, *, mode="fine"):
         attrs["t"] = F.vertex_tangents(pos, nrm, uv, frags.faces)
     at = jaxnm.interpolate(attrs, frags, derivatives=mode)
     m = procedural_map(at["uv"].value) + noise
-    kw = dict(N=at["n"], p_attr=at["p"], uv_attr=at["uv"], tri_p=_triangle_corners(pos, frags),
-              tri_uv=_triangle_corners(uv, frags), tangent=at.get("t"),
+    kw = dict(N=at["n"], p_attr=at["p"], uv_attr=at["uv"], tri_p=triangle_corners(pos, frags),
+              tri_uv=triangle_corners(uv, frags), tangent=at.get("t"),
               front_facing=frags.front_facing)
     variants = {name: dict(frame=name) for name in ("cotangent", "nonperspective", "exact")}
     variants["cotangent_cam"] = dict(frame="cotangent", p_attr=at["pc"])  # Schueler's -V
@@ -715,8 +715,8 @@ def _shade_all(frags, cam, nrm, pos, uv, m):
     fr = dataclasses.replace(frags, clip=to_clip(pos, cam))
     tangent = F.vertex_tangents(pos, nrm, uv, fr.faces)
     at = jaxnm.interpolate({"p": pos, "uv": uv, "n": nrm, "t": tangent}, fr)
-    kw = dict(N=at["n"], p_attr=at["p"], uv_attr=at["uv"], tri_p=_triangle_corners(pos, fr),
-              tri_uv=_triangle_corners(uv, fr), tangent=at["t"], front_facing=fr.front_facing)
+    kw = dict(N=at["n"], p_attr=at["p"], uv_attr=at["uv"], tri_p=triangle_corners(pos, fr),
+              tri_uv=triangle_corners(uv, fr), tangent=at["t"], front_facing=fr.front_facing)
     outs = [F.perturb_normal(F.compute_frame(name, **kw), m) for name in METHODS]
     outs.append(F.perturb_normal(F.compute_frame("cotangent", normalize="none", **kw), m))
     return jnp.stack(outs)

@@ -336,22 +336,22 @@ def test_cli_uses_the_persistent_compilation_cache(tmp_path):
 
 
 def test_value_checks_are_for_where_scenes_are_made():
-    """`_validate_arrays` scans the values of concrete arrays, JAX's and NumPy's alike, every
+    """`check_mesh_arrays` scans the values of concrete arrays, JAX's and NumPy's alike, every
     time it is asked (``values=False``: shapes and dtypes only, what `render` checks on every
     call); a NaN written into a NumPy mesh in place is found."""
     from jaxnm import geometry
 
     mesh = procedural.plane(1.0, 2)
     host = np.array(mesh.positions)
-    geometry._validate_arrays(host, mesh.faces, mesh.uv, mesh.normals, source="m")
+    geometry.check_mesh_arrays(host, mesh.faces, mesh.uv, mesh.normals, source="m")
     host[1, 0] = np.nan
     for pos in (host, jnp.asarray(host)):
         with pytest.raises(ValueError, match="m: 1 vertex positions are NaN"):
-            geometry._validate_arrays(pos, mesh.faces, mesh.uv, mesh.normals, source="m")
-        geometry._validate_arrays(pos, mesh.faces, mesh.uv, mesh.normals, source="m",
+            geometry.check_mesh_arrays(pos, mesh.faces, mesh.uv, mesh.normals, source="m")
+        geometry.check_mesh_arrays(pos, mesh.faces, mesh.uv, mesh.normals, source="m",
                                  values=False)
     with pytest.raises(ValueError, match=r"m: positions must have shape \(V, 3\)"):
-        geometry._validate_arrays(host[:, :2], mesh.faces, values=False, source="m")
+        geometry.check_mesh_arrays(host[:, :2], mesh.faces, values=False, source="m")
 
 
 @pytest.mark.parametrize("size", [32, 256])  # the whole image; packed pixels
@@ -648,15 +648,15 @@ def test_covered_gbuffer_is_the_whole_images_at_the_covered_pixels(derivatives):
 
 
 def test_closed_shape_knows_a_closed_outward_mesh():
-    """`jaxnm.geometry._closed_shape`: the tori and the uv sphere (seams and poles welded) are
+    """`jaxnm._host_geometry.closed_shape`: the tori and the uv sphere (seams and poles welded) are
     closed with their front faces outside, and their boxes are the positions' bounds; a
     plane, a torus with a face removed, one with its faces turned inside out and one with a
     single face flipped are not."""
-    from jaxnm.geometry import _closed_shape
+    from jaxnm._host_geometry import closed_shape
 
     for mesh in (procedural.default_torus(), procedural.torus(1.0, 0.4, 16, 8),
                  procedural.uv_sphere(1.0, 16, 8)):
-        box = _closed_shape(mesh.positions, mesh.faces)
+        box = closed_shape(mesh.positions, mesh.faces)
         pos = np.asarray(mesh.positions, np.float64)
         np.testing.assert_array_equal(box, np.stack([pos.min(0), pos.max(0)]))
     torus = procedural.torus(1.0, 0.4, 16, 8)
@@ -664,10 +664,10 @@ def test_closed_shape_knows_a_closed_outward_mesh():
     flipped_one = faces.copy()
     flipped_one[5] = flipped_one[5, ::-1]
     for f in (faces[1:], faces[:, ::-1], flipped_one):
-        assert _closed_shape(torus.positions, jnp.asarray(f)) is None
+        assert closed_shape(torus.positions, jnp.asarray(f)) is None
     plane = procedural.plane()
-    assert _closed_shape(plane.positions, plane.faces) is None
-    assert _closed_shape(np.asarray(torus.positions), faces) is not None  # NumPy alike
+    assert closed_shape(plane.positions, plane.faces) is None
+    assert closed_shape(np.asarray(torus.positions), faces) is not None  # NumPy alike
 
 
 def test_back_faces_are_culled_only_where_none_can_be_seen():

@@ -72,7 +72,7 @@ def texel_influence(prep: Prepared) -> np.ndarray:
     grad = levels[-1].reshape(shapes[-1])
     for k in range(len(shapes) - 2, -1, -1):  # coarse to fine: through each filter
         hk, wk = shapes[k]
-        grad = (_tex._box_filter_matrix(hk).T @ grad @ _tex._box_filter_matrix(wk)
+        grad = (_tex.box_filter_matrix(hk).T @ grad @ _tex.box_filter_matrix(wk)
                 + levels[k].reshape(hk, wk))
     return grad.astype(np.float32)
 

@@ -19,10 +19,9 @@ import numpy as np
 from jax import Array
 
 from .. import textures as _tex
+from .._host_geometry import box_in_front, closed_shape
 from ..gbuffer import GBuffer, RenderOptions
-from ..geometry import _closed_shape
 from ..render import build_gbuffer, covered_gbuffer
-from ..scene import _box_in_front
 from ..shading import Lights, Material
 from .problem import FitProblem, FitTarget, validate_problem
 
@@ -226,11 +225,11 @@ def _view_options(problem: FitProblem) -> list[RenderOptions]:
         groups.setdefault(view_key(t), t)
     nm = dataclasses.replace(problem.sampling, encoding="signed", channels=3)
     # a closed mesh seen from outside shows no back face: those views skip them
-    box = _closed_shape(problem.mesh.positions, problem.mesh.faces)
+    box = closed_shape(problem.mesh.positions, problem.mesh.faces)
     return [RenderOptions(width=t0.width, height=t0.height, derivatives=problem.derivatives,
                           precision=problem.precision, frame=problem.frame,
                           shading=problem.shading, double_sided=problem.double_sided,
-                          cull_back=box is not None and _box_in_front(box, t0.camera),
+                          cull_back=box is not None and box_in_front(box, t0.camera),
                           normal_map=nm, normal_map_shape=tuple(problem.map_size),
                           albedo_shape=(tuple(jnp.shape(problem.albedo)[:2])
                                         if jnp.ndim(problem.albedo) == 3 else None),

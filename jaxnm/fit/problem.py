@@ -9,10 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..camera import Camera
-from ..frames import _check_frame
+from ..frames import check_frame
 from ..geometry import Mesh
-from ..interpolate import _check_derivatives, _check_precision, _require_x64
-from ..shading import Lights, Material, _check_shading_model
+from ..interpolate import check_derivatives, check_precision, require_x64
+from ..shading import Lights, Material, check_shading_model
 from ..textures import NormalMapOptions
 
 __all__ = [
@@ -207,12 +207,12 @@ def validate_problem(problem: FitProblem) -> None:
     if problem.mesh.normals is None:
         raise ValueError(f"{src}: the mesh has no vertex normals")
     try:
-        _check_frame(problem.frame)
-        _check_derivatives(problem.derivatives, allow_none=False)
-        _check_precision(problem.precision)
+        check_frame(problem.frame)
+        check_derivatives(problem.derivatives, allow_none=False)
+        check_precision(problem.precision)
         if problem.precision == "float64":
-            _require_x64("precision 'float64'")
-        _check_shading_model(problem.shading)
+            require_x64("precision 'float64'")
+        check_shading_model(problem.shading)
     except ValueError as e:
         raise ValueError(f"{src}: {e}") from None
     if problem.frame == "none":

@@ -262,7 +262,7 @@ def check_storage(problem: FitProblem, storage: str) -> None:
             raise ValueError(f"{problem.source}: a BC5 map must be a multiple of 4 texels on "
                              f"each side, got {w}x{h}")
         for module in ("quicktex", "texture2ddecoder", "PIL"):
-            _st._need(module)
+            _st.require_module(module)
 
 
 def fit_stored_map(problem: FitProblem, options: FitOptions = FitOptions(), *,

@@ -108,7 +108,7 @@ def _fold(batch: ViewBatch, body, carry, per_pixel: tuple[Array, ...] | None = N
 
 def _texel_sum_tables(prepared: Prepared) -> tuple[tuple[SumTables, ...], ...]:
     """For each `ViewBatch` of ``prepared`` and each of its pixel groups, the fixed-order
-    texel sums (`jaxnm.textures._plan_sum_tables`) of every chunk's taps, stacked by chunk:
+    texel sums (`jaxnm.textures.plan_sum_tables`) of every chunk's taps, stacked by chunk:
     what a step's texel-space sums use in place of scatter-adds (`FitOptions.texel_sums`).
     Built on the host, once per fit (the taps do not change between steps): ~0.01 s for
     the benchmark's 51k pixels. The indices are copied to the host whole and cut there
@@ -121,7 +121,7 @@ def _texel_sum_tables(prepared: Prepared) -> tuple[tuple[SumTables, ...], ...]:
         for start, size, n, taps in batch.pixel_groups():
             chunks = [index[:, start + c * size:start + (c + 1) * size, :taps]
                       for c in range(n)]
-            groups.append(_tex._plan_sum_tables(plan, chunks))
+            groups.append(_tex.plan_sum_tables(plan, chunks))
         out.append(tuple(groups))
     return tuple(out)
 
@@ -134,7 +134,7 @@ def _sampler(plan: _tex.SamplePlan, mips, tables: SumTables | None):
         m, pull = jax.vjp(lambda mp: _tex.apply_plan(plan, mp), mips)
         return m, lambda y: pull(y)[0]
     return (_tex.apply_plan(plan, mips),
-            lambda y: _tex._transpose_plan(plan, tables, y, mips))
+            lambda y: _tex.transpose_plan(plan, tables, y, mips))
 
 
 def _factor_shapes(batch: ViewBatch) -> tuple[tuple[int, ...], ...]:
