@@ -128,7 +128,7 @@ class FitOptions:
       an order that varies from run to run, and with `jaxnm.runtime.use_deterministic_ops`
       XLA sorts the indices on every call), ``"tables"`` (fixed-order sums through tables
       built once at the start of the fit from the prepared taps,
-      `jaxnm.fit.texel_lm._texel_sum_tables`: the same result on every run, no sorting;
+      `jaxnm.fit.texel_lm.texel_sum_tables`: the same result on every run, no sorting;
       not where the views are spread over several devices), or ``"auto"`` (the default:
       tables on a GPU or other accelerator with deterministic ops, as the command line
       runs, else scatter-adds: `jaxnm.fit.texel_sums_for` says which, and what each

@@ -33,7 +33,7 @@ prediction; Gauss–Newton takes every step at full length. What the model *prom
 The fit has **converged** (``"ftol"``) when over the level's last ``patience`` steps the
 loss changed by less than ``ftol`` (relative) *and* at none of them did the solver's model
 promise a larger decrease. The solver's own test (``rtol``/``atol``: a tiny accepted move
-and loss change) counts only on an accepted step damped less than `_FULL_STEP_DAMPING`.
+and loss change) counts only on an accepted step damped less than `FULL_STEP_DAMPING`.
 
 Why: a damped or backtracking solver moves the loss little because it holds its steps
 back, not because little is left to gain. Levenberg–Marquardt from a start whose
@@ -71,32 +71,33 @@ import numpy as np
 import optimistix as optx
 from jax import Array
 
+from ._processes import (
+    allgather_json,
+    fingerprint_across_processes,
+    local_rows,
+    sum_over_processes,
+    to_host,
+)
 from .checkpoint import (
     Checkpoint,
-    _check_fingerprint,
-    _fit_fingerprint,
+    check_fingerprint,
+    fit_fingerprint,
     load_checkpoint,
     save_checkpoint,
 )
 from .diagnostics import angular_error, check_identifiability, seen_texels, texel_influence
-from .distributed import (
-    _allgather_json,
-    _fingerprint_across_processes,
-    _sum_over_processes,
-    _to_host,
-    spread_over_processes,
-)
+from .distributed import spread_over_processes
 from .model import ModelArgs, loss, residuals
-from .prepare import Prepared, _local_rows, prepare, shard_views, with_map_size
+from .prepare import Prepared, prepare, shard_views, with_map_size
 from .problem import FitOptions, FitProblem, FitResult
-from .texel_lm import TexelLM, _texel_sum_tables
+from .texel_lm import TexelLM, texel_sum_tables
 
 __all__ = ["fit_normal_map", "compile_fit", "make_solver", "preconditioner", "level_sizes",
-           "texel_sums_for", "STOP_TESTS"]
+           "texel_sums_for", "STOP_TESTS", "FULL_STEP_DAMPING"]
 
 #: The solver's own tolerance test (a tiny move and loss change) counts only on an accepted
 #: step damped less than this: a damped step is tiny because it is damped.
-_FULL_STEP_DAMPING = 0.5
+FULL_STEP_DAMPING = 0.5
 
 #: The tests that can end a fit (`FitResult.stop_test`), with what they mean.
 STOP_TESTS = {
@@ -105,7 +106,7 @@ STOP_TESTS = {
             "any of them",
     "solver_tolerance": "the solver's own test (rtol, atol on the step's move and loss "
                         "change) passed on an accepted step damped less than "
-                        f"{_FULL_STEP_DAMPING:g}",
+                        f"{FULL_STEP_DAMPING:g}",
     "solver_failure": "the solver reported a failure",
     "max_steps": "every step of every level was taken",
     "time_limit": "the time limit passed",
@@ -402,10 +403,10 @@ def _loss_terms(prep: Prepared) -> tuple[int, float]:
     """The number of residuals of ``prep``'s loss and the mean square of its targets' values
     (for `_noise_floor`; on the host, so no XLA program is compiled for it)."""
     terms = sum(b.images.size for b in prep.batches)
-    square = np.array([sum(float(np.sum(np.square(_local_rows(b.images)[1], dtype=np.float64)))
+    square = np.array([sum(float(np.sum(np.square(local_rows(b.images)[1], dtype=np.float64)))
                            for b in prep.batches)])
     if spread_over_processes(prep):
-        square = _sum_over_processes(square)
+        square = sum_over_processes(square)
     return terms, float(square[0]) / max(terms, 1)
 
 
@@ -467,7 +468,7 @@ def _level_args(prep: Prepared, size: tuple[int, int], options: FitOptions,
     scale_host = _host_preconditioner(lp)
     # least squares on reduced residuals (same loss and Gauss-Newton steps, fewer numbers
     # per pixel); L-BFGS only needs the loss and its gradient
-    sums = _texel_sum_tables(lp) if texel_sums_for(lp, options) == "tables" else None
+    sums = texel_sum_tables(lp) if texel_sums_for(lp, options) == "tables" else None
     args = ModelArgs.create(lp, smoothness=options.smoothness, strength=strength,
                             scale=jax.device_put(scale_host), reduce=options.solver != "lbfgs",
                             texel_sums=sums)
@@ -527,7 +528,7 @@ def _saved_state(path, fresh, leaves: list):
 
 def _agreed(*flags: bool) -> tuple[bool, ...]:
     """``flags`` or-ed over every process (a collective)."""
-    every = _allgather_json([bool(f) for f in flags])
+    every = allgather_json([bool(f) for f in flags])
     return tuple(any(p[i] for p in every) for i in range(len(flags)))
 
 
@@ -571,7 +572,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
       (which must then exist). The same steps, history and result as if the fit had
       never stopped (bitwise on the CPU); new checkpoints go to `checkpoint` (None: none
       are written). The checkpoint must come from the same problem, map size, solver,
-      arithmetic options (`jaxnm.fit.checkpoint._ARITHMETIC_OPTIONS`) and `strength`, else
+      arithmetic options (`jaxnm.fit.checkpoint.ARITHMETIC_OPTIONS`) and `strength`, else
       a one-line `ValueError` names the file and what differs; the stopping rule and the
       time limit (counted over the whole fit) may change. A checkpoint of a fit that had
       converged returns its result without a step.
@@ -620,12 +621,12 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                              f"{seen.shape} must match the map size {(h, w)}")
     fingerprint = saved = None
     if checkpoint is not None or source is not None:
-        fingerprint = _fit_fingerprint(problem, options, strength=strength, layout=_layout(prep))
+        fingerprint = fit_fingerprint(problem, options, strength=strength, layout=_layout(prep))
         if spread:  # each process hashed its own targets' images
-            fingerprint = _fingerprint_across_processes(fingerprint)
+            fingerprint = fingerprint_across_processes(fingerprint)
     if source is not None:
         saved = load_checkpoint(source)
-        _check_fingerprint(source, saved.meta.get("fingerprint", {}), fingerprint)
+        check_fingerprint(source, saved.meta.get("fingerprint", {}), fingerprint)
     solver = make_solver(options)
     history: list = []
     stopped, test = "max_steps", "max_steps"
@@ -650,7 +651,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     def save(level_done: bool) -> None:
         level, k, z, state = last
         # (across processes a collective: every process takes part, process 0 writes)
-        leaves = [_to_host(x) for x in jax.tree_util.tree_leaves(eqx.filter(state,
+        leaves = [to_host(x) for x in jax.tree_util.tree_leaves(eqx.filter(state,
                                                                              eqx.is_array))]
         if not writer:
             return
@@ -709,7 +710,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                 elif k > 0 and bool(done) and result != optx.RESULTS.successful:
                     stopped, test = str(result), "solver_failure"
                 elif (k > 0 and bool(done) and rec["accepted"]
-                      and rec["damping"] < _FULL_STEP_DAMPING):
+                      and rec["damping"] < FULL_STEP_DAMPING):
                     stopped, test = "converged", "solver_tolerance"
                 elif _stop_test(records, options, floor) is not None:
                     stopped, test = "converged", "ftol"

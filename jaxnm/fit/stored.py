@@ -48,7 +48,7 @@ from .model import ModelArgs, map_residuals
 from .prepare import Prepared, prepare
 from .problem import FitOptions, FitProblem, FitResult
 from .solve import fit_normal_map, preconditioner
-from .texel_lm import _conjugate_gradient
+from .texel_lm import conjugate_gradient
 
 __all__ = ["STORAGES", "StoredFit", "fit_stored_map", "stored_loss", "check_storage"]
 
@@ -164,7 +164,7 @@ def _lm_step(u, scale, lam, rounded, cg_steps, fixed, args, *, lay):
     jg = lin(g)
     lam = jnp.where(lam > 0, lam,
                     1e-2 * jnp.sum(jg * jg) / jnp.maximum(jnp.sum(g * g), 1e-30))
-    delta = _conjugate_gradient(lambda x: transpose(lin(x))[0] + lam * x, -g, cg_steps)
+    delta = conjugate_gradient(lambda x: transpose(lin(x))[0] + lam * x, -g, cg_steps)
     jd = lin(delta)
     predicted = -(jnp.sum(g * delta) + 0.5 * jnp.sum(jd * jd))
     u_new = jnp.clip((u + delta) * scale, 0.0, 255.0) / scale
