@@ -13,7 +13,7 @@ import json
 import jax
 import numpy as np
 
-__all__ = ["allgather_json", "fingerprint_across_processes", "held_rows", "local_rows", "row",
+__all__ = ["allgather_json", "fingerprint_across_processes", "held_rows", "host_row", "local_rows",
            "sum_over_processes", "to_host"]
 
 
@@ -77,7 +77,7 @@ def held_rows(x) -> dict:
     return out
 
 
-def row(x, i: int) -> np.ndarray:
+def host_row(x, i: int) -> np.ndarray:
     """Row ``i`` (leading axis) of ``x`` on the host, also of an array spread over
     processes whose row is held here."""
     if not isinstance(x, jax.Array) or x.is_fully_addressable:

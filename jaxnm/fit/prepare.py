@@ -32,7 +32,7 @@ from ._batching import (
     stack_rows,
     tap_groups,
 )
-from ._processes import held_rows
+from ._processes import held_rows, host_row
 from .problem import FitProblem, FitTarget, validate_problem
 
 __all__ = ["ViewBatch", "Prepared", "View", "prepare", "with_map_size", "view_key",
@@ -138,7 +138,7 @@ class Prepared:
                     raise IndexError(f"fit: view {v} is held by another process")
 
                 def row(x, i=i):
-                    return row(x, i)
+                    return host_row(x, i)
 
                 pixels = row(b.pixels)
                 keep = np.flatnonzero(pixels >= 0)

@@ -181,7 +181,7 @@ class FitResult:
     ground truth was given); ``stopped``: why it ended (``"converged"``,
     ``"no_progress"``, ``"max_steps"``, ``"time_limit"``, ``"interrupted"`` or a
     solver's failure); ``stop_test``: the test that ended it (a key of
-    `jaxnm.fit.solve.STOP_TESTS`); ``noise_floor``: the float32 rounding of the start's
+    `jaxnm.fit.stopping.STOP_TESTS`); ``noise_floor``: the float32 rounding of the start's
     loss, which a fit must beat to have made progress; ``identifiability``: the
     `check_identifiability` report.
     """

@@ -14,7 +14,7 @@ from .diagnostics import angular_error, error_report, psnr, seen_texels
 from .model import render_with_map
 from .prepare import Prepared, prepare
 from .problem import FitJob, FitResult
-from .solve import FULL_STEP_DAMPING, STOP_TESTS
+from .stopping import FULL_STEP_DAMPING, STOP_TESTS
 
 __all__ = ["FitOutputs", "fit_outputs", "fit_renders", "prepare_held_out", "score_held_out",
            "ERROR_MAP_RANGE_DEG", "stopped_in_words"]
