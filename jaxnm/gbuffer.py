@@ -253,6 +253,7 @@ def _tangent_frame(opts: RenderOptions, mesh: Mesh, frags, gb, bary) -> _frames.
     def low(x):  # a shader input at the shader's precision
         return at_precision(Attribute(x), prec, frags.mask, derivatives=None).value
 
+    options = _frames.FrameOptions(ddy_sign=opts.ddy_sign, double_sided=opts.double_sided)
     inputs = {}
     n = low(gb["normal"])
     if kind in _frames.SCREEN_FRAMES:
@@ -260,23 +261,21 @@ def _tangent_frame(opts: RenderOptions, mesh: Mesh, frags, gb, bary) -> _frames.
         inputs = dict(p_attr=at_precision(gb["view"], prec, frags.mask, derivatives=mode,
                                           pixels=quads),
                       uv_attr=at_precision(gb["uv"], prec, frags.mask, derivatives=mode,
-                                           pixels=quads),
-                      ddy_sign=opts.ddy_sign)
+                                           pixels=quads))
     elif kind in ("exact", "exact_face"):
         inputs = dict(tri_p=low(triangle_corners(mesh.positions, frags)),
                       tri_uv=low(triangle_corners(mesh.uv, frags)))
     elif kind == "vertex":  # MikkTSpace: per-corner tangents, the normal as interpolated
         at = interpolate({"t": mesh.tangents, "n": mesh.normals[mesh.faces]}, frags,
                          derivatives=None, bary=bary)
-        return _frames.compute_frame(kind, N=low(at["n"].value), tangent=low(at["t"].value),
-                                     front_facing=frags.front_facing,
-                                     double_sided=opts.double_sided)
+        return _frames.compute_frame(kind, low(at["n"].value), inputs=_frames.FrameInputs(
+            tangent=low(at["t"].value), front_facing=frags.front_facing), options=options)
     elif kind == "vertex_area":
         tangents = _frames.vertex_tangents(mesh.positions, mesh.normals, mesh.uv, mesh.faces)
         inputs = dict(tangent=low(interpolate(tangents, frags, derivatives=None,
                                               bary=bary).value))
-    return _frames.compute_frame(kind, N=n, front_facing=frags.front_facing,
-                                 double_sided=opts.double_sided, **inputs)
+    return _frames.compute_frame(kind, n, options=options, inputs=_frames.FrameInputs(
+        front_facing=frags.front_facing, **inputs))
 
 
 def _perturbed_normal(gb: GBuffer, normal_map: Array, opts: RenderOptions,

@@ -205,7 +205,8 @@ def shade_all(sc: Scene, *, frame: str = "cotangent", nm_opts=None) -> dict[str,
     gb = build_gbuffer(sc.mesh, sc.camera, jnp.asarray(sc.albedo), opts=opts)
     if frame == "axis":
         gb = dataclasses.replace(gb, frame=F.compute_frame(
-            "axis", N=gb.normal, front_facing=gb.front_facing, double_sided=True))
+            "axis", gb.normal, inputs=F.FrameInputs(front_facing=gb.front_facing),
+            options=F.FrameOptions(double_sided=True)))
     elif frame != "cotangent":
         raise ValueError(frame)
     if nm_opts is not None:
