@@ -43,7 +43,7 @@ def closed_shape(positions, faces) -> np.ndarray | None:
     seam's copies), every edge is used by exactly two faces, once in each direction (closed,
     manifold, consistently oriented; faces with two welded corners equal are dropped);
     outside: the enclosed volume (the sum of the faces' signed tetrahedra) is positive. On
-    the host, in float64/int64 (about 0.1 s for 200k triangles)."""
+    the host, in float64/int64 (a few passes over the faces)."""
     if not (_is_concrete(positions) and _is_concrete(faces)):
         return None
     return _closed_shape_arrays(np.asarray(positions, np.float64), np.asarray(faces, np.int64))

@@ -148,10 +148,9 @@ def to_clip(positions: Float[ArrayLike, "V 3"], camera: Camera) -> Float[Array, 
     p = jnp.asarray(positions)
     # Written out term by term rather than as matmuls: float32 products on any backend (a
     # GPU's default matmul precision, TF32, would round positions to 1e-4), and on the CPU
-    # a third of the time of two matmuls with an inner axis of 3. Each term is a column of
-    # positions times a row of the matrix, broadcast to (V, 3) then (V, 4): XLA's CPU loop
-    # over the (V, 4) result reads its inputs once; gathered column by column and stacked,
-    # the same sums took twice as long
+    # less time than two matmuls with an inner axis of 3. Each term is a column of positions
+    # times a row of the matrix, broadcast to (V, 3) then (V, 4): XLA's CPU loop over the
+    # (V, 4) result reads its inputs once (docs/guides/design.md, "Numerics")
     a, proj = camera.view[None, :3, :3], camera.projection[None]  # (1, 3, 3), (1, 4, 4)
     d = p - jnp.asarray(camera.eye)[None, :]
     e = d[:, 0:1] * a[:, :, 0] + d[:, 1:2] * a[:, :, 1] + d[:, 2:3] * a[:, :, 2]

@@ -54,8 +54,8 @@ def spread(x: ArrayLike, n: int = 3) -> Array:
     For a per-pixel scalar that scales a vector (a normalisation, a cosine times a
     colour): broadcasting it is free in the forward pass, but reverse mode transposes a
     broadcast into a reduction over the minor axis of ``n``, which XLA's CPU runs
-    through a library call an order of magnitude slower than it should be (one such
-    reduction over 65536 pixels took a fifth of a whole frame's gradient). The
+    through a library call an order of magnitude slower than it should be (in a frame's
+    gradient, such reductions dominated). The
     transpose of a concatenation is slices and elementwise adds, which fuse. The values
     are the same either way.
     """

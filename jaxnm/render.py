@@ -181,8 +181,8 @@ def _visible_placed(mesh: Mesh, camera: Camera, placement, *, width: int, height
     per-pixel program (`_packed_frame`, a fit's `covered_gbuffer`) then need not compute
     again. Only what visibility depends on is static, so `render` and `covered_gbuffer`
     share one compiled program per image size and culling. Two programs, not one with the
-    per-pixel stages: each keeps its own temporary buffers, which for a 200k-triangle mesh
-    together passed glibc's threshold for reusing freed memory."""
+    per-pixel stages: each keeps its own temporary buffers, which for a large mesh together
+    would pass the C library's threshold for reusing freed memory."""
     mesh = place(mesh, placement, affine)
     clip = materialize(to_clip(mesh.positions, camera))
     tid, orientation = triangle_ids(clip, mesh.faces.astype(jnp.int32), width=width,

@@ -180,6 +180,52 @@ def test_the_cross_module_private_name_check_can_fail(tmp_path):
                                                 "user.py:6 uses stage._secret"]
 
 
+#: A backticked (dotted) name in a docstring.
+_REFERENCE = re.compile(r"`+([A-Za-z_][\w.]*)")
+
+
+def _public_docstrings():
+    """``(name, docstring)`` of every public module, every name its ``__all__`` lists and
+    their public methods and properties."""
+    for mod in _modules():
+        if any(part.startswith("_") for part in mod.__name__.split(".")):
+            continue
+        yield mod.__name__, mod.__doc__ or ""
+        for n in getattr(mod, "__all__", ()):
+            obj = getattr(mod, n)
+            yield f"{mod.__name__}.{n}", inspect.getdoc(obj) or ""
+            if inspect.isclass(obj):
+                for k, v in vars(obj).items():
+                    if not k.startswith("_") and (inspect.isfunction(v)
+                                                  or isinstance(v, property)):
+                        yield f"{mod.__name__}.{n}.{k}", inspect.getdoc(v) or ""
+
+
+def _private_references(doc: str) -> list[str]:
+    """The names ``doc`` refers to that start with ``_`` (not dunders), and the jaxnm paths
+    through such a name."""
+    def private(part: str) -> bool:
+        return re.match(r"_[A-Za-z]", part) is not None
+
+    names = [m.group(1).rstrip(".") for m in _REFERENCE.finditer(doc)]
+    return [n for n in names if private(n) or (n.startswith("jaxnm.")
+                                               and any(map(private, n.split("."))))]
+
+
+def test_no_public_docstring_sends_users_to_a_private_name():
+    """What a user reads (the public modules, classes and functions) names public things
+    only: a private name may change or go without notice."""
+    bad = [f"{name}: {ref}" for name, doc in _public_docstrings()
+           for ref in _private_references(doc)]
+    assert not bad, bad
+
+
+def test_the_private_reference_check_can_fail():
+    doc = ("Computed by `_helper` (see `jaxnm.render._frame`, `jaxnm._exec.pixels`); "
+           "`os._exit`, `render`, ``__init__`` and ``-``/``_`` are fine.")
+    assert _private_references(doc) == ["_helper", "jaxnm.render._frame", "jaxnm._exec.pixels"]
+
+
 def test_scripts_use_only_the_public_api():
     """A ``_`` name is private to the jaxnm package: its modules share such names, but the
     scripts (examples, studies, benchmarks) use only what users may rely on."""

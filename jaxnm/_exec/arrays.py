@@ -34,8 +34,8 @@ def cumsum(x: ArrayLike, block: int = 8) -> Array:
     Exact (integer adds in the array's dtype, wrapping as they do). ``jnp.cumsum``
     lowers to a tree of reduce-windows and a gather-like combine. Here: running sums within
     blocks of ``block`` by ``log2(block)`` shifted adds, the blocks' totals summed the same
-    way, one level down (until a level fits in one block), then added back: about a quarter
-    of the time on XLA's CPU.
+    way, one level down (until a level fits in one block), then added back: a fraction of
+    the time on XLA's CPU (docs/guides/design.md).
     """
     x = jnp.asarray(x)
     if x.ndim != 1 or not jnp.issubdtype(x.dtype, jnp.integer):

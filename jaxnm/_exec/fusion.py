@@ -20,7 +20,8 @@ def materialize(x):
 
     A fusion barrier that XLA keeps: XLA CPU may fuse a producer (a texture
     gather, barycentric setup) into *every* consumer and recompute it per use,
-    which can cost 5-10x; `jax.lax.optimization_barrier` is dropped on CPU. The
+    which can cost several times the value itself; `jax.lax.optimization_barrier` is
+    dropped on CPU. The
     value goes through a while loop whose trip count (0 or 1; the body is an
     identity) depends on the data, so the compiler can neither delete the loop
     nor fuse across it. An identity for values and (forward and reverse)

@@ -175,7 +175,7 @@ def each_pass(fn, counts, carry, *, tiles: int, pass_slots: int):
     tiles) for that pass's triangles and 0 for the others; a single call with ``counts``
     itself where the frame cannot have more than ``pass_slots`` slots (faces x tiles;
     static). A while loop, not a ``lax.cond`` between it and one pass: XLA's CPU
-    conditional around the depth test made the whole frame slower at 200k triangles
+    conditional around the depth test made the whole frame slower for large meshes
     (the ``lax.cond`` below only chooses how the passes are counted)."""
     n = counts.shape[0]
     if n * tiles <= pass_slots:

@@ -119,8 +119,8 @@ def _snapped_setup(h: Array, faces: Array, on_grid: Array, *, width, height, blo
     Where also every corner is on the 1/256 grid (``on_grid``: snapped, the default), it
     drops the triangles whose box holds one or two pixel centres that the triangle clearly
     misses (`_misses_centre`): a dense mesh's many sub-pixel triangles cover no pixel at
-    all (the 200k torus at 512^2: 28,787 of its 72,897 triangles with a box, 36 % of the
-    (triangle, tile) slots), and the test costs less than their slots."""
+    all (about a third of a dense mesh's slots: docs/guides/design.md), and the test costs
+    less than their slots."""
     xy = materialize(h[:, :2])
     rows = [xy[faces[:, k]] for k in range(3)]
     x, y = materialize(([r[:, 0] for r in rows], [r[:, 1] for r in rows]))

@@ -23,6 +23,8 @@ __all__ = ["check_chunk", "chunking", "host", "light_key", "map_pixels", "stack_
 
 
 def stack_lights(lights: Sequence[Lights]) -> Lights:
+    """One view's targets' ``lights`` stacked along a new leading axis (NumPy), or a
+    `ValueError` where their kinds or counts differ."""
     structs = {jax.tree_util.tree_structure(light) for light in lights}
     shapes = {tuple(x.shape for x in jax.tree_util.tree_leaves(light)) for light in lights}
     if len(structs) != 1 or len(shapes) != 1:
@@ -33,6 +35,7 @@ def stack_lights(lights: Sequence[Lights]) -> Lights:
 
 
 def check_chunk(chunk) -> None:
+    """Raise a `ValueError` unless ``chunk`` is a positive number of pixel-targets or None."""
     if chunk is not None and chunk < 1:
         raise ValueError(f"prepare: chunk must be a positive number of pixel-targets or None, "
                          f"got {chunk}")
@@ -50,6 +53,8 @@ def map_pixels(gb: GBuffer, fn, eye=lambda x: x) -> GBuffer:
 
 
 def light_key(lights: Lights):
+    """What views must share to be batched together: their stacked lights' structure and
+    leaf shapes (but the target axis)."""
     leaves, tree = jax.tree_util.tree_flatten(lights)
     return tree, tuple(x.shape[1:] for x in leaves)
 

@@ -51,7 +51,8 @@ def texel_influence(prep: Prepared) -> np.ndarray:
     (a coarser level's texel passes its weight down through the transpose of
     `jaxnm.textures.build_mipmaps`' box filter); used to precondition the solve (see
     `fit_normal_map`). Computed on the host in float64: as an XLA program (the sampling's
-    VJP) it compiled in 0.04 s on the CPU but 1.4 s on an H100 with deterministic ops.
+    VJP) it would cost a compilation per problem shape, long on a GPU with deterministic
+    ops.
     """
     h, w = prep.options[0].normal_map_shape
     shapes = _tex.mip_sizes((h, w), prep.options[0].levels)
@@ -62,9 +63,9 @@ def texel_influence(prep: Prepared) -> np.ndarray:
         idx = local_rows(b.gbuffer.plan.index)[1]
         idx = idx.reshape(-1, idx.shape[-1])  # (pixels of every view, taps)
         weight = local_rows(b.gbuffer.plan.weight)[1].reshape(idx.shape)
-        # in pieces: float64 copies of a 64-view batch's taps at once (~1M pixels x 8
-        # taps) held ~200 MB for a moment, the fit's peak. Each piece's count is as long as
-        # the levels, so a piece is never much shorter
+        # in pieces: float64 copies of a large batch's taps at once would be the fit's peak
+        # memory. Each piece's count is as long as the levels, so a piece is never much
+        # shorter
         rows = max(_INFLUENCE_ROWS, acc.size // idx.shape[1])
         for k in range(0, idx.shape[0], rows):
             wt = weight[k:k + rows].astype(np.float64) * used[k:k + rows, None]

@@ -192,7 +192,7 @@ def _reduced_batch(batch: ViewBatch, mips, material: Material, opts: RenderOptio
     return _over_chunks(batch, one, 1).reshape(-1)
 
 
-@jax.jit  # one program per problem shape: op by op, the reduced form took ~10 s a call
+@jax.jit  # one program per problem shape (op by op, the reduced form is far slower)
 def residuals(z: Array, args: ModelArgs) -> tuple[Array, ...]:
     """The weighted differences between the renders and the targets, one flat array per
     `ViewBatch`, and the smoothness residuals (if any); ``z`` (h, w, 2) are the

@@ -40,10 +40,10 @@ __all__ = ["ViewBatch", "Prepared", "View", "prepare", "with_map_size", "view_ke
 
 #: Default of `prepare`'s ``chunk``: at most this many pixel-targets (a pixel under one
 #: light) are evaluated at once by a fit step. A step's working memory (the shading, its
-#: forward-mode tangents and the per-pixel Jacobian blocks: ~170 B per pixel-target on the
-#: CPU) grows with this, not with the number of views or their size. Problems smaller than
-#: this (``jaxnm fit``'s built-in one has 1.2 M) run in one piece: a loop over chunks costs
-#: ~0.9 s more compilation and ~10 % per step.
+#: forward-mode tangents and the per-pixel Jacobian blocks) grows with this, not with the
+#: number of views or their size. Problems smaller than this (``jaxnm fit``'s built-in one)
+#: run in one piece: a loop over chunks costs compilation and time per step
+#: (docs/guides/fitting.md).
 CHUNK = 1 << 21
 
 

@@ -82,14 +82,12 @@ def make_solver(options: FitOptions):
 def texel_sums_for(prep: Prepared, options: FitOptions, backend: str | None = None,
                    deterministic: bool | None = None) -> str:
     """What ``options.texel_sums`` means for ``prep`` on ``backend`` (JAX's default if None)
-    with or without deterministic GPU ops (`_deterministic_ops` if None):
+    with or without deterministic GPU ops (if None: whether ``XLA_FLAGS`` asks for them):
     ``"tables"`` or ``"scatter"``.
 
     ``"auto"`` is tables on an accelerator with deterministic ops (as the command line
     runs), where XLA would otherwise sort every scatter-add's indices, and scatter-adds
-    elsewhere. Measured on an H100 (README, GPU), the fit benchmark's step of 10
-    conjugate-gradient iterations: deterministic ops 11.0-11.2 ms with scatter-adds, 6.3-7.6
-    with tables; without them 5.1 and 7.3 ms; on the CPU 32-36 against 38-45 ms. Always
+    elsewhere, where they are the faster (docs/guides/design.md has the timings). Always
     scatter-adds for solvers other than ``"lm-texel"`` and for views spread over several
     devices (a chunk's tables index the pixels of all its views)."""
     spread = len(prep.batches[0].pixels.sharding.device_set) > 1
@@ -143,8 +141,8 @@ def _holds_two_linearisations(solver) -> bool:
 
 def _shed(solver, state):
     """``state`` with the descent's copy of the linearisation dropped: out of a compiled
-    step, two references to one value are two buffers (38 MB each for the built-in
-    problem, and again in the step's output)."""
+    step, two references to one value are two buffers (the size of the problem's
+    linearisation each, and again in the step's output)."""
     if not _holds_two_linearisations(solver):
         return state
     return eqx.tree_at(lambda s: s.descent_state.f_info, state, None)

@@ -104,9 +104,9 @@ def texel_sum_tables(prepared: Prepared) -> tuple[tuple[SumTables, ...], ...]:
     """For each `ViewBatch` of ``prepared`` and each of its pixel groups, the fixed-order
     texel sums (`jaxnm.textures.plan_sum_tables`) of every chunk's taps, stacked by chunk:
     what a step's texel-space sums use in place of scatter-adds (`FitOptions.texel_sums`).
-    Built on the host, once per fit (the taps do not change between steps): ~0.01 s for
-    the benchmark's 51k pixels. The indices are copied to the host whole and cut there
-    (cutting them on a GPU would compile a program per cut)."""
+    Built on the host, once per fit (the taps do not change between steps). The indices
+    are copied to the host whole and cut there (cutting them on a GPU would compile a
+    program per cut)."""
     out = []
     for batch in prepared.batches:
         plan = batch.gbuffer.plan
@@ -296,8 +296,8 @@ class TexelLM:
 
     def init(self, z: Array, args: ModelArgs) -> TexelLMState:
         """The state before the first step (which evaluates ``z``): zeros made on the host
-        and put on the device in buffers of their own (as an XLA program it compiled in
-        0.02 s on the CPU, 0.1 s on an H100)."""
+        and put on the device in buffers of their own (as an XLA program it would be one
+        more compilation)."""
         dt = np.dtype(z.dtype)
         factors = tuple(tuple(np.zeros(shape, dt) for shape in _factor_shapes(b))
                         for b in args.prepared.batches)
