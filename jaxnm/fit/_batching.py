@@ -7,16 +7,12 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
 
 import jax
 import numpy as np
 
 from ..gbuffer import GBuffer
 from ..shading import Lights
-
-if TYPE_CHECKING:
-    from .prepare import View
 
 __all__ = ["check_chunk", "chunking", "host", "light_key", "map_pixels", "stack_lights",
            "stack_rows", "tap_groups"]
@@ -68,9 +64,9 @@ def chunking(count: int, per_chunk: int | None) -> tuple[int, int]:
     return n, n * -(-count // n)
 
 
-def tap_groups(view: View) -> tuple[np.ndarray, np.ndarray]:
-    """The indices of ``view``'s pixels that read one mip level (4 non-zero taps) and of the
-    others (see `jaxnm.fit.prepare.assemble`)."""
+def tap_groups(view) -> tuple[np.ndarray, np.ndarray]:
+    """The indices of ``view``'s pixels (a `jaxnm.fit.prepare.View`) that read one mip level
+    (4 non-zero taps) and of the others (see `jaxnm.fit.prepare.assemble`)."""
     w = np.asarray(view.gbuffer.plan.weight)
     one = (np.all(w[:, 4:] == 0, axis=-1) if view.gbuffer.plan.num_taps == 8
            else np.zeros(len(w), bool))
