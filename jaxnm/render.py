@@ -21,14 +21,14 @@ from ._exec import pixels
 from ._exec.fusion import materialize
 from ._relative import NO_SHIFT, place, relative_inputs
 from .camera import Camera, to_clip
-from .gbuffer import OUTPUTS, GBuffer, RenderOptions, gbuffer_from_fragments, shade_gbuffer
+from .gbuffer import OUTPUTS as OUTPUTS  # (also here: where render's outputs are listed)
+from .gbuffer import GBuffer, RenderOptions, gbuffer_from_fragments, shade_gbuffer
 from .geometry import Mesh
 from .interpolate import require_x64
 from .raster import compact, rasterize, triangle_ids
 from .scene import Scene, default_lights, default_material
 
-__all__ = ["OUTPUTS", "GBuffer", "RenderOptions", "build_gbuffer", "covered_gbuffer",
-           "shade_gbuffer", "render"]
+__all__ = ["render", "build_gbuffer", "covered_gbuffer"]
 
 #: The outputs that visibility alone gives.
 _GEOMETRY_OUTPUTS = {"mask", "triangle_id", "depth", "front_facing"}

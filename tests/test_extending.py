@@ -60,8 +60,9 @@ def test_each_example_works_on_a_copy_with_its_changes(section, tmp_path):
     before = _run(program, package)
     assert before.returncode != 0, "the example's code passes without its changes"
     for diff in diffs:
-        applied = subprocess.run(["patch", "-p1", "--forward", "--fuzz=0", "--no-backup-if-mismatch"],
-                                 input=diff, cwd=package, capture_output=True, text=True)
+        applied = subprocess.run(
+            ["patch", "-p1", "--forward", "--fuzz=0", "--no-backup-if-mismatch"],
+            input=diff, cwd=package, capture_output=True, text=True)
         assert applied.returncode == 0, applied.stdout + applied.stderr
     after = _run(program, package)
     assert after.returncode == 0, after.stderr[-3000:]

@@ -71,9 +71,10 @@ import pytest
 
 import jaxnm
 from jaxnm import frames as F
+from jaxnm.gbuffer import RenderOptions, shade_gbuffer
 from jaxnm.geometry import Mesh
 from jaxnm.maps import height_to_normal_map
-from jaxnm.render import RenderOptions, build_gbuffer, render, shade_gbuffer
+from jaxnm.render import build_gbuffer, render
 from jaxnm.scene import Scene
 from jaxnm.shading import DirectionalLight, Lights, Material, stack_lights
 from jaxnm.textures import NormalMapOptions, encode_normal_map, quantize

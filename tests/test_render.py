@@ -248,7 +248,7 @@ def test_options_are_validated_however_they_are_built(plane_scene):
     """A bad option is refused when its object is made, not inside `render`."""
     import dataclasses
 
-    from jaxnm.render import RenderOptions
+    from jaxnm.gbuffer import RenderOptions
     from jaxnm.textures import NormalMapOptions
 
     with pytest.raises(ValueError, match="wrap='bogus'"):
@@ -437,7 +437,7 @@ def test_packed_pixels_render_what_the_whole_image_renders(frame, derivatives, p
     position, quad partners included): coverage, ids and facing exactly, the rest to float32
     rounding."""
     from jaxnm.camera import Camera, look_at, perspective
-    from jaxnm.render import OUTPUTS
+    from jaxnm.gbuffer import OUTPUTS
 
     sc = default_scene(width=96, height=64)
     sc = sc.replace(mesh=sc.mesh.with_tangents(), camera=Camera.from_matrices(
@@ -616,7 +616,8 @@ def test_covered_gbuffer_is_the_whole_images_at_the_covered_pixels(derivatives):
     import jax
 
     from jaxnm.camera import Camera, look_at, perspective
-    from jaxnm.render import RenderOptions, build_gbuffer, covered_gbuffer
+    from jaxnm.gbuffer import RenderOptions
+    from jaxnm.render import build_gbuffer, covered_gbuffer
 
     sc = default_scene(width=48, height=32)
     sc = sc.replace(camera=Camera.from_matrices(
@@ -761,7 +762,8 @@ def test_render_and_a_fits_prepare_share_one_visibility_program():
     compiles its per-pixel program only (a second rasterizer was a second of `jaxnm fit`)."""
     import jax
 
-    from jaxnm.render import RenderOptions, covered_gbuffer
+    from jaxnm.gbuffer import RenderOptions
+    from jaxnm.render import covered_gbuffer
 
     if jax.default_backend() != "cpu":
         pytest.skip("on a GPU `render` runs the whole image in one program: no visibility "
