@@ -64,6 +64,7 @@ class RasterStrategy:
 #: round, so it wants few large rounds. docs/guides/design.md has the measurements
 #: (``python -m scripts.benchmarks.bench --parts raster``).
 MAX_SLOTS = {"cpu": 1 << 15}
+#: The most slots per round on a backend `MAX_SLOTS` does not name (GPUs).
 MAX_SLOTS_ACCELERATOR = 1 << 19
 
 
