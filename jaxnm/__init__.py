@@ -5,7 +5,8 @@ The pipeline, one verb per stage::
     clip  = jaxnm.to_clip(mesh.positions, camera)                 # camera
     frags = jaxnm.rasterize(clip, mesh.faces, width=W, height=H)  # raster
     attrs = jaxnm.interpolate({"p": ..., "uv": ...}, frags, derivatives="fine")
-    frame = jaxnm.compute_frame("cotangent", N=n, p_attr=attrs["p"], uv_attr=attrs["uv"])
+    frame = jaxnm.compute_frame("cotangent", n, inputs=jaxnm.frames.FrameInputs(
+        p_attr=attrs["p"], uv_attr=attrs["uv"]))
     m     = jaxnm.decode_normal_map(jaxnm.sample(mips, attrs["uv"], filter="trilinear"))
     n2    = jaxnm.perturb_normal(frame, m)
     rgb   = jaxnm.shade("blinn_phong", n2, p, camera.eye, lights, material)

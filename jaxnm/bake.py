@@ -90,8 +90,10 @@ def _frame_of(frame: str, *args) -> _frames.Frame:
     if frame in ("cotangent", "exact"):
         return _frames.exact_frame(*args)
     if frame == "vertex":
-        return _frames.compute_frame("vertex", N=args[0], tangent=args[1])
-    return _frames.compute_frame("vertex_area", N=args[0], tangent=args[1])
+        return _frames.compute_frame("vertex", args[0],
+                                     inputs=_frames.FrameInputs(tangent=args[1]))
+    return _frames.compute_frame("vertex_area", args[0],
+                                 inputs=_frames.FrameInputs(tangent=args[1]))
 
 
 def world_to_tangent(mesh: Mesh, tri: np.ndarray, bary: np.ndarray, normals: np.ndarray, *,

@@ -20,7 +20,8 @@ from jaxtyping import ArrayLike, Float
 #: Matrix products of geometry are computed in full float32 on every backend.
 _HIGHEST = jax.lax.Precision.HIGHEST
 
-__all__ = ["Camera", "look_at", "perspective", "orthographic", "to_clip", "eye_to_world"]
+__all__ = ["Camera", "look_at", "perspective", "orthographic", "to_clip", "to_window",
+           "eye_to_world"]
 
 
 @jax.tree_util.register_dataclass
@@ -147,10 +148,9 @@ def to_clip(positions: Float[ArrayLike, "V 3"], camera: Camera) -> Float[Array, 
     p = jnp.asarray(positions)
     # Written out term by term rather than as matmuls: float32 products on any backend (a
     # GPU's default matmul precision, TF32, would round positions to 1e-4), and on the CPU
-    # a third of the time of two matmuls with an inner axis of 3. Each term is a column of
-    # positions times a row of the matrix, broadcast to (V, 3) then (V, 4): XLA's CPU loop
-    # over the (V, 4) result reads its inputs once; gathered column by column and stacked,
-    # the same sums took twice as long
+    # less time than two matmuls with an inner axis of 3. Each term is a column of positions
+    # times a row of the matrix, broadcast to (V, 3) then (V, 4): XLA's CPU loop over the
+    # (V, 4) result reads its inputs once (docs/guides/design.md, "Numerics")
     a, proj = camera.view[None, :3, :3], camera.projection[None]  # (1, 3, 3), (1, 4, 4)
     d = p - jnp.asarray(camera.eye)[None, :]
     e = d[:, 0:1] * a[:, :, 0] + d[:, 1:2] * a[:, :, 1] + d[:, 2:3] * a[:, :, 2]
@@ -158,18 +158,13 @@ def to_clip(positions: Float[ArrayLike, "V 3"], camera: Camera) -> Float[Array, 
             + proj[:, :, 3])
 
 
-def _clip_float64(points, camera: Camera, model=None) -> np.ndarray:
-    """`to_clip` on the host in float64: clip-space coordinates (N, 4) of object-space
-    ``points`` (N, 3) moved by ``model`` (an affine 4x4 object-to-world matrix, or None)
-    and seen by a concrete ``camera``. For decisions made before a frame's programs run
-    (the near-plane check, back-face culling)."""
-    p = np.asarray(points, np.float64)
-    if model is not None:
-        m = np.asarray(model, np.float64)
-        p = p @ m[:3, :3].T + m[:3, 3]
-    rot = np.asarray(camera.view, np.float64)[:3, :3]
-    proj = np.asarray(camera.projection, np.float64)
-    return ((p - np.asarray(camera.eye, np.float64)) @ rot.T) @ proj[:, :3].T + proj[:, 3]
+def to_window(clip: Float[ArrayLike, "*batch 4"], width: int,
+              height: int) -> Float[Array, "*batch 4"]:
+    """Homogeneous window coordinates ``((X + W) w/2, (Y + W) h/2, (Z + W)/2, W)`` of clip
+    points ``(X, Y, Z, W)`` in a ``width`` x ``height`` image: dividing the first three by
+    the last gives window x, y (pixels, y up) and the window depth in [0, 1]."""
+    x, y, z, w = jnp.moveaxis(clip, -1, 0)
+    return jnp.stack([(x + w) * (0.5 * width), (y + w) * (0.5 * height), (z + w) * 0.5, w], -1)
 
 
 def eye_to_world(camera: Camera, direction) -> np.ndarray:

@@ -78,8 +78,8 @@ from .maps import height_to_derivative_map
 from .procedural import BUILTIN_MESHES, builtin_mesh, default_normal_map_texels
 from .scene import (
     Scene,
-    _check_scene_options,
     back_faces_hidden,
+    check_scene_options,
     default_material,
     validate_scene,
 )
@@ -88,7 +88,7 @@ from .textures import NormalMapOptions, decode_normal_map, srgb_to_linear
 
 __all__ = [
     "load_scene", "scene_from_dict", "load_fit", "fit_from_dict", "SCENE_KEYS", "FIT_KEYS",
-    "TANGENT_MODES"
+    "TANGENT_MODES", "load_height_map"
 ]
 
 SCENE_KEYS = ("mesh", "model", "camera", "width", "height", "normal_map", "height_map",
@@ -355,9 +355,10 @@ def _height_map_loader(spec: Any, *, base_dir=".", where: str = ""):
     return load
 
 
-def _load_height_map(spec: Any, *, base_dir=".", where: str = ""):
-    """``(derivative map, NormalMapOptions)`` from a ``height_map`` entry
-    (`_height_map_loader`, read at once)."""
+def load_height_map(spec: Any, *, base_dir=".", where: str = ""):
+    """``(derivative map, NormalMapOptions)`` from a scene file's ``height_map`` entry
+    ``spec`` (paths relative to ``base_dir``; ``where`` names the entry in errors), read at
+    once."""
     return _height_map_loader(spec, base_dir=base_dir, where=where)()
 
 
@@ -454,7 +455,7 @@ def _scene_loader(data: Any, *, base_dir=".", source: str = "<dict>"):
                          f"{tangent_mode!r}")
     if data.get("normal_map") is not None and data.get("height_map") is not None:
         raise ValueError(f"{where}give either 'normal_map' or 'height_map', not both")
-    _check_scene_options(width=width, height=height, shading=shading, source=source, **options)
+    check_scene_options(width=width, height=height, shading=shading, source=source, **options)
     if "mesh" not in data:
         raise ValueError(f"{where}missing required key 'mesh'")
     # the files: each found now, read below

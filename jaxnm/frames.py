@@ -62,7 +62,9 @@ from .numerics import dot as _ndot
 from .numerics import eps, safe_norm, safe_normalize, safe_rsqrt, spread, tiny
 
 __all__ = [
-    "FRAMES", "FRAME_ALIASES", "SCREEN_FRAMES", "Frame", "canonical_frame", "axis_frame",
+    "FRAMES", "FRAME_ALIASES", "SCREEN_FRAMES", "Frame", "FrameInputs", "FrameOptions",
+    "canonical_frame", "check_frame",
+    "axis_frame",
     "compute_frame", "cotangent_frame",
     "exact_frame", "face_forward", "nonperspective_frame", "perturb_normal", "vertex_frame",
     "vertex_tangents", "mikktspace_frame", "gram_schmidt_frame", "separate_frame", "cross_frame",
@@ -463,7 +465,7 @@ def exact_frame(tri_p: Array, tri_uv: Array, N: Array | None = None, *,
 
     **Arguments:**
     - `tri_p`: ``(..., 3, 3)`` the triangle's corner positions
-      (`jaxnm.interpolate._triangle_corners`).
+      (`jaxnm.interpolate.triangle_corners`).
     - `tri_uv`: ``(..., 3, 2)`` the corner uvs.
     - `N`: ``(..., 3)`` unit interpolated normal, or None for the face normal.
       It is the frame's ``N``, and builds the perpendiculars unless
@@ -510,10 +512,10 @@ def vertex_tangents(positions: Array, normals: Array, uv: Array, faces: Array) -
     made orthogonal to the unit vertex normal (Gram-Schmidt) and normalised;
     the handedness is ``w = sign((N x T) . b_sum)`` (``+1`` when that is 0).
 
-    A vertex whose summed tangent is shorter than `_VERTEX_TANGENT_CANCELLATION`
-    times its summed weights (no valid triangle, tangents parallel to ``N``, or
-    cancelling tangents on a shared mirrored-uv seam) gets the deterministic
-    fallback `axis_frame` tangent of its normal (zero if the normal is zero).
+    A vertex whose summed tangent is shorter than 1e-3 times its summed weights (no valid
+    triangle, tangents parallel to ``N``, or cancelling tangents on a shared mirrored-uv
+    seam) gets the deterministic fallback `axis_frame` tangent of its normal (zero if the
+    normal is zero).
 
     **Arguments:**
     - `positions`: ``(V, 3)``; `normals`: ``(V, 3)``; `uv`: ``(V, 2)``; `faces`: ``(F, 3)`` int.
@@ -692,7 +694,7 @@ def _derivs(attr, name: str, frame: str):
     return attr.ddx, attr.ddy
 
 
-def _check_frame(frame: str) -> None:
+def check_frame(frame: str) -> None:
     """Raise a `ValueError` unless ``frame`` is one of `FRAMES`."""
     if frame not in FRAMES:
         raise ValueError(f"unknown frame {frame!r}; expected one of {', '.join(FRAMES)}"
@@ -719,82 +721,116 @@ def canonical_frame(name: str, *, strict: bool = True) -> str | None:
     return found
 
 
-def compute_frame(frame: str, *, N: Array | Attribute, p_attr: Attribute | None = None,
-                  uv_attr: Attribute | None = None, tri_p: Array | None = None,
-                  tri_uv: Array | None = None, tangent: Array | Attribute | None = None,
-                  front_facing: Array | None = None, double_sided: bool = False,
-                  normalize: str = "max", ddy_sign: int = 1) -> Frame:
-    r"""Build the frame named by `frame` (one of `FRAMES`) per pixel.
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class FrameInputs:
+    """What `compute_frame` builds a frame from at each pixel, besides the normal. Each frame
+    reads its own fields; the others may be None.
 
-    **Arguments** (all but `frame` keyword-only; `frame`, `normalize`,
-    `ddy_sign`, `double_sided` are static):
+    **Fields:**
+    - `p_attr`, `uv_attr`: position (world or camera-relative) and uv `Attribute`s with
+      derivatives: the `SCREEN_FRAMES`.
+    - `tri_p`, `tri_uv`: ``(..., 3, 3)``, ``(..., 3, 2)`` corners of each pixel's triangle
+      (`jaxnm.interpolate.triangle_corners`): ``"exact"``, ``"exact_face"``.
+    - `tangent`: ``(..., 4)`` interpolated tangent and sign: per-corner MikkTSpace tangents
+      (`jaxnm.tangents`) for ``"vertex"``, `vertex_tangents` for ``"vertex_area"``.
+    - `front_facing`: ``(...)`` bool, needed where `FrameOptions.double_sided`.
+    """
+
+    p_attr: Attribute | None = None
+    uv_attr: Attribute | None = None
+    tri_p: Array | None = None
+    tri_uv: Array | None = None
+    tangent: Array | Attribute | None = None
+    front_facing: Array | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameOptions:
+    """How `compute_frame` builds a frame (static; checked when constructed).
+
+    **Fields:**
+    - `normalize`: see `cotangent_frame` (also for ``"nonperspective"`` and ``"exact"``;
+      ``"cotangent_unnormalized"`` always uses ``"none"``).
+    - `ddy_sign`: see `cotangent_frame` (the `SCREEN_FRAMES`).
+    - `double_sided`: apply `face_forward` to back-facing fragments (after re-orienting
+      the published cotangent frame, see there); needs `FrameInputs.front_facing`.
+    """
+
+    normalize: str = "max"
+    ddy_sign: int = 1
+    double_sided: bool = False
+
+    def __post_init__(self):
+        _check_normalize(self.normalize)
+        _check_ddy_sign(self.ddy_sign)
+
+
+def compute_frame(frame: str, N: Array | Attribute, *, inputs: FrameInputs = FrameInputs(),
+                  options: FrameOptions = FrameOptions()) -> Frame:
+    r"""Build the frame named by `frame` (one of `FRAMES`, static) per pixel.
+
+    **Arguments:**
     - `N`: ``(..., 3)`` interpolated normal (or its `Attribute`); normalised here.
-    - `p_attr`, `uv_attr`: position (world or camera-relative) and uv
-      `Attribute`s with derivatives: the `SCREEN_FRAMES`.
-    - `tri_p`, `tri_uv`: ``(..., 3, 3)``, ``(..., 3, 2)`` corners
-      (`jaxnm.interpolate._triangle_corners`): ``"exact"``, ``"exact_face"``.
-    - `tangent`: ``(..., 4)`` interpolated tangent and sign: per-corner MikkTSpace
-      tangents (`jaxnm.tangents`) for ``"vertex"``, `vertex_tangents` for
-      ``"vertex_area"``.
-    - `front_facing`: ``(...)`` bool, required when `double_sided`.
-    - `double_sided`: apply `face_forward` to back-facing fragments (after
-      re-orienting the published cotangent frame, see there).
-    - `normalize`, `ddy_sign`: see `cotangent_frame` (``normalize`` also for
-      ``"nonperspective"`` and ``"exact"``; ``"cotangent_unnormalized"`` always
-      uses ``"none"``; ``ddy_sign`` for the `SCREEN_FRAMES`).
+    - `inputs`: a `FrameInputs` with what the frame reads (`SCREEN_FRAMES`: the position
+      and uv with derivatives; ``"exact"``: the triangle's corners; ``"vertex"``,
+      ``"vertex_area"``: the interpolated tangent).
+    - `options`: a `FrameOptions`.
 
     **Returns:** a `Frame` for `perturb_normal`. Where `N` is (numerically)
     zero, e.g. background pixels, every method returns ``T = B = N = 0``, so
     `perturb_normal` gives the zero vector there (not NaN).
     """
-    _check_frame(frame)
+    check_frame(frame)
+    normalize = options.normalize
     if frame == "cotangent_unnormalized":
         frame, normalize = "cotangent", "none"
     use_face_normal = frame == "exact_face"
     if use_face_normal:
         frame = "exact"
-    _check_normalize(normalize)
-    _check_ddy_sign(ddy_sign)
     n = safe_normalize(_value(N))
-    if frame == "none":
-        out = Frame(jnp.zeros_like(n), jnp.zeros_like(n), n)
-    elif frame in ("cotangent", "nonperspective"):
-        dp1, dp2 = _derivs(p_attr, "p_attr", frame)
-        duv1, duv2 = _derivs(uv_attr, "uv_attr", frame)
-        fn = cotangent_frame if frame == "cotangent" else nonperspective_frame
-        out = fn(n, dp1, dp2, duv1, duv2, normalize=normalize, ddy_sign=ddy_sign)
-    elif frame in _SCREEN_VARIANTS:
-        dp1, dp2 = _derivs(p_attr, "p_attr", frame)
-        duv1, duv2 = _derivs(uv_attr, "uv_attr", frame)
-        out = _SCREEN_VARIANTS[frame](n, dp1, dp2, duv1, duv2, ddy_sign=ddy_sign)
-    elif frame == "exact":
-        if tri_p is None or tri_uv is None:
-            raise ValueError("compute_frame(frame='exact') needs `tri_p` and `tri_uv` "
-                             "(see jaxnm.interpolate._triangle_corners)")
-        out = exact_frame(tri_p, tri_uv, n, use_face_normal=use_face_normal, normalize=normalize)
-    elif frame == "vertex":
-        if tangent is None:
-            raise ValueError("compute_frame(frame='vertex') needs `tangent` (interpolated "
-                             "MikkTSpace tangents and signs, (..., 4))")
-        t = _value(tangent)
-        # MikkTSpace decodes with the interpolated normal as it is, not normalised
-        out = mikktspace_frame(t[..., :3], t[..., 3], jnp.where(_dot(n, n, True) > 0,
-                                                                _value(N), 0.0))
-    elif frame == "vertex_area":
-        if tangent is None:
-            raise ValueError("compute_frame(frame='vertex_area') needs `tangent` "
-                             "(interpolated vertex_tangents, (..., 4))")
-        t = _value(tangent)
-        out = vertex_frame(t[..., :3], t[..., 3], n)
-    else:
-        out = axis_frame(n)
+    out = _frame_of(frame, n, N, inputs, normalize, options.ddy_sign, use_face_normal)
     has_n = _dot(n, n, True) > 0
     out = Frame(jnp.where(has_n, out.T, 0.0), jnp.where(has_n, out.B, 0.0), out.N)
-    if double_sided:
-        if front_facing is None:
-            raise ValueError("compute_frame(double_sided=True) needs `front_facing`")
+    if options.double_sided:
+        if inputs.front_facing is None:
+            raise ValueError("compute_frame with FrameOptions(double_sided=True) needs "
+                             "FrameInputs.front_facing")
         if (frame == "cotangent" and normalize == "max") or frame in _VIEW_ORIENTED:
-            s = jnp.where(jnp.asarray(front_facing)[..., None], 1.0, -1.0).astype(out.T.dtype)
+            s = jnp.where(jnp.asarray(inputs.front_facing)[..., None], 1.0,
+                          -1.0).astype(out.T.dtype)
             out = Frame(out.T * s, out.B * s, out.N)
-        out = face_forward(out, front_facing)
+        out = face_forward(out, inputs.front_facing)
     return out
+
+
+def _frame_of(frame: str, n: Array, N, inputs: FrameInputs, normalize: str, ddy_sign: int,
+              use_face_normal: bool) -> Frame:
+    """`compute_frame`'s frame before the background is zeroed and back faces turned:
+    ``n`` is the unit normal, ``N`` the normal as given."""
+    if frame == "none":
+        return Frame(jnp.zeros_like(n), jnp.zeros_like(n), n)
+    if frame in ("cotangent", "nonperspective") or frame in _SCREEN_VARIANTS:
+        dp1, dp2 = _derivs(inputs.p_attr, "p_attr", frame)
+        duv1, duv2 = _derivs(inputs.uv_attr, "uv_attr", frame)
+        if frame in _SCREEN_VARIANTS:
+            return _SCREEN_VARIANTS[frame](n, dp1, dp2, duv1, duv2, ddy_sign=ddy_sign)
+        fn = cotangent_frame if frame == "cotangent" else nonperspective_frame
+        return fn(n, dp1, dp2, duv1, duv2, normalize=normalize, ddy_sign=ddy_sign)
+    if frame == "exact":
+        if inputs.tri_p is None or inputs.tri_uv is None:
+            raise ValueError("compute_frame(frame='exact') needs FrameInputs.tri_p and tri_uv "
+                             "(see jaxnm.interpolate.triangle_corners)")
+        return exact_frame(inputs.tri_p, inputs.tri_uv, n, use_face_normal=use_face_normal,
+                           normalize=normalize)
+    if frame in ("vertex", "vertex_area"):
+        if inputs.tangent is None:
+            raise ValueError(f"compute_frame(frame={frame!r}) needs FrameInputs.tangent "
+                             "(interpolated tangents and signs, (..., 4))")
+        t = _value(inputs.tangent)
+        if frame == "vertex_area":
+            return vertex_frame(t[..., :3], t[..., 3], n)
+        # MikkTSpace decodes with the interpolated normal as it is, not normalised
+        return mikktspace_frame(t[..., :3], t[..., 3], jnp.where(_dot(n, n, True) > 0,
+                                                                 _value(N), 0.0))
+    return axis_frame(n)

@@ -17,11 +17,12 @@ import numpy as np
 from jax import Array
 from jaxtyping import ArrayLike, Float, Integer
 
-from .camera import _HIGHEST
 from .numerics import angle_between, safe_normalize
 from .numerics import cross as _cross
 
-__all__ = ["Mesh", "face_normals", "vertex_normals"]
+__all__ = ["Mesh", "face_normals", "vertex_normals", "check_mesh_arrays"]
+
+_HIGHEST = jax.lax.Precision.HIGHEST
 
 
 @jax.tree_util.register_dataclass
@@ -144,8 +145,8 @@ def vertex_normals(positions: Float[ArrayLike, "V 3"], faces: Integer[ArrayLike,
     return safe_normalize(acc)
 
 
-def _validate_arrays(positions, faces, uv=None, normals=None, *, source: str = "mesh",
-                    values: bool = True) -> None:
+def check_mesh_arrays(positions, faces, uv=None, normals=None, *, source: str = "mesh",
+                      values: bool = True) -> None:
     """Raise ``ValueError`` naming ``source`` if the mesh arrays are unusable.
 
     Checks shapes and dtypes (always), and, with ``values``, for concrete (not traced)
@@ -175,7 +176,7 @@ def _validate_arrays(positions, faces, uv=None, normals=None, *, source: str = "
 
 
 def _check_values(positions, faces, uv, normals, num_vertices: int, source: str) -> None:
-    """The value checks of `_validate_arrays`, on whichever arrays are concrete."""
+    """The value checks of `check_mesh_arrays`, on whichever arrays are concrete."""
     if _is_concrete(positions):
         bad = ~np.all(np.isfinite(np.asarray(positions)), axis=1)
         if bad.any():
@@ -196,41 +197,3 @@ def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
-def _closed_shape(positions, faces) -> np.ndarray | None:
-    """The bounding box (2, 3) float64 (min, max) of a mesh that encloses a volume with its
-    counter-clockwise (front) faces outside, else None (also for traced arrays): such a
-    mesh, seen from outside, shows only front faces (`jaxnm.scene.back_faces_hidden`).
-
-    Enclosing: after welding vertices at equal positions (to 1e-6 of the mesh's extent: a uv
-    seam's copies), every edge is used by exactly two faces, once in each direction (closed,
-    manifold, consistently oriented; faces with two welded corners equal are dropped);
-    outside: the enclosed volume (the sum of the faces' signed tetrahedra) is positive. On
-    the host, in float64/int64 (about 0.1 s for 200k triangles)."""
-    if not (_is_concrete(positions) and _is_concrete(faces)):
-        return None
-    return _closed_shape_host(np.asarray(positions, np.float64), np.asarray(faces, np.int64))
-
-
-def _closed_shape_host(p: np.ndarray, f: np.ndarray) -> np.ndarray | None:
-    if p.shape[0] == 0 or f.shape[0] == 0 or not np.all(np.isfinite(p)):
-        return None
-    # positions equal up to rounding (a seam's copies: cos 2pi vs cos 0) weld together
-    step = 1e-6 * max(float(np.max(np.abs(p))), np.finfo(np.float64).tiny)
-    _, weld = np.unique(np.round(p / step).astype(np.int64), axis=0, return_inverse=True)
-    t = weld.reshape(-1)[f]
-    t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])]
-    if t.shape[0] == 0:
-        return None
-    n = int(t.max()) + 1
-    a = t.reshape(-1)
-    b = np.roll(t, -1, axis=1).reshape(-1)
-    edges = np.sort(a * n + b)
-    if np.any(edges[1:] == edges[:-1]):  # an edge twice in one direction
-        return None
-    if not np.array_equal(edges, np.sort(b * n + a)):  # an edge without its reverse
-        return None
-    q = p[f]
-    volume = np.sum(q[:, 0] * np.cross(q[:, 1], q[:, 2]))
-    if not volume > 0:
-        return None
-    return np.stack([p.min(axis=0), p.max(axis=0)])

@@ -60,12 +60,16 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from .numerics import _materialize, _xyw, safe_div
-from .raster import Fragments, _window_homogeneous
+from ._exec.arrays import xyw
+from ._exec.fusion import materialize
+from .camera import to_window
+from .numerics import safe_div
+from .raster import Fragments
 
 __all__ = [
     "Attribute", "Barycentrics", "DERIVATIVE_MODES", "PRECISIONS", "at_precision",
-    "COARSE_REFERENCE", "barycentrics", "interpolate"
+    "COARSE_REFERENCE", "barycentrics", "interpolate", "triangle_corners", "check_derivatives",
+    "check_precision", "require_x64"
 ]
 
 #: The screen-space derivative modes (the scene key ``derivatives``, ``--derivatives``).
@@ -118,7 +122,7 @@ class Barycentrics:
     mode: str | None = dataclasses.field(metadata=dict(static=True), default="fine")
 
 
-def _check_derivatives(derivatives: str | None, *, allow_none: bool = True) -> None:
+def check_derivatives(derivatives: str | None, *, allow_none: bool = True) -> None:
     """Raise a `ValueError` unless ``derivatives`` is one of `DERIVATIVE_MODES` (or None,
     values only, where ``allow_none``)."""
     if derivatives is None and allow_none:
@@ -128,14 +132,14 @@ def _check_derivatives(derivatives: str | None, *, allow_none: bool = True) -> N
                          f"{', '.join(DERIVATIVE_MODES)}")
 
 
-def _check_precision(precision: str) -> None:
+def check_precision(precision: str) -> None:
     """Raise a `ValueError` unless ``precision`` is one of `PRECISIONS`."""
     if precision not in PRECISIONS:
         raise ValueError(f"unknown precision {precision!r}; expected one of "
                          f"{', '.join(PRECISIONS)}")
 
 
-def _require_x64(what: str) -> None:
+def require_x64(what: str) -> None:
     """Raise a `ValueError` naming ``what`` unless 64-bit JAX is enabled (without it a
     float64 array silently becomes float32)."""
     if not jax.config.jax_enable_x64:
@@ -172,11 +176,11 @@ def at_precision(attr: Attribute, precision: str, mask: Array, *,
 
     Returns an `Attribute` whose arrays have ``precision``'s dtype (0 on background).
     """
-    _check_precision(precision)
+    check_precision(precision)
     if precision == "float32":
         return attr
     if precision == "float64":
-        _require_x64("precision 'float64'")
+        require_x64("precision 'float64'")
         f64 = jnp.float64
         return Attribute(attr.value.astype(f64),
                          *(None if d is None else d.astype(f64) for d in (attr.ddx, attr.ddy)))
@@ -215,7 +219,7 @@ def _pixel_setup(frags: Fragments):
     height, width = frags.image_shape
     mask = frags.mask
     tri = jnp.maximum(frags.triangle_id, 0)
-    h = (_xyw(_window_homogeneous(frags.clip, width, height)) if frags.window is None
+    h = (xyw(to_window(frags.clip, width, height)) if frags.window is None
          else frags.window)  # (V, 3): x, y, w
     corner = frags.faces[tri]
     hv = [h[corner[..., v]] for v in range(3)]  # each vertex's (..., 3)
@@ -255,7 +259,7 @@ def barycentrics(frags: Fragments, *, derivatives: str | None = "fine") -> Baryc
     **Returns:** a `Barycentrics`; interpolating an attribute with it is linear,
     see `interpolate`.
     """
-    _check_derivatives(derivatives)
+    check_derivatives(derivatives)
     e, a, b, mask = _pixel_setup(frags)
     s = jnp.where(mask, _sum3(e), 1.0)  # covered pixels have S != 0 (all E_i share its sign)
 
@@ -295,7 +299,7 @@ def barycentrics(frags: Fragments, *, derivatives: str | None = "fine") -> Baryc
     return Barycentrics(value, ddx, ddy, derivatives)
 
 
-def _triangle_corners(attr: Array, frags: Fragments) -> Array:
+def triangle_corners(attr: Array, frags: Fragments) -> Array:
     """Each pixel's triangle's corner values, ``(H, W, 3, C)``; zero on background.
 
     **Arguments:**
@@ -307,7 +311,7 @@ def _triangle_corners(attr: Array, frags: Fragments) -> Array:
 
 
 def _corners(attr: Array, frags: Fragments) -> Array:
-    """`_triangle_corners` unmasked: background pixels read triangle 0 (finite, unused)."""
+    """`triangle_corners` unmasked: background pixels read triangle 0 (finite, unused)."""
     tri = jnp.maximum(frags.triangle_id, 0)
     num_faces = frags.faces.shape[0]
     if attr.ndim == 3 and attr.shape[:2] == (num_faces, 3):  # face-varying (F, 3, C)
@@ -365,7 +369,7 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
     the barycentric derivatives the same way, so large common offsets (far
     from origin geometry) cancel exactly.
     """
-    _check_derivatives(derivatives)
+    check_derivatives(derivatives)
     if isinstance(attr, Mapping):
         names = list(attr)
         arrays = [jnp.asarray(attr[n]) for n in names]
@@ -388,7 +392,7 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
     if bary is None:
         # materialised once: fused into the (H, W, C) consumers below, XLA would recompute
         # the barycentrics for every attribute channel
-        bary = _materialize(barycentrics(frags, derivatives=derivatives))
+        bary = materialize(barycentrics(frags, derivatives=derivatives))
     elif derivatives is not None and bary.mode != derivatives:  # values: any mode will do
         raise ValueError(f"interpolate: `bary` was computed for derivatives={bary.mode!r}, "
                          f"not {derivatives!r}")
@@ -402,13 +406,13 @@ def interpolate(attr: Array | Mapping[str, Array], frags: Fragments, *,
 
     value = jnp.where(mask, corners[..., 0, :] + combine(bary.value), 0.0)
     if derivatives is None:
-        return _materialize(Attribute(value))
+        return materialize(Attribute(value))
     if derivatives == "gbuffer":
         if frags.pixels is not None:
             raise ValueError("interpolate: 'gbuffer' derivatives difference the stored "
                              "neighbours, which packed fragments (`compact`) do not have")
-        return _materialize(Attribute(value, *_gbuffer_derivatives(value, frags.mask)))
+        return materialize(Attribute(value, *_gbuffer_derivatives(value, frags.mask)))
     # materialised: consumers (frames, shading) read each channel many times, and a fused
     # consumer would redo the corner gathers for every read
-    return _materialize(Attribute(value, jnp.where(mask, combine(bary.ddx), 0.0),
+    return materialize(Attribute(value, jnp.where(mask, combine(bary.ddx), 0.0),
                                  jnp.where(mask, combine(bary.ddy), 0.0)))

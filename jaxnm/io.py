@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 import png
 
-from .geometry import Mesh, _validate_arrays, vertex_normals
+from .geometry import Mesh, check_mesh_arrays, vertex_normals
 
 if TYPE_CHECKING:  # trimesh (with scipy, ~45 MB) is imported when a mesh file is read
     import trimesh
@@ -202,11 +202,11 @@ def load_mesh(path: PathLike, *, require_uv: bool = False,
     pos, faces, uv, file_n, has_n, tangents = _concatenate_scene(scene, src)
 
     pos = pos.astype(np.float32)
-    _validate_arrays(pos, faces, source=src)  # before any normal is computed from them
+    check_mesh_arrays(pos, faces, source=src)  # before any normal is computed from them
     faces = faces.astype(np.int32)
     if uv is not None:
         uv = uv.astype(np.float32)
-        _validate_arrays(pos, faces, uv, source=src)
+        check_mesh_arrays(pos, faces, uv, source=src)
     elif require_uv:
         hint = (" STL and OFF files cannot store uv; use OBJ, PLY or glTF."
                 if ext in (".stl", ".off") else
@@ -215,7 +215,7 @@ def load_mesh(path: PathLike, *, require_uv: bool = False,
                          f"needs them.{hint}")
 
     n = _resolve_normals(pos, faces, file_n, has_n, normals, src)
-    _validate_arrays(pos, faces, uv, n, source=src)
+    check_mesh_arrays(pos, faces, uv, n, source=src)
     if tangents is not None:
         if not np.all(np.isfinite(tangents)):
             raise ValueError(f"{src}: TANGENT contains NaN or infinite values")

@@ -17,17 +17,18 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .camera import Camera, _clip_float64
-from .frames import _check_frame
-from .geometry import Mesh, _closed_shape, _validate_arrays
-from .interpolate import _check_derivatives, _check_precision
+from ._host_geometry import box_in_front, clip_float64, closed_shape
+from .camera import Camera
+from .frames import check_frame
+from .geometry import Mesh, check_mesh_arrays
+from .interpolate import check_derivatives, check_precision
 from .numerics import safe_normalize
-from .shading import DirectionalLight, Lights, Material, _check_shading_model, stack_lights
+from .shading import DirectionalLight, Lights, Material, check_shading_model, stack_lights
 from .textures import NormalMapOptions
 
 __all__ = [
     "Scene", "validate_scene", "default_lights", "default_material", "back_faces_hidden",
-    "MAX_IMAGE_SIZE", "DDY_CONVENTIONS"
+    "MAX_IMAGE_SIZE", "DDY_CONVENTIONS", "check_scene_options"
 ]
 
 #: The largest image width or height a scene may ask for.
@@ -98,9 +99,9 @@ class Scene:
 
     def __post_init__(self):
         # Only the static options are checked here: a pytree is rebuilt with placeholder or
-        # traced leaves inside JAX transformations, so array shapes are checked by `render`
-        # (`_check_scene_shapes`) and array values by `validate_scene`.
-        _check_scene_options(width=self.width, height=self.height,
+        # traced leaves inside JAX transformations, so the arrays are checked by
+        # `validate_scene`, where scenes are made.
+        check_scene_options(width=self.width, height=self.height,
                             normal_map_options=self.normal_map_options, shading=self.shading,
                             frame=self.frame, derivatives=self.derivatives,
                             precision=self.precision,
@@ -108,17 +109,19 @@ class Scene:
                             ddy=self.ddy, source=self.source)
 
     def replace(self, **changes) -> Scene:
-        """A copy with some fields changed (the options checked again; the arrays' values
-        are not: `validate_scene` checks them)."""
+        """A copy with some fields changed (the options checked again; the arrays are not:
+        `validate_scene` checks them)."""
         return dataclasses.replace(self, **changes)
 
 
-def _check_scene_options(*, width=512, height=512, normal_map_options=NormalMapOptions(),
+def check_scene_options(*, width=512, height=512, normal_map_options=NormalMapOptions(),
                         shading="blinn_phong", frame="cotangent", derivatives="fine",
-                        precision="float32",
-                        double_sided=True, cull_back=False, ddy="up", source="<scene>") -> None:
+                        precision="float32", double_sided=True, cull_back=False, ddy="up",
+                        source="<scene>") -> None:
     """Raise a `ValueError` naming ``source`` unless the static options of a `Scene` are valid
-    (each vocabulary is checked by the stage that owns it)."""
+    (each vocabulary is checked by the stage that owns it): what constructing a `Scene`
+    checks, for a caller that has the options before the arrays (a scene file, before its
+    mesh is read)."""
     src = source
     for name, v in (("width", width), ("height", height)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v <= 0:
@@ -130,10 +133,10 @@ def _check_scene_options(*, width=512, height=512, normal_map_options=NormalMapO
         raise ValueError(f"{src}: `normal_map_options` must be a NormalMapOptions, got "
                          f"{type(normal_map_options).__name__}")
     try:
-        _check_frame(frame)
-        _check_derivatives(derivatives, allow_none=False)
-        _check_precision(precision)
-        _check_shading_model(shading)
+        check_frame(frame)
+        check_derivatives(derivatives, allow_none=False)
+        check_precision(precision)
+        check_shading_model(shading)
     except ValueError as e:
         raise ValueError(f"{src}: {e}") from None
     if ddy not in DDY_CONVENTIONS:
@@ -152,10 +155,10 @@ def _check_scene_shapes(scene: Scene) -> None:
     """Raise a `ValueError` naming ``scene.source`` unless the scene's arrays have usable
     shapes and dtypes: the mesh's, a normal map (H, W, C) of floats with enough channels, an
     albedo (3,) or (H, W, 3), a 4x4 model, and uvs where a map or texture needs them.
-    Shapes only (known for traced arrays too), so `render` runs this on every call."""
+    Shapes only: known for traced arrays too."""
     src = scene.source
     m = scene.mesh
-    _validate_arrays(m.positions, m.faces, m.uv, m.normals, source=src, values=False)
+    check_mesh_arrays(m.positions, m.faces, m.uv, m.normals, source=src, values=False)
     opts = scene.normal_map_options
     if scene.normal_map is not None:
         shape = jnp.shape(scene.normal_map)
@@ -193,12 +196,12 @@ def validate_scene(scene: Scene) -> Scene:
     its near plane. Value checks run only on concrete arrays (never on tracers, so this is
     safe under ``jax.grad``/``jax.jit``); shape checks always run. Scene files
     (`jaxnm.config.load_scene`) and the built-in scenes are checked so when they are made;
-    `render` itself checks shapes, and vertex values at run time.
+    `jaxnm.render.render` checks only its own options.
     """
     _check_scene_shapes(scene)
     src = scene.source
     m = scene.mesh
-    _validate_arrays(m.positions, m.faces, m.uv, m.normals, source=src)
+    check_mesh_arrays(m.positions, m.faces, m.uv, m.normals, source=src)
     if scene.model is not None and _is_concrete(scene.model):
         m64 = np.asarray(scene.model, np.float64)
         if not np.all(np.isfinite(m64)) or not np.allclose(m64[3], [0, 0, 0, 1]):
@@ -217,28 +220,17 @@ def validate_scene(scene: Scene) -> Scene:
 def back_faces_hidden(mesh: Mesh, camera: Camera, model=None) -> bool:
     """Whether ``camera`` can see none of ``mesh``'s back faces, so that a `Scene` may set
     ``cull_back`` and still show every pixel's nearest triangle: the mesh encloses a volume
-    with its front faces outside (`jaxnm.geometry._closed_shape`), ``model`` (object to
-    world, or None) does not mirror it, and the corners of its bounding box are all in
-    front of the near plane (so no part is clipped open and the camera is outside). Every
-    ray from the eye then meets the surface first where it enters the volume, through a
-    front face. On the host (concrete arrays; about 0.1 s for 200k triangles), so decide it
-    once per mesh and camera: `jaxnm.config.load_scene` and the built-in scenes do. The
-    same triangles win as without culling, except where a back face had tied with the
-    front face before it at a silhouette (0-3 pixels a frame on the benchmark's tori and
-    sphere at 512^2 and 1024^2)."""
-    box = _closed_shape(mesh.positions, mesh.faces)
-    return box is not None and _box_in_front(box, camera, model)
-
-
-def _box_in_front(box: np.ndarray, camera: Camera, model=None) -> bool:
-    """Whether the (2, 3) (min, max) box, moved by ``model`` (None: identity; it must not
-    mirror), lies wholly in front of ``camera``'s near plane (host, float64)."""
-    if model is not None and not np.linalg.det(np.asarray(model, np.float64)[:3, :3]) > 0:
-        return False
-    corners = [[box[i, 0], box[j, 1], box[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
-    clip = _clip_float64(corners, camera, model)
-    w = clip[:, 3]
-    return bool(np.all(w > 0) and np.all(clip[:, 2] + w > 1e-6 * w))
+    with its front faces outside (after welding vertices at equal positions, every edge is
+    used by exactly two faces, once in each direction, and the enclosed volume is positive),
+    ``model`` (object to world, or None) does not mirror it, and the corners of its bounding
+    box are all in front of the near plane (so no part is clipped open and the camera is
+    outside). Every ray from the eye then meets the surface first where it enters the
+    volume, through a front face. On the host (concrete arrays; a pass over the mesh in
+    NumPy), so decide it once per mesh and camera: `jaxnm.config.load_scene` and the
+    built-in scenes do. The same triangles win as without culling, except where a back face
+    had tied with the front face before it at a silhouette (a few pixels a frame)."""
+    box = closed_shape(mesh.positions, mesh.faces)
+    return box is not None and box_in_front(box, camera, model)
 
 
 def _check_near_plane(scene: Scene) -> None:
@@ -251,7 +243,7 @@ def _check_near_plane(scene: Scene) -> None:
     positions = np.asarray(scene.mesh.positions)
 
     def any_in_front(p):  # float64 NumPy (no traced op inside jit)
-        clip = _clip_float64(p, scene.camera, scene.model)
+        clip = clip_float64(p, scene.camera, scene.model)
         return bool(np.any(clip[:, 2] >= -clip[:, 3]))
 
     # a few hundred vertices usually settle it; all of them only when none of those is seen

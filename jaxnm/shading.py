@@ -67,7 +67,7 @@ from .numerics import safe_div, safe_normalize, spread, tiny
 __all__ = [
     "DirectionalLight", "PointLight", "Lights", "Material", "FALLOFFS", "SHADING_MODELS",
     "directional_light", "stack_lights", "lambert", "blinn_phong", "phong", "shade", "to_display",
-    "AnyLights"
+    "AnyLights", "check_shading_model"
 ]
 
 SHADING_MODELS = ("lambert", "blinn_phong", "phong")
@@ -220,7 +220,7 @@ def _pos_pow(x: Array, n: Array) -> Array:
     return jnp.where(ok, y, jnp.where(n == 0, 1.0, 0.0).astype(y.dtype))
 
 
-def _check_shading_model(model: str) -> None:
+def check_shading_model(model: str) -> None:
     """Raise a `ValueError` unless ``model`` is one of `SHADING_MODELS`."""
     if model not in SHADING_MODELS:
         raise ValueError(f"shade: unknown shading model {model!r}; expected one of "
@@ -280,7 +280,7 @@ def _flatten_stack(light):
 
 
 def _shade(model: str, N, p, eye, lights, material: Material, albedo) -> Array:
-    _check_shading_model(model)
+    check_shading_model(model)
     N, p = jnp.asarray(N), jnp.asarray(p)
     dtype = jnp.result_type(N, p)
     if not jnp.issubdtype(dtype, jnp.floating):

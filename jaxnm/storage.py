@@ -58,6 +58,7 @@ from .io import atomic_write
 from .textures import NormalMapOptions, encode_normal_map, quantize
 
 __all__ = [
+    "require_module",
     "DDS_FORMATS",
     "ENCODERS",
     "DECODERS",
@@ -88,7 +89,9 @@ _PILLOW_FORMAT = {"bc5": "BC5", "bc3nm": "DXT5"}
 _READ_FORMATS = {"BC5": "bc5", "DXT5": "bc3nm", "BC3": "bc3nm"}
 
 
-def _need(module: str):
+def require_module(module: str):
+    """Import ``module``, a package of the ``storage`` extra, or raise an `ImportError` that
+    says how to install it."""
     try:
         return __import__(module)
     except ImportError:
@@ -121,7 +124,7 @@ def _rgba(xy: np.ndarray, fmt: str) -> np.ndarray:
 
 def _pillow_dds(rgba: np.ndarray, fmt: str) -> tuple[bytes, int]:
     """A DDS file written by Pillow (its own blocks) and the offset of its block data."""
-    _need("PIL")
+    require_module("PIL")
     from PIL import Image
 
     im = Image.fromarray(rgba[..., :3] if fmt == "bc5" else rgba, "RGB" if fmt == "bc5"
@@ -156,7 +159,7 @@ def encode_blocks(xy: ArrayLike, *, format: str = "bc5", encoder: str = "quickte
         raise ValueError(f"encode_blocks: the size must be a multiple of 4 texels, got {h}x{w}")
     rgba = _rgba(xy, format)
     if encoder == "quicktex":
-        _need("quicktex")
+        require_module("quicktex")
         from quicktex import RawTexture
 
         raw = RawTexture.frombytes(np.ascontiguousarray(rgba).tobytes(), w, h)
@@ -168,7 +171,7 @@ def encode_blocks(xy: ArrayLike, *, format: str = "bc5", encoder: str = "quickte
 
         return BC3Encoder(5).encode(raw).tobytes()
     if encoder == "etcpak":
-        etcpak = _need("etcpak")
+        etcpak = require_module("etcpak")
         fn = etcpak.compress_bc5 if format == "bc5" else etcpak.compress_bc3
         return bytes(fn(np.ascontiguousarray(rgba).tobytes(), w, h))
     data, offset = _pillow_dds(rgba, format)
@@ -198,12 +201,12 @@ def decode_blocks(blocks: bytes, size_hw: tuple[int, int], *, format: str = "bc5
                          f"{bh * bw * _BLOCK_BYTES}")
     ph, pw = 4 * bh, 4 * bw
     if decoder == "texture2ddecoder":
-        t2d = _need("texture2ddecoder")
+        t2d = require_module("texture2ddecoder")
         fn = t2d.decode_bc5 if format == "bc5" else t2d.decode_bc3
         bgra = np.frombuffer(fn(bytes(blocks), pw, ph), np.uint8).reshape(ph, pw, 4)
         rgba = bgra[..., [2, 1, 0, 3]]
     else:
-        _need("PIL")
+        require_module("PIL")
         from PIL import Image
 
         header, offset = _pillow_dds(np.zeros((ph, pw, 4), np.uint8), format)
@@ -269,7 +272,7 @@ def load_dds_normal_map(path: str | os.PathLike) -> DDSNormalMap:
         raise FileNotFoundError(f"{p}: no such file")
     if not p.is_file():
         raise _fail(p, "not a regular file")
-    _need("PIL")
+    require_module("PIL")
     from PIL import Image, UnidentifiedImageError
 
     data = p.read_bytes()

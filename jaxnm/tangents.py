@@ -126,15 +126,25 @@ def mikktspace_tangents(positions, normals, uv, faces) -> np.ndarray:
     nrm = np.asarray(normals, np.float32)
     tex = np.asarray(uv, np.float32)
     faces = np.asarray(faces, np.int64)
-    nf = faces.shape[0]
     corner_w = _weld(pos, nrm, tex, faces)
     p = pos[corner_w]  # (F, 3, 3) per corner, through the welded vertex
-    t = tex[corner_w]
     degenerate = (np.all(p[:, 0] == p[:, 1], -1) | np.all(p[:, 0] == p[:, 2], -1)
                   | np.all(p[:, 1] == p[:, 2], -1))
-    good = ~degenerate
+    v_os, v_ot, orient, any_group = _triangle_directions(p, tex[corner_w])
+    nbr = _neighbours(corner_w, ~degenerate)
+    groups = _groups(corner_w, nbr, ~degenerate & ~any_group, any_group, orient)
+    tangent, corner_sign = _group_tangents(groups, corner_w, nrm[corner_w], p, v_os, v_ot,
+                                           any_group)
+    if degenerate.any():
+        _copy_to_degenerate(tangent, corner_sign, corner_w, degenerate)
+    return np.concatenate([tangent, corner_sign[..., None]], -1).astype(np.float32)
 
-    # per-triangle first-order derivatives (eqs. 18 and 19 of the reference)
+
+def _triangle_directions(p: np.ndarray, t: np.ndarray):
+    """Per triangle, from its corners' positions ``p`` and uvs ``t``: the unit first-order
+    directions of +u and +v (eqs. 18 and 19 of the reference, signed by the uv orientation),
+    the orientation (uv area > 0), and whether the triangle joins any group (its uv area or
+    a derivative is zero)."""
     d1, d2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
     t21, t31 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
     area2 = (t21[:, 0] * t31[:, 1] - t21[:, 1] * t31[:, 0]).astype(np.float32)
@@ -153,23 +163,24 @@ def mikktspace_tangents(positions, normals, uv, faces) -> np.ndarray:
     mag_s = np.where(has_area, len_os / abs_area, 0)
     mag_t = np.where(has_area, len_ot / abs_area, 0)
     any_group = ~(has_area & _not_zero(mag_s) & _not_zero(mag_t))
-    v_os, v_ot = v_os.astype(np.float32), v_ot.astype(np.float32)
+    return v_os.astype(np.float32), v_ot.astype(np.float32), orient, any_group
 
-    nbr = _neighbours(corner_w, good)
 
-    # groups: triangles around a welded vertex, connected through shared edges, one
-    # orientation (depth first, left edge before right edge, as the reference recurses)
+def _groups(corner_w: np.ndarray, nbr: np.ndarray, seeds: np.ndarray, any_group: np.ndarray,
+            orient: np.ndarray) -> list[tuple[int, bool, list]]:
+    """The groups of triangles around each welded vertex, connected through shared edges,
+    of one orientation: ``(vertex, orientation, member triangles)``, grown depth first
+    (left edge before right edge, as the reference recurses) from the ``seeds``. A triangle
+    that joins any group takes the orientation of the first group that reaches it."""
+    nf = corner_w.shape[0]
     assigned = np.full((nf, 3), -1, np.int64)
-    group_vertex, group_orient, group_faces = [], [], []
     orient = orient.copy()
-    for f in np.flatnonzero(good & ~any_group):
+    groups = []
+    for f in np.flatnonzero(seeds):
         for i in range(3):
             if assigned[f, i] != -1:
                 continue
-            g = len(group_vertex)
-            rep = corner_w[f, i]
-            group_vertex.append(rep)
-            group_orient.append(bool(orient[f]))
+            g, rep, g_orient = len(groups), corner_w[f, i], bool(orient[f])
             members = [f]
             assigned[f, i] = g
             stack = [nbr[f, (i + 2) % 3], nbr[f, i]]  # popped: left (edge i) first
@@ -181,31 +192,33 @@ def mikktspace_tangents(positions, normals, uv, faces) -> np.ndarray:
                 if assigned[t_, j] != -1:
                     continue
                 if any_group[t_] and np.all(assigned[t_] == -1):
-                    orient[t_] = group_orient[g]  # the first group to reach it decides
-                if bool(orient[t_]) != group_orient[g]:
+                    orient[t_] = g_orient  # the first group to reach it decides
+                if bool(orient[t_]) != g_orient:
                     continue
                 members.append(t_)
                 assigned[t_, j] = g
                 stack += [nbr[t_, (j + 2) % 3], nbr[t_, j]]
-            group_faces.append(members)
+            groups.append((rep, g_orient, members))
+    return groups
 
-    # per corner: the triangle's directions projected onto the tangent plane of the corner's
-    # (welded) vertex normal, and the corner angle between its projected edges
-    n_c = nrm[corner_w]  # (F, 3, 3)
+
+def _group_tangents(groups, corner_w, n_c, p, v_os, v_ot, any_group):
+    """Each corner's tangent and sign: the angle-weighted average of its (sub)group's
+    members' directions, projected onto the tangent plane of the corner's (welded) vertex
+    normal ``n_c`` (F, 3, 3); corners in no group keep +x and -1."""
+    nf = corner_w.shape[0]
     os_c = _project(n_c, np.broadcast_to(v_os[:, None], n_c.shape))
     ot_c = _project(n_c, np.broadcast_to(v_ot[:, None], n_c.shape))
     e1 = _project(n_c, np.roll(p, 1, axis=1) - p)  # towards the previous corner
     e2 = _project(n_c, np.roll(p, -1, axis=1) - p)  # towards the next corner
     angle_c = np.arccos(np.clip(np.sum(e1 * e2, -1, dtype=np.float32), -1, 1)).astype(np.float32)
-
-    # one tangent per (sub)group: the angle-weighted average of its members' directions
     tangent = np.zeros((nf, 3, 3), np.float32)
     tangent[..., 0] = 1.0
     corner_sign = np.full((nf, 3), -1.0, np.float32)
     thres_cos = np.float32(np.cos(np.float32(np.pi)))  # the default 180 degree threshold
-    for g, members in enumerate(group_faces):
+    for rep, g_orient, members in groups:
         mem = np.asarray(members)
-        corner = np.argmax(corner_w[mem] == group_vertex[g], axis=1)  # first matching corner
+        corner = np.argmax(corner_w[mem] == rep, axis=1)  # first matching corner
         os_m, ot_m = os_c[mem, corner], ot_c[mem, corner]
         gwa = any_group[mem]
         weight = np.where(gwa, 0, angle_c[mem, corner])[:, None]  # only good ones contribute
@@ -218,18 +231,19 @@ def mikktspace_tangents(positions, normals, uv, faces) -> np.ndarray:
                 cache[sub] = _normalize_rows(
                     np.sum(weight[keep] * os_m[keep], axis=0, dtype=np.float32)[None])[0]
             tangent[mem[k], corner[k]] = cache[sub]
-            corner_sign[mem[k], corner[k]] = 1.0 if group_orient[g] else -1.0
+            corner_sign[mem[k], corner[k]] = 1.0 if g_orient else -1.0
+    return tangent, corner_sign
 
-    # degenerate triangles: the first good corner of the same welded vertex
-    if degenerate.any():
-        good_corners = np.flatnonzero(np.repeat(good, 3))
-        first = {}
-        for c in good_corners[::-1]:
-            first[corner_w.reshape(-1)[c]] = c
-        flat_t, flat_s = tangent.reshape(-1, 3), corner_sign.reshape(-1)
-        for c in np.flatnonzero(np.repeat(degenerate, 3)):
-            src = first.get(corner_w.reshape(-1)[c])
-            if src is not None:
-                flat_t[c], flat_s[c] = flat_t[src], flat_s[src]
-    return np.concatenate([tangent, corner_sign[..., None]], -1).astype(np.float32)
 
+def _copy_to_degenerate(tangent, corner_sign, corner_w, degenerate) -> None:
+    """Degenerate triangles' corners take the tangent and sign of the first good corner of
+    the same welded vertex (in place)."""
+    good_corners = np.flatnonzero(np.repeat(~degenerate, 3))
+    first = {}
+    for c in good_corners[::-1]:
+        first[corner_w.reshape(-1)[c]] = c
+    flat_t, flat_s = tangent.reshape(-1, 3), corner_sign.reshape(-1)
+    for c in np.flatnonzero(np.repeat(degenerate, 3)):
+        src = first.get(corner_w.reshape(-1)[c])
+        if src is not None:
+            flat_t[c], flat_s[c] = flat_t[src], flat_s[src]

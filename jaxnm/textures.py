@@ -44,13 +44,15 @@ from jax.custom_derivatives import SymbolicZero
 from jax.typing import ArrayLike
 from jaxtyping import Float, Real
 
+from ._exec.sums import SumTables, sum_by_tables, sum_tables
 from .interpolate import Attribute
-from .numerics import _sum_by_tables, _sum_tables, _SumTables, safe_normalize, safe_sqrt, tiny
+from .numerics import safe_normalize, safe_sqrt, tiny
 
 __all__ = [
     "NormalMapOptions", "MAP_SPACES", "FILTERS", "WRAPS", "UV_ORIGINS", "ENCODINGS", "GREENS",
     "SamplePlan", "mip_sizes", "build_mipmaps", "lod", "plan_sample", "apply_plan", "sample",
-    "decode_normal_map", "encode_normal_map", "srgb_to_linear", "linear_to_srgb", "quantize"
+    "decode_normal_map", "encode_normal_map", "srgb_to_linear", "linear_to_srgb", "quantize",
+    "plan_sum_tables", "transpose_plan", "box_filter_matrix"
 ]
 
 FILTERS = ("nearest", "bilinear", "trilinear")
@@ -185,9 +187,9 @@ def _downsample_axis(x: Array, axis: int) -> Array:
             + weight(i + 1) * take(2, 2 * n + 1))
 
 
-def _box_filter_matrix(n_in: int) -> np.ndarray:
+def box_filter_matrix(n_in: int) -> np.ndarray:
     """(max(1, n_in // 2), n_in) float64: `build_mipmaps`' box filter along one axis of
-    ``n_in`` texels as a matrix (the weights of `_downsample_axis`; an axis of 1 kept), for
+    ``n_in`` texels as a matrix (an axis of 1 kept), for
     host-side work through the mip chain, such as its transpose."""
     if n_in == 1:
         return np.ones((1, 1))
@@ -490,28 +492,29 @@ def _apply_plan(plan: SamplePlan, used: tuple[Array, ...]) -> Array:
     return _gather_weighted(flat, plan.index, plan.weight.astype(dtype))
 
 
-def _plan_sum_tables(plan: SamplePlan, indices: Sequence[ArrayLike] | None = None) -> _SumTables:
-    """The fixed-order texel sums (`jaxnm.numerics._sum_tables`) of ``plan``'s gather: what
-    `_transpose_plan` needs. Built on the host from the plan's concrete indices, or from
-    ``indices`` (a list of index arrays of plans with ``plan``'s levels, e.g. the chunks of
-    one: the tables are then stacked, one per array)."""
+def plan_sum_tables(plan: SamplePlan, indices: Sequence[ArrayLike] | None = None) -> SumTables:
+    """The fixed-order texel sums of ``plan``'s gather (each texel's taps grouped once, on the
+    host, and summed in a fixed order): what `transpose_plan` needs. Built on the host from
+    the plan's concrete indices, or from ``indices`` (a list of index arrays of plans with
+    ``plan``'s levels, e.g. the chunks of one: the tables are then stacked, one per
+    array)."""
     size = sum(h * w for h, w in plan.level_shapes)
     if indices is None:
-        return _sum_tables(np.asarray(plan.index), size)
-    return _sum_tables([np.asarray(i) for i in indices], size)
+        return sum_tables(np.asarray(plan.index), size)
+    return sum_tables([np.asarray(i) for i in indices], size)
 
 
-def _transpose_plan(plan: SamplePlan, tables: _SumTables, cotangent: ArrayLike,
+def transpose_plan(plan: SamplePlan, tables: SumTables, cotangent: ArrayLike,
                    mips: Sequence[ArrayLike]) -> tuple[Array, ...]:
     """The cotangent of `apply_plan` ``(plan, mips)`` w.r.t. ``mips`` for the output
     cotangent ``cotangent`` (..., C): what ``jax.vjp`` gives (a scatter-add of the weighted
-    cotangent into the texels), summed instead through ``tables`` (`_plan_sum_tables` of
+    cotangent into the texels), summed instead through ``tables`` (`plan_sum_tables` of
     this plan) in a fixed order: the same on every run, on every device, with no sort. One
     array per level of ``mips`` (zeros for the levels the plan does not read)."""
     cot = jnp.asarray(cotangent)
     channels = cot.shape[-1]
     parts = (plan.weight.astype(cot.dtype)[..., None] * cot[..., None, :]).reshape(-1, channels)
-    flat = _sum_by_tables(parts, tables)
+    flat = sum_by_tables(parts, tables)
     out, offset = [], 0
     for k, m in enumerate(mips):
         if k < len(plan.level_shapes):

@@ -65,3 +65,12 @@ def grid_plane(n: int = 4, size: float = 2.0):
             b, c, d = a + 1, a + n + 2, a + n + 1
             faces += [[a, b, c], [a, c, d]]
     return pos, np.asarray(faces), uv
+
+
+def compute_frame_kw(frame, N, **kw):
+    """`jaxnm.frames.compute_frame` from flat keywords: the `FrameOptions` fields
+    (``normalize``, ``ddy_sign``, ``double_sided``) and the `FrameInputs` fields."""
+    from jaxnm import frames as F
+
+    opts = {k: kw.pop(k) for k in ("normalize", "ddy_sign", "double_sided") if k in kw}
+    return F.compute_frame(frame, N, inputs=F.FrameInputs(**kw), options=F.FrameOptions(**opts))

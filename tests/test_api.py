@@ -116,6 +116,116 @@ def _private_imports(path: Path) -> list[str]:
     return bad
 
 
+def _resolve_package(path: Path, node: ast.ImportFrom) -> Path | None:
+    """The directory of the jaxnm package a ``from ... import`` in ``path`` reads from (None:
+    not jaxnm)."""
+    if node.level == 0:
+        module = node.module or ""
+        return ROOT.joinpath(*module.split(".")) if module.split(".")[0] == "jaxnm" else None
+    base = path.parent
+    for _ in range(node.level - 1):
+        base = base.parent
+    return base.joinpath(*node.module.split(".")) if node.module else base
+
+
+def _cross_module_private_uses(path: Path) -> list[str]:
+    """Uses in ``path`` of another module's private (``_``) name: ``from .x import _name``
+    and ``x._name`` with ``x`` an imported module. Importing a module whose own name starts
+    with ``_`` is not one: such a module is where names shared between modules live. Other
+    packages' names are not looked at."""
+    tree = ast.parse(path.read_text())
+    modules = set()  # local names bound to imported modules
+    bad = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            package = _resolve_package(path, node)
+            for a in node.names:
+                is_module = package is not None and (
+                    (package / a.name).is_dir() or (package / f"{a.name}.py").exists())
+                if is_module:
+                    modules.add(a.asname or a.name)
+                elif a.name.startswith("_") and not a.name.startswith("__"):
+                    bad.append(f"{path.name}:{node.lineno} imports {a.name}")
+        elif isinstance(node, ast.Import):
+            modules |= {(a.asname or a.name).split(".")[0] for a in node.names
+                        if a.name.split(".")[0] == "jaxnm"}
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Attribute) and node.attr.startswith("_")
+                and not node.attr.startswith("__") and isinstance(node.value, ast.Name)
+                and node.value.id in modules):
+            bad.append(f"{path.name}:{node.lineno} uses {node.value.id}.{node.attr}")
+    return bad
+
+
+def test_modules_use_no_other_modules_private_names():
+    """A ``_`` name is used only in its own module: what modules share is public, or lives in
+    a module whose name starts with ``_`` (`jaxnm._exec`, `jaxnm.fit._processes`, ...)."""
+    bad = [b for f in sorted((ROOT / "jaxnm").rglob("*.py"))
+           for b in _cross_module_private_uses(f)]
+    assert not bad, bad
+
+
+def test_the_cross_module_private_name_check_can_fail(tmp_path):
+    pkg = tmp_path / "pkg"
+    (pkg / "_shared").mkdir(parents=True)
+    (pkg / "_shared" / "__init__.py").write_text("")
+    (pkg / "_shared" / "tools.py").write_text("def helper(): pass\n")
+    (pkg / "stage.py").write_text("def _secret(): pass\n")
+    user = pkg / "user.py"
+    user.write_text("from . import stage, _shared\nfrom ._shared import tools\n"
+                    "from ._shared.tools import helper\nfrom .stage import _secret\n"
+                    "import numpy as np\nstage._secret()\ntools.helper()\nnp._core\n"
+                    "_shared.tools.helper()\n")
+    assert _cross_module_private_uses(user) == ["user.py:4 imports _secret",
+                                                "user.py:6 uses stage._secret"]
+
+
+#: A backticked (dotted) name in a docstring.
+_REFERENCE = re.compile(r"`+([A-Za-z_][\w.]*)")
+
+
+def _public_docstrings():
+    """``(name, docstring)`` of every public module, every name its ``__all__`` lists and
+    their public methods and properties."""
+    for mod in _modules():
+        if any(part.startswith("_") for part in mod.__name__.split(".")):
+            continue
+        yield mod.__name__, mod.__doc__ or ""
+        for n in getattr(mod, "__all__", ()):
+            obj = getattr(mod, n)
+            yield f"{mod.__name__}.{n}", inspect.getdoc(obj) or ""
+            if inspect.isclass(obj):
+                for k, v in vars(obj).items():
+                    if not k.startswith("_") and (inspect.isfunction(v)
+                                                  or isinstance(v, property)):
+                        yield f"{mod.__name__}.{n}.{k}", inspect.getdoc(v) or ""
+
+
+def _private_references(doc: str) -> list[str]:
+    """The names ``doc`` refers to that start with ``_`` (not dunders), and the jaxnm paths
+    through such a name."""
+    def private(part: str) -> bool:
+        return re.match(r"_[A-Za-z]", part) is not None
+
+    names = [m.group(1).rstrip(".") for m in _REFERENCE.finditer(doc)]
+    return [n for n in names if private(n) or (n.startswith("jaxnm.")
+                                               and any(map(private, n.split("."))))]
+
+
+def test_no_public_docstring_sends_users_to_a_private_name():
+    """What a user reads (the public modules, classes and functions) names public things
+    only: a private name may change or go without notice."""
+    bad = [f"{name}: {ref}" for name, doc in _public_docstrings()
+           for ref in _private_references(doc)]
+    assert not bad, bad
+
+
+def test_the_private_reference_check_can_fail():
+    doc = ("Computed by `_helper` (see `jaxnm.render._frame`, `jaxnm._exec.pixels`); "
+           "`os._exit`, `render`, ``__init__`` and ``-``/``_`` are fine.")
+    assert _private_references(doc) == ["_helper", "jaxnm.render._frame", "jaxnm._exec.pixels"]
+
+
 def test_scripts_use_only_the_public_api():
     """A ``_`` name is private to the jaxnm package: its modules share such names, but the
     scripts (examples, studies, benchmarks) use only what users may rely on."""

@@ -219,13 +219,13 @@ def _start_cli(args, cwd, cache, dies_after_step: int | None = None) -> subproce
     code 7, no clean-up) once that step is taken."""
     code = "import sys; from jaxnm.cli import main; sys.exit(main(sys.argv[1:]))"
     if dies_after_step is not None:
-        code = ("import os, jaxnm.fit.solve as S\n"
-                "test = S._stop_test\n"
+        code = ("import os, jaxnm.fit.stopping as S\n"
+                "test = S.stop_test\n"
                 "def stop_test(records, *a, **k):\n"
                 f"    if records[-1]['step'] >= {dies_after_step}:\n"
                 "        os._exit(7)\n"
                 "    return test(records, *a, **k)\n"
-                "S._stop_test = stop_test\n") + code.replace("; ", "\n")
+                "S.stop_test = stop_test\n") + code.replace("; ", "\n")
     return _start(code, *args, cwd=cwd, cache=cache)
 
 

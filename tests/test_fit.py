@@ -573,7 +573,8 @@ def test_stops_when_the_loss_stops_falling(small):
     the recorded history (the loss changed by less than ftol over the last `patience` steps
     and the solver's model promised no more), not one step earlier; ftol=0 runs every
     step."""
-    from jaxnm.fit.solve import _promised, _stop_test
+    from jaxnm.fit.stopping import promised as _promised
+    from jaxnm.fit.stopping import stop_test as _stop_test
 
     problem, _, _, prep, _ = small
     opts = F.FitOptions(max_steps=40, ftol=0.3, patience=2)

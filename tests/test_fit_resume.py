@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 import jaxnm.fit.solve as S
+import jaxnm.fit.stopping as T
 from jaxnm import fit as F
 from jaxnm.cli import _interrupt as cli_interrupt
 from jaxnm.cli import main
@@ -124,10 +125,10 @@ def test_stops_when_done_and_says_which_test_stopped_it(small):
     if res.stop_test == "ftol":
         floor = res.noise_floor / res.history[0]["loss"]  # (relative to the start: tiny)
         assert floor < 1e-3
-        assert S._stop_test(res.history, opts, lambda x: S._noise_floor(
-            x, *S._loss_terms(prep))) == "ftol"
-        assert S._stop_test(res.history[:-1], opts, lambda x: S._noise_floor(
-            x, *S._loss_terms(prep))) is None
+        assert T.stop_test(res.history, opts, lambda x: T.noise_floor(
+            x, *T.loss_terms(prep))) == "ftol"
+        assert T.stop_test(res.history[:-1], opts, lambda x: T.noise_floor(
+            x, *T.loss_terms(prep))) is None
 
 
 def test_a_fit_that_cannot_improve_says_it_made_no_progress(small):

@@ -71,9 +71,10 @@ import pytest
 
 import jaxnm
 from jaxnm import frames as F
+from jaxnm.gbuffer import RenderOptions, shade_gbuffer
 from jaxnm.geometry import Mesh
 from jaxnm.maps import height_to_normal_map
-from jaxnm.render import RenderOptions, build_gbuffer, render, shade_gbuffer
+from jaxnm.render import build_gbuffer, render
 from jaxnm.scene import Scene
 from jaxnm.shading import DirectionalLight, Lights, Material, stack_lights
 from jaxnm.textures import NormalMapOptions, encode_normal_map, quantize
@@ -205,7 +206,8 @@ def shade_all(sc: Scene, *, frame: str = "cotangent", nm_opts=None) -> dict[str,
     gb = build_gbuffer(sc.mesh, sc.camera, jnp.asarray(sc.albedo), opts=opts)
     if frame == "axis":
         gb = dataclasses.replace(gb, frame=F.compute_frame(
-            "axis", N=gb.normal, front_facing=gb.front_facing, double_sided=True))
+            "axis", gb.normal, inputs=F.FrameInputs(front_facing=gb.front_facing),
+            options=F.FrameOptions(double_sided=True)))
     elif frame != "cotangent":
         raise ValueError(frame)
     if nm_opts is not None:

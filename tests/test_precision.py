@@ -128,7 +128,7 @@ def test_render_forward_has_no_order_dependent_scatter(packed, monkeypatch):
     fit's (GPUs: deterministic ops)."""
     import importlib
 
-    monkeypatch.setattr(importlib.import_module("jaxnm.render"), "PACK_MIN_PIXELS",
+    monkeypatch.setattr(importlib.import_module("jaxnm._exec.pixels"), "PACK_MIN_PIXELS",
                         1 if packed else 1 << 40)
     scene = default_scene(width=16, height=16)
 

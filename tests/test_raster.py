@@ -10,6 +10,9 @@ from helpers import box, clip_of, grid_plane, icosphere, perspective_mvp, random
 from refraster import rasterize_ref
 
 import jaxnm
+from jaxnm._exec import depth as tiled
+from jaxnm._exec import triangles
+from jaxnm._exec.slots import slot_passes
 from jaxnm.raster import RasterStrategy, overdraw
 
 
@@ -205,9 +208,9 @@ def test_snapped_setup_equals_the_general_one(cull):
     assert np.all(hv[:, 3] == 1) and np.all((hv[:, 2] >= 0) & (hv[:, 2] <= 1))
     kw = dict(width=w, height=h, block=4, cull_back=cull)
     # compiled, as in a frame (XLA contracts products into FMAs, eagerly nothing is)
-    short = [np.asarray(x) for x in jax.jit(functools.partial(raster._snapped_setup, **kw))(
+    short = [np.asarray(x) for x in jax.jit(functools.partial(triangles._snapped_setup, **kw))(
         tri.vertices, tri.faces, True)]
-    general = [np.asarray(x) for x in jax.jit(functools.partial(raster._general_setup, **kw))(
+    general = [np.asarray(x) for x in jax.jit(functools.partial(triangles._general_setup, **kw))(
         tri.vertices, tri.faces)]
     for a, b in zip(short[:3], general[:3]):  # orientation, first tile
         np.testing.assert_array_equal(a, b)
@@ -244,7 +247,7 @@ def _tiny_triangles_on_centres(seed, w, h, n=3000):
 @pytest.mark.parametrize("cull", [False, True])
 def test_triangles_dropped_before_their_slots_cover_nothing(cull, monkeypatch):
     """The short set-up drops triangles whose one or two box centres it finds clearly
-    missed (`raster._misses_centre`). Against the general set-up, which drops none: the
+    missed (`triangles._misses_centre`). Against the general set-up, which drops none: the
     same winners and depths, and the same count of fragments per pixel (`overdraw`), on
     sub-pixel triangles whose edges run through or within a grid step of pixel centres."""
     from jaxnm import raster
@@ -254,8 +257,9 @@ def test_triangles_dropped_before_their_slots_cover_nothing(cull, monkeypatch):
     tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=w,
                                     height=h, subpixel_bits=8)
     kw = dict(width=w, height=h, block=4, cull_back=cull)
-    short = jax.jit(functools.partial(raster._snapped_setup, **kw))(tri.vertices, tri.faces, True)
-    general = jax.jit(functools.partial(raster._general_setup, **kw))(tri.vertices, tri.faces)
+    short = jax.jit(functools.partial(triangles._snapped_setup, **kw))(tri.vertices, tri.faces,
+                                                                       True)
+    general = jax.jit(functools.partial(triangles._general_setup, **kw))(tri.vertices, tri.faces)
     drawn = [np.asarray(s[4]) > 0 for s in (short, general)]
     assert np.all(drawn[0] <= drawn[1])
     assert (drawn[1] & ~drawn[0]).sum() > 0.15 * drawn[1].sum()  # many dropped
@@ -263,8 +267,8 @@ def test_triangles_dropped_before_their_slots_cover_nothing(cull, monkeypatch):
     a = jaxnm.rasterize(clip, faces, **kw)
     count_a = np.asarray(overdraw(clip, faces, **kw))
     jax.clear_caches()
-    general_setup = raster._general_setup
-    monkeypatch.setattr(raster, "_snapped_setup",
+    general_setup = triangles._general_setup
+    monkeypatch.setattr(triangles, "_snapped_setup",
                         lambda h, faces, on_grid, **kw: general_setup(h, faces, **kw))
     b = jaxnm.rasterize(clip, faces, **kw)
     count_b = np.asarray(overdraw(clip, faces, **kw))
@@ -278,7 +282,7 @@ def test_triangles_dropped_before_their_slots_cover_nothing(cull, monkeypatch):
 
 def test_corners_off_the_snapping_grid_drop_no_triangle():
     """Unsnapped corners with w = 1 (`subpixel_bits=None`, an orthographic camera) take the
-    short set-up, but are not on the 1/256 grid that `raster._misses_centre`'s bound needs:
+    short set-up, but are not on the 1/256 grid that `triangles._misses_centre`'s bound needs:
     no triangle is dropped, and the slots are the general set-up's."""
     from jaxnm import raster
 
@@ -290,10 +294,10 @@ def test_corners_off_the_snapping_grid_drop_no_triangle():
     q = np.asarray(tri.vertices)[:, :2] * 256
     assert np.all(np.asarray(tri.vertices)[:, 3] == 1) and not np.all(q == np.round(q))
     kw = dict(width=w, height=h, block=4, cull_back=False)
-    setup = jax.jit(lambda t: raster._triangle_setup(t, w, h, 4, False))(tri)
-    general = jax.jit(functools.partial(raster._general_setup, **kw))(tri.vertices, tri.faces)
+    setup = jax.jit(lambda t: triangles.triangle_setup(t, w, h, 4, False))(tri)
+    general = jax.jit(functools.partial(triangles._general_setup, **kw))(tri.vertices, tri.faces)
     np.testing.assert_array_equal(np.asarray(setup[4]), np.asarray(general[4]))
-    on = jax.jit(functools.partial(raster._snapped_setup, **kw))(tri.vertices, tri.faces, True)
+    on = jax.jit(functools.partial(triangles._snapped_setup, **kw))(tri.vertices, tri.faces, True)
     assert (np.asarray(on[4]) < np.asarray(general[4])).sum() > 50  # (it would drop these)
 
 
@@ -346,7 +350,6 @@ def test_depth_keys_order_fragments_as_the_depth_test():
     """One scatter-min of 64-bit keys (32-bit depths) and the pair of depth and triangle
     buffers (wider depths) both keep, per pixel, the nearest fragment and on equal depth the
     lowest triangle index (-0 equal to +0); checked against a plain loop."""
-    from jaxnm import raster
 
     rng = np.random.default_rng(0)
     tiles, block, slots = 6, 2, 300
@@ -354,7 +357,7 @@ def test_depth_keys_order_fragments_as_the_depth_test():
     depth = values[rng.integers(0, len(values), (slots, block, block))]
     t = rng.integers(0, 40, slots).astype(np.int32)
     tile = rng.integers(0, tiles, slots).astype(np.int32)
-    want = np.full((tiles, block, block), raster._NO_TRIANGLE, np.int64)
+    want = np.full((tiles, block, block), tiled.NO_TRIANGLE, np.int64)
     near = np.full((tiles, block, block), np.inf, np.float32)
     for s in range(slots):
         for dy in range(block):
@@ -363,19 +366,19 @@ def test_depth_keys_order_fragments_as_the_depth_test():
                 if d < np.inf and (d < near[tile[s], dy, dx] or (d == near[tile[s], dy, dx]
                                                                   and t[s] < w)):
                     near[tile[s], dy, dx], want[tile[s], dy, dx] = d, t[s]
-    assert (want != raster._NO_TRIANGLE).mean() > 0.5
-    keyed = raster._empty_depth_buffer(tiles, block, jnp.float32)
+    assert (want != tiled.NO_TRIANGLE).mean() > 0.5
+    keyed = tiled.empty_buffer(tiles, block, jnp.float32)
     with jax.enable_x64(True):
-        keyed = keyed.at[tile].min(raster._depth_keys(jnp.asarray(depth), jnp.asarray(t)))
-    assert np.array_equal(np.asarray(raster._winners(keyed)), want)
+        keyed = keyed.at[tile].min(tiled.depth_keys(jnp.asarray(depth), jnp.asarray(t)))
+    assert np.array_equal(np.asarray(tiled.winners(keyed)), want)
     with jax.enable_x64(True):
-        pair = raster._empty_depth_buffer(tiles, block, jnp.float64)
+        pair = tiled.empty_buffer(tiles, block, jnp.float64)
         assert isinstance(pair, tuple)
         for half in (slice(0, slots // 2), slice(slots // 2, slots)):  # two rounds
-            pair = raster._depth_test_pair(pair, jnp.asarray(tile[half]),
+            pair = tiled._write_pair(pair, jnp.asarray(tile[half]),
                                            jnp.asarray(depth[half], jnp.float64),
                                            jnp.asarray(t[half]))
-        assert np.array_equal(np.asarray(raster._winners(pair)), want)
+        assert np.array_equal(np.asarray(tiled.winners(pair)), want)
 
 
 @pytest.mark.parametrize("x64", [False, True])
@@ -459,8 +462,8 @@ def test_many_rounds_and_passes_give_the_same_image():
     # that was many passes
     tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=40,
                                     height=40, subpixel_bits=8)
-    count = raster._triangle_setup(tri, 40, 40, 4, False)[4]
-    assert int(raster._slot_passes(count, 32)[1]) > 5
+    count = triangles.triangle_setup(tri, 40, 40, 4, False)[4]
+    assert int(slot_passes(count, 32)[1]) > 5
     # a pass size the faces x tiles bound exceeds but the frame's slots fit: one pass,
     # found by the float32 sum (not the exact running sums), the same image again
     total = int(jnp.sum(count))
@@ -472,8 +475,8 @@ def test_many_rounds_and_passes_give_the_same_image():
 
 
 def test_the_strategy_by_backend_does_not_change_the_image():
-    """`default_strategy`: a GPU takes larger rounds than the CPU (`raster.MAX_SLOTS`); the
-    frame is the same."""
+    """`default_strategy`: a GPU takes larger rounds than the CPU
+    (`jaxnm._exec.slots.MAX_SLOTS`); the frame is the same."""
     from jaxnm import procedural, raster
 
     def strategy(faces, size, backend):
@@ -503,7 +506,6 @@ def test_the_strategy_by_backend_does_not_change_the_image():
 def test_slot_passes_count_past_int32():
     """Each triangle's pass is floor(first slot / pass size), its first slot counted exactly
     though the frame's total wraps around uint32 several times."""
-    from jaxnm import raster
 
     rng = np.random.default_rng(3)
     counts = rng.integers(0, 2**28, 200).astype(np.int64)
@@ -511,7 +513,7 @@ def test_slot_passes_count_past_int32():
     starts = np.cumsum(counts) - counts
     assert starts[-1] > 3 * 2**32
     for pass_slots in (2**30, 2**24):
-        passes, n = raster._slot_passes(jnp.asarray(counts, jnp.int32), pass_slots)
+        passes, n = slot_passes(jnp.asarray(counts, jnp.int32), pass_slots)
         np.testing.assert_array_equal(np.asarray(passes), starts // pass_slots)
         assert int(n) == starts[-1] // pass_slots + 1
 

@@ -248,7 +248,7 @@ def test_options_are_validated_however_they_are_built(plane_scene):
     """A bad option is refused when its object is made, not inside `render`."""
     import dataclasses
 
-    from jaxnm.render import RenderOptions
+    from jaxnm.gbuffer import RenderOptions
     from jaxnm.textures import NormalMapOptions
 
     with pytest.raises(ValueError, match="wrap='bogus'"):
@@ -336,22 +336,22 @@ def test_cli_uses_the_persistent_compilation_cache(tmp_path):
 
 
 def test_value_checks_are_for_where_scenes_are_made():
-    """`_validate_arrays` scans the values of concrete arrays, JAX's and NumPy's alike, every
+    """`check_mesh_arrays` scans the values of concrete arrays, JAX's and NumPy's alike, every
     time it is asked (``values=False``: shapes and dtypes only, what `render` checks on every
     call); a NaN written into a NumPy mesh in place is found."""
     from jaxnm import geometry
 
     mesh = procedural.plane(1.0, 2)
     host = np.array(mesh.positions)
-    geometry._validate_arrays(host, mesh.faces, mesh.uv, mesh.normals, source="m")
+    geometry.check_mesh_arrays(host, mesh.faces, mesh.uv, mesh.normals, source="m")
     host[1, 0] = np.nan
     for pos in (host, jnp.asarray(host)):
         with pytest.raises(ValueError, match="m: 1 vertex positions are NaN"):
-            geometry._validate_arrays(pos, mesh.faces, mesh.uv, mesh.normals, source="m")
-        geometry._validate_arrays(pos, mesh.faces, mesh.uv, mesh.normals, source="m",
+            geometry.check_mesh_arrays(pos, mesh.faces, mesh.uv, mesh.normals, source="m")
+        geometry.check_mesh_arrays(pos, mesh.faces, mesh.uv, mesh.normals, source="m",
                                  values=False)
     with pytest.raises(ValueError, match=r"m: positions must have shape \(V, 3\)"):
-        geometry._validate_arrays(host[:, :2], mesh.faces, values=False, source="m")
+        geometry.check_mesh_arrays(host[:, :2], mesh.faces, values=False, source="m")
 
 
 @pytest.mark.parametrize("size", [32, 256])  # the whole image; packed pixels
@@ -407,14 +407,15 @@ def strategy(monkeypatch):
     (whatever the image size), its frame program compiled afresh; the cache is cleared
     again afterwards."""
     R = importlib.import_module("jaxnm.render")
+    P = importlib.import_module("jaxnm._exec.pixels")
 
     def clear():
         for program in (R._frame, R._visible_placed, R._packed_frame):
             program.clear_cache()
 
     def run(packed, chunk, fn):
-        monkeypatch.setattr(R, "PACK_MIN_PIXELS", 1 if packed else 1 << 40)
-        monkeypatch.setattr(R, "PIXEL_CHUNK", (chunk, chunk))
+        monkeypatch.setattr(P, "PACK_MIN_PIXELS", 1 if packed else 1 << 40)
+        monkeypatch.setattr(P, "PIXEL_CHUNK", (chunk, chunk))
         clear()
         return fn()
 
@@ -436,7 +437,7 @@ def test_packed_pixels_render_what_the_whole_image_renders(frame, derivatives, p
     position, quad partners included): coverage, ids and facing exactly, the rest to float32
     rounding."""
     from jaxnm.camera import Camera, look_at, perspective
-    from jaxnm.render import OUTPUTS
+    from jaxnm.gbuffer import OUTPUTS
 
     sc = default_scene(width=96, height=64)
     sc = sc.replace(mesh=sc.mesh.with_tangents(), camera=Camera.from_matrices(
@@ -515,9 +516,9 @@ def test_compact_and_expand_round_trip():
                                rtol=0, atol=4e-7)  # the same plane, fused differently
     # the vertices' window x, y, w computed once for the per-pixel stages: what they would
     # compute from the clip vertices, and the same interpolation either way
-    from jaxnm.raster import _window_homogeneous
+    from jaxnm.camera import to_window
 
-    np.testing.assert_array_equal(packed.window, np.asarray(_window_homogeneous(
+    np.testing.assert_array_equal(packed.window, np.asarray(to_window(
         frags.clip, 16, 12))[:, [0, 1, 3]])
     at = jaxnm.interpolate(sc.mesh.uv, packed, derivatives="fine")
     again = jaxnm.interpolate(sc.mesh.uv, dataclasses.replace(packed, window=None),
@@ -558,11 +559,10 @@ def test_packing_is_for_large_images_on_the_cpu(backend, size, derivatives, pack
     """`render` packs the covered pixels of images of at least `PACK_MIN_PIXELS` pixels on
     the CPU only (a GPU shades every pixel at once), never for "gbuffer" derivatives (they
     read stored neighbours)."""
-    R = importlib.import_module("jaxnm.render")
-    assert (size * size >= R.PACK_MIN_PIXELS) == (packs or backend != "cpu"
+    P = importlib.import_module("jaxnm._exec.pixels")
+    assert (size * size >= P.PACK_MIN_PIXELS) == (packs or backend != "cpu"
                                                    or derivatives == "gbuffer")
-    opts = R.RenderOptions(width=size, height=size, derivatives=derivatives)
-    assert R._packs(opts, backend) == packs
+    assert P.packs(size * size, neighbours=derivatives == "gbuffer", backend=backend) == packs
 
 
 @pytest.mark.parametrize("eye", [(0.5, -4.5, 3.0), (0.0, -1.6, 1.2)])  # fits a quarter, not
@@ -616,7 +616,8 @@ def test_covered_gbuffer_is_the_whole_images_at_the_covered_pixels(derivatives):
     import jax
 
     from jaxnm.camera import Camera, look_at, perspective
-    from jaxnm.render import RenderOptions, build_gbuffer, covered_gbuffer
+    from jaxnm.gbuffer import RenderOptions
+    from jaxnm.render import build_gbuffer, covered_gbuffer
 
     sc = default_scene(width=48, height=32)
     sc = sc.replace(camera=Camera.from_matrices(
@@ -648,15 +649,15 @@ def test_covered_gbuffer_is_the_whole_images_at_the_covered_pixels(derivatives):
 
 
 def test_closed_shape_knows_a_closed_outward_mesh():
-    """`jaxnm.geometry._closed_shape`: the tori and the uv sphere (seams and poles welded) are
+    """`jaxnm._host_geometry.closed_shape`: the tori and the uv sphere (seams and poles welded) are
     closed with their front faces outside, and their boxes are the positions' bounds; a
     plane, a torus with a face removed, one with its faces turned inside out and one with a
     single face flipped are not."""
-    from jaxnm.geometry import _closed_shape
+    from jaxnm._host_geometry import closed_shape
 
     for mesh in (procedural.default_torus(), procedural.torus(1.0, 0.4, 16, 8),
                  procedural.uv_sphere(1.0, 16, 8)):
-        box = _closed_shape(mesh.positions, mesh.faces)
+        box = closed_shape(mesh.positions, mesh.faces)
         pos = np.asarray(mesh.positions, np.float64)
         np.testing.assert_array_equal(box, np.stack([pos.min(0), pos.max(0)]))
     torus = procedural.torus(1.0, 0.4, 16, 8)
@@ -664,10 +665,10 @@ def test_closed_shape_knows_a_closed_outward_mesh():
     flipped_one = faces.copy()
     flipped_one[5] = flipped_one[5, ::-1]
     for f in (faces[1:], faces[:, ::-1], flipped_one):
-        assert _closed_shape(torus.positions, jnp.asarray(f)) is None
+        assert closed_shape(torus.positions, jnp.asarray(f)) is None
     plane = procedural.plane()
-    assert _closed_shape(plane.positions, plane.faces) is None
-    assert _closed_shape(np.asarray(torus.positions), faces) is not None  # NumPy alike
+    assert closed_shape(plane.positions, plane.faces) is None
+    assert closed_shape(np.asarray(torus.positions), faces) is not None  # NumPy alike
 
 
 def test_back_faces_are_culled_only_where_none_can_be_seen():
@@ -761,7 +762,8 @@ def test_render_and_a_fits_prepare_share_one_visibility_program():
     compiles its per-pixel program only (a second rasterizer was a second of `jaxnm fit`)."""
     import jax
 
-    from jaxnm.render import RenderOptions, covered_gbuffer
+    from jaxnm.gbuffer import RenderOptions
+    from jaxnm.render import covered_gbuffer
 
     if jax.default_backend() != "cpu":
         pytest.skip("on a GPU `render` runs the whole image in one program: no visibility "

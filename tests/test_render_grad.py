@@ -151,10 +151,11 @@ def test_grad_under_jit_and_of_every_output_is_finite(scene):
 
 
 def test_validation_never_converts_a_tracer(scene):
-    """Shape checks still run on traced arrays; value checks wait for concrete ones."""
+    """`validate_scene`'s shape checks run on traced arrays; value checks wait for concrete
+    ones."""
     with pytest.raises(ValueError, match="normal map must have shape"):
-        jax.grad(lambda nm: jnp.sum(render(scene.replace(normal_map=nm))["color"]))(
-            jnp.zeros((8, 8, 2)))
+        jax.grad(lambda nm: jnp.sum(render(validate_scene(scene.replace(normal_map=nm)))[
+            "color"]))(jnp.zeros((8, 8, 2)))
     bad = np.array(scene.mesh.positions)
     bad[0, 0] = np.nan
     with pytest.raises(ValueError, match="NaN"):

@@ -1,7 +1,7 @@
 """Hard cases: the renderer stays accurate and finite where float32 usually gives up.
 
 Far from the origin: a scene's model matrix and camera are composed in float64 and the
-scene is rendered camera-relative (`jaxnm.render._camera_relative`), so a mesh a million
+scene is rendered camera-relative (`jaxnm.render.render`), so a mesh a million
 units out renders like the same mesh at the origin; baking the model into float32 world
 positions (what the renderer did before) turns its normals by tens of degrees there.
 """

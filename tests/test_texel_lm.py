@@ -14,7 +14,7 @@ from jaxnm.fit.texel_lm import (
     TexelLM,
     _gauss_newton_parts,
     _gauss_newton_product,
-    _texel_sum_tables,
+    texel_sum_tables,
 )
 from jaxnm.procedural import default_problem
 
@@ -60,7 +60,7 @@ def test_loss_gradient_and_products_are_the_residuals(small):
 
 
 def test_texel_sums_by_tables_equal_the_scatter_adds(small):
-    """With the fixed-order texel sums (`_texel_sum_tables`, ``texel_sums="tables"``) a step's
+    """With the fixed-order texel sums (`texel_sum_tables`, ``texel_sums="tables"``) a step's
     loss, gradient and Gauss-Newton products equal the scatter-adds' to float32 rounding,
     whole and in chunks (tables stacked per chunk; three levels deep here); a fit with them
     takes the same steps, and two fits give the same map bit for bit."""
@@ -69,7 +69,7 @@ def test_texel_sums_by_tables_equal_the_scatter_adds(small):
     z = jnp.asarray(rng.normal(0, 0.3, (32, 32, 2)), jnp.float32)
     v = jnp.asarray(rng.normal(0, 1.0, (32, 32, 2)), jnp.float32)
     for prep in (whole, cut):
-        sums = _texel_sum_tables(prep)
+        sums = texel_sum_tables(prep)
         counts = [n for _, _, n, _ in prep.batches[0].pixel_groups()]
         assert [t.targets.shape[0] for t in sums[0]] == counts
         scale = F.preconditioner(prep)
@@ -166,10 +166,10 @@ def test_damping_rises_after_a_rejected_step(small):
 
 @pytest.mark.parametrize("scale", [1.0, 1e-4])
 def test_conjugate_gradient_solves_at_any_scale(scale):
-    """`_conjugate_gradient` solves an SPD system to its tolerance in at most n steps, at
+    """`conjugate_gradient` solves an SPD system to its tolerance in at most n steps, at
     any scale of the operator (lineax's CG reports a breakdown where p.Ap is small in
     absolute terms); a few steps lower the quadratic it minimises."""
-    from jaxnm.fit.texel_lm import _conjugate_gradient
+    from jaxnm.fit.texel_lm import conjugate_gradient
 
     rng = np.random.default_rng(0)
     n = 40
@@ -179,11 +179,11 @@ def test_conjugate_gradient_solves_at_any_scale(scale):
     def op(x):
         return jnp.asarray(a, jnp.float32) @ x
 
-    x = _conjugate_gradient(op, jnp.asarray(b, jnp.float32), max_steps=n, rtol=1e-5)
+    x = conjugate_gradient(op, jnp.asarray(b, jnp.float32), max_steps=n, rtol=1e-5)
     want = np.linalg.solve(a, b)
     np.testing.assert_allclose(np.asarray(x), want, rtol=0, atol=1e-3 * np.abs(want).max())
     # a few steps only: the iterate is not the solution yet, but it lowers the quadratic
-    x3 = np.asarray(_conjugate_gradient(op, jnp.asarray(b, jnp.float32), max_steps=3),
+    x3 = np.asarray(conjugate_gradient(op, jnp.asarray(b, jnp.float32), max_steps=3),
                     np.float64)
     quad = lambda y: 0.5 * y @ a @ y - b @ y  # noqa: E731
     assert quad(want) < quad(x3) < quad(np.zeros(n))

@@ -19,10 +19,8 @@ from jaxnm.interpolate import Attribute
 from jaxnm.numerics import safe_normalize
 from jaxnm.textures import (
     SamplePlan,
-    _box_filter_matrix,
-    _plan_sum_tables,
-    _transpose_plan,
     apply_plan,
+    box_filter_matrix,
     build_mipmaps,
     decode_normal_map,
     encode_normal_map,
@@ -30,8 +28,10 @@ from jaxnm.textures import (
     lod,
     mip_sizes,
     plan_sample,
+    plan_sum_tables,
     sample,
     srgb_to_linear,
+    transpose_plan,
 )
 
 WRAPS = ("repeat", "clamp", "mirror")
@@ -485,7 +485,7 @@ def test_apply_plan_gradients_wrt_texels():
 
 
 def test_transpose_plan_is_apply_plans_vjp_in_a_fixed_order():
-    """`_transpose_plan` through `_plan_sum_tables` gives what ``jax.vjp`` of `apply_plan`
+    """`transpose_plan` through `plan_sum_tables` gives what ``jax.vjp`` of `apply_plan`
     gives w.r.t. the mip chain (a scatter-add): trilinear taps over several levels, a level
     the plan does not read (zeros), pixels in a (2, n) batch; and the same bits each call."""
     rng = np.random.default_rng(5)
@@ -498,23 +498,23 @@ def test_transpose_plan_is_apply_plans_vjp_in_a_fixed_order():
     cot = jnp.asarray(rng.normal(size=(2, 300, 3)), jnp.float32)
     _, pull = jax.vjp(lambda m: apply_plan(plan, m), mips)
     want = pull(cot)[0]
-    tables = _plan_sum_tables(plan)
-    got = jax.jit(_transpose_plan)(plan, tables, cot, mips)
+    tables = plan_sum_tables(plan)
+    got = jax.jit(transpose_plan)(plan, tables, cot, mips)
     assert len(got) == len(mips)
     for g, w, m in zip(got, want, mips):
         assert g.shape == m.shape and g.dtype == m.dtype
         np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-5, atol=1e-5)
     assert not any(np.asarray(g).any() for g in got[3:])
-    again = jax.jit(_transpose_plan)(plan, tables, cot, mips)
+    again = jax.jit(transpose_plan)(plan, tables, cot, mips)
     for g, h in zip(got, again):
         np.testing.assert_array_equal(np.asarray(g), np.asarray(h))
     # stacked: the tables of two halves, each used on its own half
-    halves = _plan_sum_tables(plan, [plan.index[:, :150], plan.index[:, 150:]])
+    halves = plan_sum_tables(plan, [plan.index[:, :150], plan.index[:, 150:]])
     for k, cut in enumerate((slice(0, 150), slice(150, 300))):
         part = jax.tree_util.tree_map(lambda x, cut=cut: x[:, cut], plan)
         one = jax.tree_util.tree_map(lambda x, k=k: x[k], halves)
         _, pull = jax.vjp(lambda m, part=part: apply_plan(part, m), mips)
-        for g, w in zip(_transpose_plan(part, one, cot[:, cut], mips), pull(cot[:, cut])[0]):
+        for g, w in zip(transpose_plan(part, one, cot[:, cut], mips), pull(cot[:, cut])[0]):
             np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-5, atol=1e-5)
 
 
@@ -806,11 +806,11 @@ def test_matches_the_gl_texture_unit():
 
 @pytest.mark.parametrize("shape", [(8, 6), (7, 9), (1, 5), (3, 1)])
 def test_box_filter_matrix_is_build_mipmaps_filter(shape):
-    """`_box_filter_matrix` along each axis gives `build_mipmaps`' next level (even, odd
+    """`box_filter_matrix` along each axis gives `build_mipmaps`' next level (even, odd
     and size-1 axes)."""
     tex = np.random.default_rng(5).uniform(-1, 1, shape + (1,)).astype(np.float32)
     want = np.asarray(build_mipmaps(jnp.asarray(tex), levels=2)[1])[..., 0]
-    got = (_box_filter_matrix(shape[0]) @ tex[..., 0].astype(np.float64)
-           @ _box_filter_matrix(shape[1]).T)
+    got = (box_filter_matrix(shape[0]) @ tex[..., 0].astype(np.float64)
+           @ box_filter_matrix(shape[1]).T)
     assert got.shape == mip_sizes(shape)[1]
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)

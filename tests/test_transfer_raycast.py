@@ -88,12 +88,12 @@ def _decode(low, frame, f, bary, m):
 
     n = interp(low.normals)
     if frame == "vertex":
-        fr = F.compute_frame("vertex", N=jnp.asarray(n, jnp.float32),
-                             tangent=jnp.asarray(interp(low.tangents, True), jnp.float32))
+        fr = F.compute_frame("vertex", jnp.asarray(n, jnp.float32), inputs=F.FrameInputs(
+            tangent=jnp.asarray(interp(low.tangents, True), jnp.float32)))
     else:
-        fr = F.compute_frame("exact", N=jnp.asarray(n, jnp.float32),
-                             tri_p=jnp.asarray(np.asarray(low.positions)[corners], jnp.float32),
-                             tri_uv=jnp.asarray(np.asarray(low.uv)[corners], jnp.float32))
+        fr = F.compute_frame("exact", jnp.asarray(n, jnp.float32), inputs=F.FrameInputs(
+            tri_p=jnp.asarray(np.asarray(low.positions)[corners], jnp.float32),
+            tri_uv=jnp.asarray(np.asarray(low.uv)[corners], jnp.float32)))
     return np.asarray(F.perturb_normal(fr, jnp.asarray(m, jnp.float32)), np.float64), interp(
         low.positions)
 

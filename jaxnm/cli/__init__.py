@@ -11,7 +11,7 @@ problem (a rivet-mapped torus, generated in code) is used. Errors in the
 input are one line naming the file and the field, with exit code 2; warnings are one line
 each (``jaxnm fit: warning: ...``).
 
-**Ctrl-C.** The commands handle SIGINT themselves (`_CtrlC`): the first Ctrl-C is noticed at
+**Ctrl-C.** The commands handle SIGINT themselves: the first Ctrl-C is noticed at
 the next stage boundary (after reading, after preparing the views, after compiling), between
 fit steps, and between outputs. Before the fit the command then stops (exit code 130); during
 the fit it stops after the current step; while the outputs are written it leaves out the

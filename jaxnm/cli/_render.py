@@ -105,7 +105,7 @@ def _aov_names(args) -> tuple[str, ...]:
 def _scene(args):
     """The scene of ``args``: the file's or the built-in one, with the options applied."""
     from .. import io
-    from ..config import _load_height_map, load_scene
+    from ..config import load_height_map, load_scene
     from ..procedural import default_scene
 
     if args.scene:
@@ -129,7 +129,7 @@ def _scene(args):
             scene.normal_map_options, encoding="unsigned", channels=3, green="up",
             space="tangent", bits=bits if bits in (8, 16) else 8))
     if args.height_map:
-        d, opts = _load_height_map({"path": args.height_map, "scale": args.height_scale},
+        d, opts = load_height_map({"path": args.height_map, "scale": args.height_scale},
                                    where="--height-map: ")
         changes.update(normal_map=d, normal_map_options=opts)
     if changes:

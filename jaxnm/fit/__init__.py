@@ -94,13 +94,16 @@ from .report import fit_outputs as fit_outputs
 from .report import fit_renders as fit_renders
 from .report import prepare_held_out as prepare_held_out
 from .report import score_held_out as score_held_out
-from .solve import STOP_TESTS as STOP_TESTS
+from .solve import StepResult as StepResult
 from .solve import compile_fit as compile_fit
 from .solve import fit_normal_map as fit_normal_map
+from .solve import fit_step as fit_step
 from .solve import level_sizes as level_sizes
 from .solve import make_solver as make_solver
 from .solve import preconditioner as preconditioner
+from .solve import start_state as start_state
 from .solve import texel_sums_for as texel_sums_for
+from .stopping import STOP_TESTS as STOP_TESTS
 from .stored import STORAGES as STORAGES
 from .stored import StoredFit as StoredFit
 from .stored import fit_stored_map as fit_stored_map
@@ -109,7 +112,8 @@ __all__ = [
     "SOLVERS", "TEXEL_SUMS", "FitOptions", "FitProblem", "FitResult", "FitTarget",
     "FitWarning", "ModelArgs",
     "Prepared", "View", "ViewBatch", "angular_error", "check_identifiability", "error_report",
-    "fit_normal_map", "compile_fit", "level_sizes", "loss", "make_solver", "normals_to_slopes",
+    "fit_normal_map", "fit_step", "start_state", "StepResult", "compile_fit", "level_sizes",
+    "loss", "make_solver", "normals_to_slopes",
     "preconditioner", "prepare", "problem_from_scene", "psnr", "render_with_map", "residuals",
     "sample_split", "seen_texels", "slopes_to_normals", "texel_influence", "validate_problem",
     "view_key", "with_map_size", "shard_views", "FitJob", "FitOutputs", "fit_outputs",

@@ -10,12 +10,12 @@ A checkpoint is a NumPy ``.npz`` archive written atomically (`jaxnm.io.atomic_wr
   ``jax.tree_util`` order. The state's structure depends only on the problem and the
   options, so a resumed fit rebuilds it from a freshly initialised state and puts these
   arrays in.
-- ``meta``: a JSON string: the format and version, the `_fit_fingerprint` of the fit, the
+- ``meta``: a JSON string: the format and version, the `fit_fingerprint` of the fit, the
   level, the next step, whether the level had ended, the stop so far, the best loss, the
   elapsed seconds and the history (which holds everything the stopping rule looks at).
 
 `fit_normal_map(..., checkpoint=path, resume=True)` refuses a checkpoint whose fingerprint
-differs from the fit's in anything that changes the steps' arithmetic (`_check_fingerprint`);
+differs from the fit's in anything that changes the steps' arithmetic (`check_fingerprint`);
 the stopping rule's settings (``max_steps``, ``ftol``, ``patience``, ``rtol``, ``atol``)
 and the time limit may change.
 """
@@ -33,14 +33,15 @@ import numpy as np
 
 from .problem import FitOptions, FitProblem
 
-__all__ = ["Checkpoint", "save_checkpoint", "load_checkpoint"]
+__all__ = ["Checkpoint", "save_checkpoint", "load_checkpoint", "fit_fingerprint",
+           "check_fingerprint", "ARITHMETIC_OPTIONS"]
 
 _FORMAT = "jaxnm-fit-checkpoint"
 _VERSION = 1
 
 #: The `FitOptions` fields that change what the steps compute (a resume must keep them);
 #: the others only decide when the fit stops.
-_ARITHMETIC_OPTIONS = ("solver", "smoothness", "coarse_to_fine", "lsmr_steps", "seed",
+ARITHMETIC_OPTIONS = ("solver", "smoothness", "coarse_to_fine", "lsmr_steps", "seed",
                       "init_noise", "texel_sums")
 
 
@@ -92,16 +93,16 @@ def _hash(value) -> str:
     return h.hexdigest()[:16]
 
 
-def _fit_fingerprint(problem: FitProblem, options: FitOptions, *, strength: float = 1.0,
+def fit_fingerprint(problem: FitProblem, options: FitOptions, *, strength: float = 1.0,
                     layout=None) -> dict:
     """What identifies a fit's arithmetic: a hash of each field of ``problem`` (but its
     `source`, the file it came from), its map size, the options that change the steps
-    (`_ARITHMETIC_OPTIONS`), the rendering ``strength`` and a hash of ``layout`` (any value
+    (`ARITHMETIC_OPTIONS`), the rendering ``strength`` and a hash of ``layout`` (any value
     standing for how the problem was prepared, e.g. the prepared arrays' shapes)."""
     fields = {f.name: _hash(getattr(problem, f.name)) for f in dataclasses.fields(problem)
               if f.name not in ("source", "map_size")}
     return {"problem": fields, "map_size": [int(s) for s in problem.map_size],
-            "options": {k: getattr(options, k) for k in _ARITHMETIC_OPTIONS},
+            "options": {k: getattr(options, k) for k in ARITHMETIC_OPTIONS},
             "strength": float(strength), "layout": _hash(layout)}
 
 
@@ -109,9 +110,9 @@ def _size(s) -> str:
     return "x".join(str(v) for v in s)
 
 
-def _check_fingerprint(path, saved: dict, current: dict) -> None:
+def check_fingerprint(path, saved: dict, current: dict) -> None:
     """Raise a one-line `ValueError` naming ``path`` and every difference between the
-    checkpoint's fingerprint ``saved`` and the fit's ``current`` (`_fit_fingerprint`)."""
+    checkpoint's fingerprint ``saved`` and the fit's ``current`` (`fit_fingerprint`)."""
     diffs = []
     if saved.get("map_size") != current["map_size"]:
         diffs.append(f"map size {_size(saved.get('map_size', '?'))} in the checkpoint, "

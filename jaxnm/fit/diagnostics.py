@@ -9,7 +9,8 @@ import warnings
 import numpy as np
 
 from .. import textures as _tex
-from .prepare import Prepared, _local_rows
+from ._processes import local_rows
+from .prepare import Prepared
 from .problem import FitWarning
 
 __all__ = ["seen_texels", "texel_influence", "angular_error", "check_identifiability",
@@ -23,8 +24,8 @@ def seen_texels(prep: Prepared, map_size: tuple[int, int], *,
     h, w = map_size
     acc = np.zeros(h * w)
     for b in prep.batches:
-        used = (_local_rows(b.weights)[1].max(1)[..., 0] > 0)[..., None]  # (V, K, 1)
-        idx, wt = _local_rows(b.gbuffer.plan.index)[1], _local_rows(b.gbuffer.plan.weight)[1]
+        used = (local_rows(b.weights)[1].max(1)[..., 0] > 0)[..., None]  # (V, K, 1)
+        idx, wt = local_rows(b.gbuffer.plan.index)[1], local_rows(b.gbuffer.plan.weight)[1]
         keep = (idx < h * w) & used  # level 0 texels come first in the flat index
         acc += np.bincount(idx[keep], weights=wt[keep], minlength=h * w)
     return _summed(prep, acc).reshape(h, w) >= min_weight
@@ -32,9 +33,10 @@ def seen_texels(prep: Prepared, map_size: tuple[int, int], *,
 
 def _summed(prep: Prepared, acc: np.ndarray) -> np.ndarray:
     """``acc`` summed over the processes ``prep``'s views are spread over (itself if none)."""
-    from .distributed import _sum_over_processes, spread_over_processes
+    from ._processes import sum_over_processes
+    from .distributed import spread_over_processes
 
-    return _sum_over_processes(acc) if spread_over_processes(prep) else acc
+    return sum_over_processes(acc) if spread_over_processes(prep) else acc
 
 
 #: Pixels per piece of `texel_influence`'s sums.
@@ -49,20 +51,21 @@ def texel_influence(prep: Prepared) -> np.ndarray:
     (a coarser level's texel passes its weight down through the transpose of
     `jaxnm.textures.build_mipmaps`' box filter); used to precondition the solve (see
     `fit_normal_map`). Computed on the host in float64: as an XLA program (the sampling's
-    VJP) it compiled in 0.04 s on the CPU but 1.4 s on an H100 with deterministic ops.
+    VJP) it would cost a compilation per problem shape, long on a GPU with deterministic
+    ops.
     """
     h, w = prep.options[0].normal_map_shape
     shapes = _tex.mip_sizes((h, w), prep.options[0].levels)
     sizes = [a * b for a, b in shapes]
     acc = np.zeros(sum(sizes))
     for b in prep.batches:
-        used = _local_rows(b.weights)[1].sum(1, dtype=np.float64)[..., 0].reshape(-1)
-        idx = _local_rows(b.gbuffer.plan.index)[1]
+        used = local_rows(b.weights)[1].sum(1, dtype=np.float64)[..., 0].reshape(-1)
+        idx = local_rows(b.gbuffer.plan.index)[1]
         idx = idx.reshape(-1, idx.shape[-1])  # (pixels of every view, taps)
-        weight = _local_rows(b.gbuffer.plan.weight)[1].reshape(idx.shape)
-        # in pieces: float64 copies of a 64-view batch's taps at once (~1M pixels x 8
-        # taps) held ~200 MB for a moment, the fit's peak. Each piece's count is as long as
-        # the levels, so a piece is never much shorter
+        weight = local_rows(b.gbuffer.plan.weight)[1].reshape(idx.shape)
+        # in pieces: float64 copies of a large batch's taps at once would be the fit's peak
+        # memory. Each piece's count is as long as the levels, so a piece is never much
+        # shorter
         rows = max(_INFLUENCE_ROWS, acc.size // idx.shape[1])
         for k in range(0, idx.shape[0], rows):
             wt = weight[k:k + rows].astype(np.float64) * used[k:k + rows, None]
@@ -72,7 +75,7 @@ def texel_influence(prep: Prepared) -> np.ndarray:
     grad = levels[-1].reshape(shapes[-1])
     for k in range(len(shapes) - 2, -1, -1):  # coarse to fine: through each filter
         hk, wk = shapes[k]
-        grad = (_tex._box_filter_matrix(hk).T @ grad @ _tex._box_filter_matrix(wk)
+        grad = (_tex.box_filter_matrix(hk).T @ grad @ _tex.box_filter_matrix(wk)
                 + levels[k].reshape(hk, wk))
     return grad.astype(np.float32)
 
@@ -113,10 +116,11 @@ def check_identifiability(prep: Prepared, *, warn: bool = True,
         rank = int(np.linalg.matrix_rank(unique, tol=1e-3)) if len(unique) else 0
         per_view[v] = {"targets": int(view.images.shape[0]),
                        "distinct_light_directions": int(len(unique)), "direction_rank": rank}
-    from .distributed import _allgather_json, spread_over_processes
+    from ._processes import allgather_json
+    from .distributed import spread_over_processes
 
     if spread_over_processes(prep):  # every process's views
-        for part in _allgather_json({str(v): rec for v, rec in per_view.items()}):
+        for part in allgather_json({str(v): rec for v, rec in per_view.items()}):
             per_view.update({int(v): rec for v, rec in part.items()})
     for v in sorted(per_view):
         report["views"].append(per_view[v])

@@ -29,27 +29,14 @@ has died makes the others' next collective fail at once.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 from collections.abc import Sequence
 
 import jax
 import numpy as np
 
-from .prepare import (
-    CHUNK,
-    Prepared,
-    ViewBatch,
-    _check_chunk,
-    _chunking,
-    _light_key,
-    _rasterize_views,
-    _stack_lights,
-    _stack_rows,
-    _tap_groups,
-    _view_options,
-    view_key,
-)
+from ._batching import check_chunk, chunking, light_key, stack_lights, stack_rows, tap_groups
+from ._processes import allgather_json
+from .prepare import CHUNK, Prepared, ViewBatch, rasterize_views, view_key, view_options
 from .problem import FitProblem, FitTarget
 
 __all__ = ["process_targets", "prepare_processes", "spread_over_processes",
@@ -62,58 +49,16 @@ def spread_over_processes(prep: Prepared) -> bool:
     return not prep.batches[0].pixels.is_fully_addressable
 
 
-def _allgather_json(value) -> list:
-    """``value`` (anything `json` writes) of every process, in process order. A collective:
-    every process must call it. One process: ``[value]``."""
-    if jax.process_count() == 1:
-        return [json.loads(json.dumps(value))]
-    from jax.experimental import multihost_utils
-
-    data = np.frombuffer(json.dumps(value, sort_keys=True).encode(), np.uint8)
-    sizes = np.asarray(multihost_utils.process_allgather(np.array([data.size], np.int64)))
-    buf = np.zeros(int(sizes.max()), np.uint8)
-    buf[:data.size] = data
-    every = np.asarray(multihost_utils.process_allgather(buf))
-    return [json.loads(every[p, :int(sizes[p, 0])].tobytes().decode())
-            for p in range(every.shape[0])]
-
-
-def _sum_over_processes(x: np.ndarray) -> np.ndarray:
-    """The sum of a host array ``x`` over every process (added in process order; ``x`` itself
-    with one process). A collective."""
-    if jax.process_count() == 1:
-        return x
-    from jax.experimental import multihost_utils
-
-    every = np.asarray(multihost_utils.process_allgather(np.asarray(x)))
-    out = every[0].copy()
-    for part in every[1:]:
-        out += part
-    return out
-
-
 def check_same_across_processes(values: dict, what: str = "this run") -> None:
     """Raise a one-line `ValueError` on every process when ``values`` (a JSON-able dict, e.g.
     the fit file's hash and the options) differ between processes, naming the first key that
     differs and its value on process 0 and on the first process that differs. A collective."""
-    every = _allgather_json(values)
+    every = allgather_json(values)
     for p, other in enumerate(every[1:], 1):
         for key in sorted(set(every[0]) | set(other)):
             if every[0].get(key) != other.get(key):
                 raise ValueError(f"{what}: process {p} has {key} {other.get(key)!r}, process 0 "
                                  f"{every[0].get(key)!r}: every process must run the same fit")
-
-
-def _to_host(x) -> np.ndarray:
-    """A host copy of the whole of ``x``, also where other processes hold parts of it (a
-    collective then)."""
-    if not isinstance(x, jax.Array) or x.is_fully_addressable:
-        return np.asarray(x)
-    if x.is_fully_replicated:
-        return np.asarray(x.addressable_data(0))
-    from jax.experimental import multihost_utils
-
-    return np.asarray(multihost_utils.process_allgather(x, tiled=True))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -148,7 +93,7 @@ def _layout(targets: Sequence[FitTarget], processes: int, local_devices: int = 1
     views = list(groups.values())
     by_lights: dict = {}
     for v, ts in enumerate(views):
-        key = _light_key(_stack_lights([targets[i].lights for i in ts]))
+        key = light_key(stack_lights([targets[i].lights for i in ts]))
         by_lights.setdefault(key, []).append(v)
     batches = list(by_lights.values())
     rows, fill, count = [], [], []
@@ -189,14 +134,14 @@ def prepare_processes(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prep
     is `prepare` with one batch per kind of lights. A collective (see the module)."""
     from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-    _check_chunk(chunk)
+    check_chunk(chunk)
     n_proc, me = jax.process_count(), jax.process_index()
     devices = _devices()
     local = [d for d in devices if d.process_index == me]
     lay = _layout(problem.targets, n_proc, len(local))
     mine = lay.targets_of(me)
     sub = dataclasses.replace(problem, targets=tuple(problem.targets[i] for i in mine))
-    raster, _, _ = _rasterize_views(sub)
+    raster, _, _ = rasterize_views(sub)
     # local view -> global view: each view's first target
     first = {tuple(lay.views[v]): v for v in range(len(lay.views))}
     order: dict = {}
@@ -208,10 +153,10 @@ def prepare_processes(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prep
     plan = []
     for b, members in enumerate(lay.batches):
         vs = lay.rows[b][me] or [lay.fill[b][me]]
-        parts = [_tap_groups(held[v]) for v in vs]
+        parts = [tap_groups(held[v]) for v in vs]
         plan.append((vs, parts, max(len(a) for a, _ in parts), max(len(c) for _, c in parts)))
     local_max = np.array([[p[2], p[3]] for p in plan], np.int64)
-    every = _allgather_json(local_max.tolist())
+    every = allgather_json(local_max.tolist())
     sizes = np.max(np.asarray(every, np.int64), axis=0)
     mesh = Mesh(np.array(devices), ("views",))
     split = NamedSharding(mesh, PartitionSpec("views"))
@@ -223,10 +168,10 @@ def prepare_processes(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prep
         t_max = max(targets.values())
         rows = m * n_proc
         per_chunk = None if chunk is None else max(256, chunk // (rows * t_max))
-        na, ka = _chunking(int(sizes[b, 0]), per_chunk)
-        nb, kb = _chunking(int(sizes[b, 1]), per_chunk)
+        na, ka = chunking(int(sizes[b, 0]), per_chunk)
+        nb, kb = chunking(int(sizes[b, 1]), per_chunk)
         eight = held[vs[0]].gbuffer.plan.num_taps == 8
-        stacked = _stack_rows(held, vs, parts, ka, kb, t_max)  # (each view in one batch)
+        stacked = stack_rows(held, vs, parts, ka, kb, t_max)  # (each view in one batch)
         real = len(lay.rows[b][me])
         pick = np.concatenate([np.arange(len(vs)), np.zeros(m - len(vs), np.int64)])
 
@@ -251,7 +196,7 @@ def prepare_processes(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prep
                                  split=ka if eight else 0, chunks=(na, nb)))
     material = jax.device_put(jax.tree_util.tree_map(np.asarray, problem.material),
                               NamedSharding(mesh, PartitionSpec()))
-    return Prepared(tuple(batches), material, tuple(_view_options(problem)), chunk)
+    return Prepared(tuple(batches), material, tuple(view_options(problem)), chunk)
 
 
 def local_prepared(prep: Prepared) -> tuple[Prepared, tuple[int, ...]]:
@@ -261,11 +206,11 @@ def local_prepared(prep: Prepared) -> tuple[Prepared, tuple[int, ...]]:
     the host, e.g. `jaxnm.fit.fit_renders` on the process that writes the outputs."""
     if not spread_over_processes(prep):
         return prep, tuple(range(prep.num_views))
-    from .prepare import _assemble
+    from .prepare import assemble
 
     vs = prep.local_views()
     views = [prep.view(v) for v in vs]
-    return _assemble(views, tuple(prep.options[v] for v in vs), _local_material(prep),
+    return assemble(views, tuple(prep.options[v] for v in vs), _local_material(prep),
                      prep.chunk), vs
 
 
@@ -273,9 +218,3 @@ def _local_material(prep: Prepared):
     return jax.tree_util.tree_map(lambda x: np.asarray(x.addressable_data(0)), prep.material)
 
 
-def _fingerprint_across_processes(local: dict) -> dict:
-    """A fit's `jaxnm.fit.checkpoint._fit_fingerprint` made on every process (each hashing its
-    own targets' images) combined into one, the same on every process. A collective."""
-    every = _allgather_json(local["problem"])
-    h = hashlib.sha256(json.dumps(every, sort_keys=True).encode()).hexdigest()[:16]
-    return {**local, "problem": {"across_processes": h}}

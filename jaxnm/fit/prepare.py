@@ -11,7 +11,6 @@ into `ViewBatch`es, so one ``vmap`` shades them.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -19,21 +18,32 @@ import numpy as np
 from jax import Array
 
 from .. import textures as _tex
-from ..geometry import _closed_shape
-from ..render import GBuffer, RenderOptions, _check_mesh, build_gbuffer, covered_gbuffer
-from ..scene import _box_in_front
+from .._host_geometry import box_in_front, closed_shape
+from ..gbuffer import GBuffer, RenderOptions
+from ..render import build_gbuffer, covered_gbuffer
 from ..shading import Lights, Material
+from ._batching import (
+    check_chunk,
+    chunking,
+    host,
+    light_key,
+    map_pixels,
+    stack_lights,
+    stack_rows,
+    tap_groups,
+)
+from ._processes import held_rows, host_row
 from .problem import FitProblem, FitTarget, validate_problem
 
 __all__ = ["ViewBatch", "Prepared", "View", "prepare", "with_map_size", "view_key",
-           "shard_views", "CHUNK"]
+           "shard_views", "CHUNK", "view_options", "rasterize_views", "assemble"]
 
 #: Default of `prepare`'s ``chunk``: at most this many pixel-targets (a pixel under one
 #: light) are evaluated at once by a fit step. A step's working memory (the shading, its
-#: forward-mode tangents and the per-pixel Jacobian blocks: ~170 B per pixel-target on the
-#: CPU) grows with this, not with the number of views or their size. Problems smaller than
-#: this (``jaxnm fit``'s built-in one has 1.2 M) run in one piece: a loop over chunks costs
-#: ~0.9 s more compilation and ~10 % per step.
+#: forward-mode tangents and the per-pixel Jacobian blocks) grows with this, not with the
+#: number of views or their size. Problems smaller than this (``jaxnm fit``'s built-in one)
+#: run in one piece: a loop over chunks costs compilation and time per step
+#: (docs/guides/fitting.md).
 CHUNK = 1 << 21
 
 
@@ -92,7 +102,7 @@ class ViewBatch:
         def cut(x, axis):
             return jax.lax.dynamic_slice_in_dim(x, start + c * size, size, axis)
 
-        return (_map_pixels(self.gbuffer, lambda x: cut(x, 1)), self.lights,
+        return (map_pixels(self.gbuffer, lambda x: cut(x, 1)), self.lights,
                 cut(self.images, 2), cut(self.weights, 2))
 
 
@@ -124,16 +134,16 @@ class Prepared:
         for b in self.batches:
             if v in b.views:
                 i = b.views.index(v)
-                if not b.pixels.is_fully_addressable and i not in _held_rows(b.pixels):
+                if not b.pixels.is_fully_addressable and i not in held_rows(b.pixels):
                     raise IndexError(f"fit: view {v} is held by another process")
 
                 def row(x, i=i):
-                    return _row(x, i)
+                    return host_row(x, i)
 
                 pixels = row(b.pixels)
                 keep = np.flatnonzero(pixels >= 0)
                 t = b.targets[i]
-                gb = _map_pixels(b.gbuffer, lambda x: row(x)[keep], eye=row)
+                gb = map_pixels(b.gbuffer, lambda x: row(x)[keep], eye=row)
                 return View(gb, pixels[keep], row(b.images)[:t][:, keep],
                             row(b.weights)[:t][:, keep],
                             jax.tree_util.tree_map(lambda x: row(x)[:t], b.lights))
@@ -145,7 +155,7 @@ class Prepared:
         out = set()
         for b in self.batches:
             held = (range(len(b.views)) if b.pixels.is_fully_addressable
-                    else _held_rows(b.pixels))
+                    else held_rows(b.pixels))
             out |= {b.views[i] for i in held if b.views[i] >= 0}
         return tuple(sorted(out))
 
@@ -180,16 +190,6 @@ class View:
     lights: Lights
 
 
-def _stack_lights(lights: Sequence[Lights]) -> Lights:
-    structs = {jax.tree_util.tree_structure(light) for light in lights}
-    shapes = {tuple(x.shape for x in jax.tree_util.tree_leaves(light)) for light in lights}
-    if len(structs) != 1 or len(shapes) != 1:
-        raise ValueError("fit: all targets of one view must have lights of the same kinds and "
-                         "counts (e.g. each one directional light), so they can be batched")
-    # on the host: `_host` takes them there anyway, and a jnp.stack compiles per shape
-    return jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v) for v in x]), *lights)
-
-
 def view_key(t: FitTarget) -> tuple:
     """What identifies a target's view: its image size and camera matrices (targets with equal
     keys share one G-buffer)."""
@@ -206,18 +206,12 @@ def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
     memory for its prepared G-buffers and targets (~0.2 KB per pixel-target) plus a bounded
     working set. None evaluates every pixel at once (fewer, larger kernels: on a GPU with
     memory to spare)."""
-    _check_chunk(chunk)
-    views, opts_all, problem = _rasterize_views(problem)
-    return _assemble(views, tuple(opts_all), problem.material, chunk)
+    check_chunk(chunk)
+    views, opts_all, problem = rasterize_views(problem)
+    return assemble(views, tuple(opts_all), problem.material, chunk)
 
 
-def _check_chunk(chunk) -> None:
-    if chunk is not None and chunk < 1:
-        raise ValueError(f"prepare: chunk must be a positive number of pixel-targets or None, "
-                         f"got {chunk}")
-
-
-def _view_options(problem: FitProblem) -> list[RenderOptions]:
+def view_options(problem: FitProblem) -> list[RenderOptions]:
     """The render options of each view of ``problem`` (its targets grouped by `view_key`, in
     the order of their first target), from the cameras alone: nothing is rasterized."""
     groups: dict = {}
@@ -225,11 +219,11 @@ def _view_options(problem: FitProblem) -> list[RenderOptions]:
         groups.setdefault(view_key(t), t)
     nm = dataclasses.replace(problem.sampling, encoding="signed", channels=3)
     # a closed mesh seen from outside shows no back face: those views skip them
-    box = _closed_shape(problem.mesh.positions, problem.mesh.faces)
+    box = closed_shape(problem.mesh.positions, problem.mesh.faces)
     return [RenderOptions(width=t0.width, height=t0.height, derivatives=problem.derivatives,
                           precision=problem.precision, frame=problem.frame,
                           shading=problem.shading, double_sided=problem.double_sided,
-                          cull_back=box is not None and _box_in_front(box, t0.camera),
+                          cull_back=box is not None and box_in_front(box, t0.camera),
                           normal_map=nm, normal_map_shape=tuple(problem.map_size),
                           albedo_shape=(tuple(jnp.shape(problem.albedo)[:2])
                                         if jnp.ndim(problem.albedo) == 3 else None),
@@ -237,9 +231,9 @@ def _view_options(problem: FitProblem) -> list[RenderOptions]:
             for t0 in groups.values()]
 
 
-def _rasterize_views(problem: FitProblem) -> tuple[list[View], list[RenderOptions], FitProblem]:
+def rasterize_views(problem: FitProblem) -> tuple[list[View], list[RenderOptions], FitProblem]:
     """Every view of ``problem`` rasterized once: its covered pixels' G-buffer, targets and
-    lights (`View`, in `_view_options`' order), its options, and the problem (with
+    lights (`View`, in `view_options`' order), its options, and the problem (with
     MikkTSpace tangents where its frame needs them)."""
     validate_problem(problem)
     if problem.frame == "vertex" and problem.mesh.tangents is None:  # MikkTSpace, once
@@ -248,9 +242,9 @@ def _rasterize_views(problem: FitProblem) -> tuple[list[View], list[RenderOption
     for t in problem.targets:
         groups.setdefault(view_key(t), []).append(t)
     views, opts_all = [], []
-    for ts, opts in zip(groups.values(), _view_options(problem), strict=True):
+    for ts, opts in zip(groups.values(), view_options(problem), strict=True):
         t0 = ts[0]
-        _check_mesh(problem.mesh, opts, problem.source)
+        opts.check_mesh(problem.mesh, problem.source)
         albedo = jax.device_put(problem.albedo)  # (jnp.asarray of NumPy compiles per shape)
 
         def flat(x):  # an image-layout array's covered pixels
@@ -270,7 +264,7 @@ def _rasterize_views(problem: FitProblem) -> tuple[list[View], list[RenderOption
             # a copy: a view of the first ``count`` slots would keep every slot (up to twice
             # the covered pixels) alive until the views are stacked
             covered = lambda x: np.array(x[:count])  # noqa: E731
-        gb = _host(_fit_fields(gb))  # the rest is host-side indexing, in NumPy
+        gb = host(_fit_fields(gb))  # the rest is host-side indexing, in NumPy
         ws = []
         for i, t in enumerate(ts):
             m = cover if t.mask is None else (cover & np.asarray(t.mask, bool))
@@ -278,10 +272,10 @@ def _rasterize_views(problem: FitProblem) -> tuple[list[View], list[RenderOption
                 raise ValueError(f"{problem.source}: {t.name or 'a target'}: the mask and the "
                                  "mesh's silhouette do not overlap")
             ws.append(m[..., None].astype(np.float32))
-        views.append(View(_map_pixels(gb, covered), pix,
+        views.append(View(map_pixels(gb, covered), pix,
                           np.stack([flat(np.asarray(t.image, np.float32)) for t in ts]),
                           np.stack([flat(w) for w in ws]),
-                          _host(_stack_lights([t.lights for t in ts]))))
+                          host(stack_lights([t.lights for t in ts]))))
         opts_all.append(opts)
         del gb  # the whole image's G-buffer: only the covered pixels are kept
     return views, opts_all, problem
@@ -295,65 +289,8 @@ def _fit_fields(gb: GBuffer) -> GBuffer:
                    albedo=gb.albedo, eye=gb.eye)
 
 
-def _held_rows(x) -> dict:
-    """``{row: (shard data, row within it)}`` of the leading-axis rows of ``x`` held here."""
-    out = {}
-    for shard in x.addressable_shards:
-        start = (shard.index[0].start or 0) if shard.index else 0
-        for j in range(shard.data.shape[0] if shard.index else 0):
-            out.setdefault(start + j, (shard.data, j))
-    return out
-
-
-def _row(x, i: int) -> np.ndarray:
-    """Row ``i`` (leading axis) of ``x`` on the host, also of an array spread over
-    processes whose row is held here."""
-    if not isinstance(x, jax.Array) or x.is_fully_addressable:
-        return np.asarray(x)[i]
-    data, j = _held_rows(x)[i]
-    return np.asarray(data)[j]
-
-
-def _local_rows(x) -> tuple[np.ndarray, np.ndarray]:
-    """``(rows, data)``: the indices of the leading-axis rows of ``x`` held by this process
-    and their host copy (every row where ``x`` is not spread over processes)."""
-    if not isinstance(x, jax.Array) or x.is_fully_addressable:
-        x = np.asarray(x)
-        return np.arange(x.shape[0]), x
-    held = _held_rows(x)
-    rows = np.array(sorted(held), np.int64)
-    if not len(rows):
-        return rows, np.zeros((0,) + x.shape[1:], x.dtype)
-    return rows, np.stack([np.asarray(held[i][0])[held[i][1]] for i in rows])
-
-
-def _host(tree):
-    """``tree`` with every leaf a NumPy array (a host copy, or a view on the CPU)."""
-    return jax.tree_util.tree_map(np.asarray, tree)
-
-
-def _map_pixels(gb: GBuffer, fn, eye=lambda x: x) -> GBuffer:
-    """Apply ``fn`` to every per-pixel field of ``gb`` and ``eye`` to the eye position."""
-    out = jax.tree_util.tree_map(fn, dataclasses.replace(gb, eye=None))
-    return dataclasses.replace(out, eye=None if gb.eye is None else eye(gb.eye))
-
-
-def _light_key(lights: Lights):
-    leaves, tree = jax.tree_util.tree_flatten(lights)
-    return tree, tuple(x.shape[1:] for x in leaves)
-
-
-def _chunking(count: int, per_chunk: int | None) -> tuple[int, int]:
-    """(chunks, padded count): ``count`` pixels cut into chunks of at most ``per_chunk``,
-    padded to a multiple of the number of chunks (fewer than one extra pixel per chunk)."""
-    if count == 0:
-        return 1, 0
-    n = 1 if per_chunk is None else -(-count // per_chunk)
-    return n, n * -(-count // n)
-
-
-def _assemble(views: list[View], options: tuple[RenderOptions, ...],
-              material: Material, chunk: int | None) -> Prepared:
+def assemble(views: list[View], options: tuple[RenderOptions, ...],
+             material: Material, chunk: int | None) -> Prepared:
     """Order each view's pixels by the taps they need, pad, and stack views into batches.
 
     A trilinear plan always has 8 taps, but where the level of detail is
@@ -369,7 +306,7 @@ def _assemble(views: list[View], options: tuple[RenderOptions, ...],
     """
     by_lights: dict = {}
     for v, view in enumerate(views):
-        by_lights.setdefault(_light_key(view.lights), []).append(v)
+        by_lights.setdefault(light_key(view.lights), []).append(v)
     size = [view.pixels.shape[0] for view in views]
     groups = []  # by decreasing pixel count; a new batch where padding would double the work
     for members in by_lights.values():
@@ -384,13 +321,13 @@ def _assemble(views: list[View], options: tuple[RenderOptions, ...],
         groups.append(batch)
     batches = []
     for members in groups:
-        parts = [_tap_groups(views[v]) for v in members]
+        parts = [tap_groups(views[v]) for v in members]
         eight = views[members[0]].gbuffer.plan.num_taps == 8
         targets = tuple(views[v].images.shape[0] for v in members)
         per_chunk = None if chunk is None else max(256, chunk // (len(members) * max(targets)))
-        na, ka = _chunking(max(len(a) for a, _ in parts), per_chunk)
-        nb, kb = _chunking(max(len(b) for _, b in parts), per_chunk)
-        stacked = _stack_rows(views, members, parts, ka, kb, max(targets))
+        na, ka = chunking(max(len(a) for a, _ in parts), per_chunk)
+        nb, kb = chunking(max(len(b) for _, b in parts), per_chunk)
+        stacked = stack_rows(views, members, parts, ka, kb, max(targets))
         # moved to the device one array at a time, each host copy dropped once moved: the
         # peak holds the batch about twice, not four times (views, rows, stack, device)
         leaves, tree = jax.tree_util.tree_flatten(stacked)
@@ -404,44 +341,6 @@ def _assemble(views: list[View], options: tuple[RenderOptions, ...],
     return Prepared(tuple(batches), material, options, chunk)
 
 
-def _tap_groups(view: View) -> tuple[np.ndarray, np.ndarray]:
-    """The indices of ``view``'s pixels that read one mip level (4 non-zero taps) and of the
-    others (see `_assemble`)."""
-    w = np.asarray(view.gbuffer.plan.weight)
-    one = (np.all(w[:, 4:] == 0, axis=-1) if view.gbuffer.plan.num_taps == 8
-           else np.zeros(len(w), bool))
-    return np.flatnonzero(one), np.flatnonzero(~one)
-
-
-def _stack_rows(views: list, members: Sequence[int], parts: Sequence, ka: int, kb: int,
-                t_max: int) -> dict:
-    """The host arrays of a `ViewBatch` whose rows are ``views[v]`` for ``v`` in ``members``:
-    each view's pixels ordered by `_tap_groups` (``parts``) and padded to ``ka`` + ``kb``, its
-    targets to ``t_max``. Takes the views over (each entry is set to None once copied)."""
-    stacked = None  # filled view by view, each view released once copied
-    for i, (v, (a, b)) in enumerate(zip(members, parts)):
-        view, views[v] = views[v], None
-        fill = int(a[0] if len(a) else b[0])  # a real pixel, copied into the padding
-        order = np.concatenate([a, np.full(ka - len(a), fill), b, np.full(kb - len(b), fill)])
-        real = np.concatenate([np.ones(len(a), bool), np.zeros(ka - len(a), bool),
-                               np.ones(len(b), bool), np.zeros(kb - len(b), bool)])
-        t = view.images.shape[0]
-        tsel = np.minimum(np.arange(t_max), t - 1)  # padded targets repeat the last one
-        used = real[None, :, None] & (np.arange(t_max) < t)[:, None, None]
-        row = dict(gbuffer=_map_pixels(view.gbuffer, lambda x: x[order]),
-                   pixels=np.where(real, view.pixels[order], -1).astype(np.int32),
-                   images=view.images[np.ix_(tsel, order)],
-                   weights=view.weights[np.ix_(tsel, order)] * used.astype(np.float32),
-                   lights=jax.tree_util.tree_map(lambda x: x[tsel], view.lights))
-        del view
-        if stacked is None:
-            stacked = jax.tree_util.tree_map(
-                lambda x: np.empty((len(members),) + x.shape, x.dtype), row)
-        jax.tree_util.tree_map(lambda out, x: out.__setitem__(i, x), stacked, row)
-        del row
-    return stacked
-
-
 def with_map_size(prep: Prepared, size) -> Prepared:
     """``prep`` re-planned for a map of ``size`` (h, w) (same G-buffers, new sample plans):
     the levels of a coarse-to-fine fit."""
@@ -450,12 +349,12 @@ def with_map_size(prep: Prepared, size) -> Prepared:
         view = prep.view(v)
         o = dataclasses.replace(opts, normal_map_shape=tuple(size))
         nm = o.normal_map
-        plan = _host(_tex.plan_sample(view.gbuffer.uv, size_hw=tuple(size), levels=o.levels,
+        plan = host(_tex.plan_sample(view.gbuffer.uv, size_hw=tuple(size), levels=o.levels,
                                       filter=nm.filter, wrap=nm.wrap, uv_origin=nm.uv_origin))
         views.append(dataclasses.replace(view, gbuffer=dataclasses.replace(view.gbuffer,
                                                                            plan=plan)))
         opts_all.append(o)
-    return _assemble(views, tuple(opts_all), prep.material, prep.chunk)
+    return assemble(views, tuple(opts_all), prep.material, prep.chunk)
 
 
 def shard_views(prep: Prepared, devices=None) -> Prepared:

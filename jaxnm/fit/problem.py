@@ -9,10 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..camera import Camera
-from ..frames import _check_frame
+from ..frames import check_frame
 from ..geometry import Mesh
-from ..interpolate import _check_derivatives, _check_precision, _require_x64
-from ..shading import Lights, Material, _check_shading_model
+from ..interpolate import check_derivatives, check_precision, require_x64
+from ..shading import Lights, Material, check_shading_model
 from ..textures import NormalMapOptions
 
 __all__ = [
@@ -128,7 +128,7 @@ class FitOptions:
       an order that varies from run to run, and with `jaxnm.runtime.use_deterministic_ops`
       XLA sorts the indices on every call), ``"tables"`` (fixed-order sums through tables
       built once at the start of the fit from the prepared taps,
-      `jaxnm.fit.texel_lm._texel_sum_tables`: the same result on every run, no sorting;
+      `jaxnm.fit.texel_lm.texel_sum_tables`: the same result on every run, no sorting;
       not where the views are spread over several devices), or ``"auto"`` (the default:
       tables on a GPU or other accelerator with deterministic ops, as the command line
       runs, else scatter-adds: `jaxnm.fit.texel_sums_for` says which, and what each
@@ -181,7 +181,7 @@ class FitResult:
     ground truth was given); ``stopped``: why it ended (``"converged"``,
     ``"no_progress"``, ``"max_steps"``, ``"time_limit"``, ``"interrupted"`` or a
     solver's failure); ``stop_test``: the test that ended it (a key of
-    `jaxnm.fit.solve.STOP_TESTS`); ``noise_floor``: the float32 rounding of the start's
+    `jaxnm.fit.stopping.STOP_TESTS`); ``noise_floor``: the float32 rounding of the start's
     loss, which a fit must beat to have made progress; ``identifiability``: the
     `check_identifiability` report.
     """
@@ -207,12 +207,12 @@ def validate_problem(problem: FitProblem) -> None:
     if problem.mesh.normals is None:
         raise ValueError(f"{src}: the mesh has no vertex normals")
     try:
-        _check_frame(problem.frame)
-        _check_derivatives(problem.derivatives, allow_none=False)
-        _check_precision(problem.precision)
+        check_frame(problem.frame)
+        check_derivatives(problem.derivatives, allow_none=False)
+        check_precision(problem.precision)
         if problem.precision == "float64":
-            _require_x64("precision 'float64'")
-        _check_shading_model(problem.shading)
+            require_x64("precision 'float64'")
+        check_shading_model(problem.shading)
     except ValueError as e:
         raise ValueError(f"{src}: {e}") from None
     if problem.frame == "none":

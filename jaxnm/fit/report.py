@@ -14,7 +14,7 @@ from .diagnostics import angular_error, error_report, psnr, seen_texels
 from .model import render_with_map
 from .prepare import Prepared, prepare
 from .problem import FitJob, FitResult
-from .solve import _FULL_STEP_DAMPING, STOP_TESTS
+from .stopping import FULL_STEP_DAMPING, STOP_TESTS
 
 __all__ = ["FitOutputs", "fit_outputs", "fit_renders", "prepare_held_out", "score_held_out",
            "ERROR_MAP_RANGE_DEG", "stopped_in_words"]
@@ -109,7 +109,7 @@ def _convergence_rule(options) -> str:
     if o.ftol <= 0:
         return solver
     return (f"the loss changed by less than {o.ftol:g} (relative) over the last "
-            f"{o.patience} full steps (accepted, damped less than {_FULL_STEP_DAMPING:g}, "
+            f"{o.patience} full steps (accepted, damped less than {FULL_STEP_DAMPING:g}, "
             f"the loss not raised by more than {o.ftol:g}), or {solver}")
 
 

@@ -14,54 +14,27 @@ the compiled step. The loss reported per step is the solver's own evaluation
 (no second compiled program). Coarse-to-fine levels have different map sizes,
 so each level compiles once.
 
-**Driving the loop in Python** keeps what a user needs between steps: a
-progress bar, Ctrl-C (return the best map so far), a time limit, a caller's request to stop
-(``should_stop``), checkpoints (`jaxnm.fit.checkpoint`), and a history with the angular
-error against a ground truth.
+**A step and a driver.** `fit_step` is one solver step, a pure compiled function (state in,
+state out, from `start_state`). `fit_normal_map` drives it in Python, which keeps what a
+user needs between steps: a history with the angular error against a ground truth, a
+progress bar, a time limit, a caller's request to stop (``should_stop``), Ctrl-C (return
+the best map so far), checkpoints (`jaxnm.fit.checkpoint`), and, for a fit spread over
+processes, every process's agreement on what is not a function of the loss (the time
+limit, ``should_stop``, when to checkpoint).
 
-**When a fit stops** (`_stop_test`; the test that ended a fit is `FitResult.stop_test`).
-From step 1 on, every step records whether the solver *accepted* the point it evaluated,
-how *damped* the move to that point was (the share of the move the solver held back, in
-[0, 1]) and the decrease of the loss its model *predicted* for it. For Levenberg–Marquardt
-(``"lm"``, ``"lm-texel"``) the damping is the damping's share of the curvature along the
-move ``d``, ``lambda |d|^2 / (d.H d + lambda |d|^2)`` (1: a short gradient step, 0: the
-Gauss–Newton step), and the prediction the Gauss–Newton model's; for L-BFGS, how much the
-backtracking line search shortened its first trial, and the gradient's linear
-prediction; Gauss–Newton takes every step at full length. What the model *promised*
-(`_promised`) is the prediction undamped: ``predicted / (1 - damping)``.
-
-The fit has **converged** (``"ftol"``) when over the level's last ``patience`` steps the
-loss changed by less than ``ftol`` (relative) *and* at none of them did the solver's model
-promise a larger decrease. The solver's own test (``rtol``/``atol``: a tiny accepted move
-and loss change) counts only on an accepted step damped less than `_FULL_STEP_DAMPING`.
-
-Why: a damped or backtracking solver moves the loss little because it holds its steps
-back, not because little is left to gain. Levenberg–Marquardt from a start whose
-curvature is far below its first damping takes steps of length ``|g| / lambda``
-(optimistix starts at ``lambda = 1`` whatever the problem's scale): on a 480-triangle
-asset (a 512x512 map, 3 views x 5 lights) the loss fell by 0.05 % over the first three
-steps, then from 12,662 to 347 over the next 27 once the damping had come down. A
-backtracking L-BFGS keeps the loss exactly flat while it halves its trial step, and
-Gauss–Newton far from the answer can raise the loss before it lowers it. In all these the
-model, undamped, promises far more than the loss gave, so the fit goes on. At the answer
-both are small — also when the solver rejects every step because float32 cannot resolve
-a smaller loss (a rejected step changes nothing; its model promised next to nothing) — so
-the fit stops.
-
-Changes and promises below the loss's **noise floor** (`_noise_floor`: the float32
-rounding of its sum and of the residuals it sums) count as nothing: at the end of a
-noise-free fit, float32 cannot resolve anything smaller. A fit that ends on its own
-(converged, the solver's test, or ``max_steps``) without lowering the loss below its
-start's by more than the start's noise floor reports ``stopped == "no_progress"``.
+**When a fit stops**: `jaxnm.fit.stopping` (the test that ended a fit is
+`FitResult.stop_test`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import sys
 import time
 from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -71,48 +44,28 @@ import numpy as np
 import optimistix as optx
 from jax import Array
 
+from . import stopping
+from ._processes import (
+    allgather_json,
+    fingerprint_across_processes,
+    to_host,
+)
 from .checkpoint import (
     Checkpoint,
-    _check_fingerprint,
-    _fit_fingerprint,
+    check_fingerprint,
+    fit_fingerprint,
     load_checkpoint,
     save_checkpoint,
 )
 from .diagnostics import angular_error, check_identifiability, seen_texels, texel_influence
-from .distributed import (
-    _allgather_json,
-    _fingerprint_across_processes,
-    _sum_over_processes,
-    _to_host,
-    spread_over_processes,
-)
+from .distributed import spread_over_processes
 from .model import ModelArgs, loss, residuals
-from .prepare import Prepared, _local_rows, prepare, shard_views, with_map_size
+from .prepare import Prepared, prepare, shard_views, with_map_size
 from .problem import FitOptions, FitProblem, FitResult
-from .texel_lm import TexelLM, _texel_sum_tables
+from .texel_lm import TexelLM, texel_sum_tables
 
-__all__ = ["fit_normal_map", "compile_fit", "make_solver", "preconditioner", "level_sizes",
-           "texel_sums_for", "STOP_TESTS"]
-
-#: The solver's own tolerance test (a tiny move and loss change) counts only on an accepted
-#: step damped less than this: a damped step is tiny because it is damped.
-_FULL_STEP_DAMPING = 0.5
-
-#: The tests that can end a fit (`FitResult.stop_test`), with what they mean.
-STOP_TESTS = {
-    "ftol": "over the level's last `patience` steps the loss changed by less than ftol "
-            "(relative), and the solver's model, undamped, promised no larger decrease at "
-            "any of them",
-    "solver_tolerance": "the solver's own test (rtol, atol on the step's move and loss "
-                        "change) passed on an accepted step damped less than "
-                        f"{_FULL_STEP_DAMPING:g}",
-    "solver_failure": "the solver reported a failure",
-    "max_steps": "every step of every level was taken",
-    "time_limit": "the time limit passed",
-    "should_stop": "the caller's `should_stop` asked to stop",
-    "keyboard_interrupt": "KeyboardInterrupt (Ctrl-C)",
-}
-
+__all__ = ["fit_normal_map", "fit_step", "start_state", "StepResult", "compile_fit",
+           "make_solver", "preconditioner", "level_sizes", "texel_sums_for"]
 
 def make_solver(options: FitOptions):
     """The solver named by ``options.solver``: optimistix's, or a `TexelLM`."""
@@ -129,14 +82,12 @@ def make_solver(options: FitOptions):
 def texel_sums_for(prep: Prepared, options: FitOptions, backend: str | None = None,
                    deterministic: bool | None = None) -> str:
     """What ``options.texel_sums`` means for ``prep`` on ``backend`` (JAX's default if None)
-    with or without deterministic GPU ops (`_deterministic_ops` if None):
+    with or without deterministic GPU ops (if None: whether ``XLA_FLAGS`` asks for them):
     ``"tables"`` or ``"scatter"``.
 
     ``"auto"`` is tables on an accelerator with deterministic ops (as the command line
     runs), where XLA would otherwise sort every scatter-add's indices, and scatter-adds
-    elsewhere. Measured on an H100 (README, GPU), the fit benchmark's step of 10
-    conjugate-gradient iterations: deterministic ops 11.0-11.2 ms with scatter-adds, 6.3-7.6
-    with tables; without them 5.1 and 7.3 ms; on the CPU 32-36 against 38-45 ms. Always
+    elsewhere, where they are the faster (docs/guides/design.md has the timings). Always
     scatter-adds for solvers other than ``"lm-texel"`` and for views spread over several
     devices (a chunk's tables index the pixels of all its views)."""
     spread = len(prep.batches[0].pixels.sharding.device_set) > 1
@@ -190,8 +141,8 @@ def _holds_two_linearisations(solver) -> bool:
 
 def _shed(solver, state):
     """``state`` with the descent's copy of the linearisation dropped: out of a compiled
-    step, two references to one value are two buffers (38 MB each for the built-in
-    problem, and again in the step's output)."""
+    step, two references to one value are two buffers (the size of the problem's
+    linearisation each, and again in the step's output)."""
     if not _holds_two_linearisations(solver):
         return state
     return eqx.tree_at(lambda s: s.descent_state.f_info, state, None)
@@ -372,65 +323,6 @@ def level_sizes(map_size: tuple[int, int], coarse_to_fine: int) -> list[tuple[in
     return [(max(2, h >> k), max(2, w >> k)) for k in range(coarse_to_fine, -1, -1)]
 
 
-def _promised(rec: dict) -> float:
-    """The decrease of the loss the solver's model promised for the step of ``rec`` (a
-    history record from step 1 on) had the solver not damped it: ``predicted / (1 -
-    damping)`` (infinite for a move damped to nothing). For a line search's shortened step
-    this is its full step's linear prediction; for Levenberg-Marquardt it lies between the
-    undamped Gauss-Newton step's predicted decrease and twice that (exactly so on a
-    quadratic with one curvature)."""
-    held = 1.0 - rec["damping"]
-    return rec["predicted"] / held if held > 0 else math.inf
-
-
-def _stop_test(records: list[dict], options: FitOptions,
-              floor: Callable[[float], float] | None = None) -> str | None:
-    """The convergence test (the module's "When a fit stops") on one level's ``records``
-    (history entries, the level's start first): ``"ftol"`` when over the last
-    ``options.patience`` steps the loss changed by less than ``options.ftol`` (relative)
-    and at none of them did the solver's model, undamped (`_promised`), predict a larger
-    decrease; None otherwise, and always with ``ftol`` 0. ``floor``: the loss's noise floor
-    as a function of the loss (`_noise_floor`): changes and promises below it count as
-    nothing."""
-    ftol, patience = options.ftol, options.patience
-    if ftol <= 0 or len(records) <= patience:
-        return None
-
-    def small(x: float, loss_value: float) -> bool:
-        return x <= max(ftol * abs(loss_value), floor(loss_value) if floor else 0.0)
-
-    window = records[-1 - patience:]
-    before = window[0]["loss"]
-    if (small(abs(before - window[-1]["loss"]), before)
-            and all(small(_promised(rec), prev["loss"]) for prev, rec in zip(window, window[1:]))):
-        return "ftol"
-    return None
-
-
-def _noise_floor(loss_value: float, terms: int, mean_square: float) -> float:
-    """The rounding in a float32 loss ``0.5 |r|^2`` of ``terms`` residuals, whose targets'
-    values have the mean square ``mean_square``: ``eps32 (sqrt(terms) |loss| + 8 sqrt(2
-    |loss| mean_square))``. The first term is the float32 sum's (``terms`` roundings of
-    random sign); the second the residuals' own, each a few roundings of the image value
-    it subtracts (measured at the end of noise-free fits of the built-in problem, where it
-    dominates: 5 to 6 times ``eps32 sqrt(2 loss mean_square)``). A loss change below it
-    cannot be told from rounding."""
-    eps = float(np.finfo(np.float32).eps)
-    loss_value = abs(loss_value)
-    return eps * (math.sqrt(terms) * loss_value + 8.0 * math.sqrt(2.0 * loss_value * mean_square))
-
-
-def _loss_terms(prep: Prepared) -> tuple[int, float]:
-    """The number of residuals of ``prep``'s loss and the mean square of its targets' values
-    (for `_noise_floor`; on the host, so no XLA program is compiled for it)."""
-    terms = sum(b.images.size for b in prep.batches)
-    square = np.array([sum(float(np.sum(np.square(_local_rows(b.images)[1], dtype=np.float64)))
-                           for b in prep.batches)])
-    if spread_over_processes(prep):
-        square = _sum_over_processes(square)
-    return terms, float(square[0]) / max(terms, 1)
-
-
 def _like(level: Prepared, prep: Prepared) -> Prepared:
     """A coarse-to-fine level spread over the devices ``prep``'s views are spread over."""
     sharding = prep.batches[0].pixels.sharding
@@ -489,7 +381,7 @@ def _level_args(prep: Prepared, size: tuple[int, int], options: FitOptions,
     scale_host = _host_preconditioner(lp)
     # least squares on reduced residuals (same loss and Gauss-Newton steps, fewer numbers
     # per pixel); L-BFGS only needs the loss and its gradient
-    sums = _texel_sum_tables(lp) if texel_sums_for(lp, options) == "tables" else None
+    sums = texel_sum_tables(lp) if texel_sums_for(lp, options) == "tables" else None
     args = ModelArgs.create(lp, smoothness=options.smoothness, strength=strength,
                             scale=jax.device_put(scale_host), reduce=options.solver != "lbfgs",
                             texel_sums=sums)
@@ -547,9 +439,118 @@ def _saved_state(path, fresh, leaves: list):
     return eqx.combine(treedef.unflatten(arrays), static)
 
 
+class StepResult(NamedTuple):
+    """What one solver step (`fit_step`) returns.
+
+    - `z`: the accepted point (the preconditioned slopes, ``slopes = z * scale``).
+    - `state`: the solver's state, to pass to the next step.
+    - `done`, `result`: the solver's own test and its result code (``optx.RESULTS``).
+    - `loss`: the loss at the accepted point (the solver's own evaluation).
+    - `slopes`: the accepted point's slopes, (h, w, 2).
+    - `accepted`, `damping`, `predicted`: whether the step accepted the point it evaluated,
+      how damped the move to that point was and the decrease its model predicted
+      (`jaxnm.fit.stopping`).
+    """
+
+    z: Array
+    state: Any
+    done: Array
+    result: Any
+    loss: Array
+    slopes: Array
+    accepted: Array
+    damping: Array
+    predicted: Array
+
+
+def fit_step(args: ModelArgs, solver, z: Array, state) -> StepResult:
+    """One step of ``solver`` on the fit's model ``args``: state in, state out.
+
+    A pure function, compiled once per problem shape and solver (the step is jitted with
+    the solver, the model and the problem as arguments). ``z`` and ``state`` are donated:
+    the new state reuses their buffers, so pass the returned ones to the next step and do
+    not read the old ones again. The first state is `start_state`'s.
+    """
+    kept = (args, solver)
+    z, state, done, result, loss_value, slopes, move = _step(kept, z, _unaliased(state, kept))
+    return StepResult(z, state, done, result, loss_value, slopes, *move)
+
+
+def start_state(args: ModelArgs, solver, z: Array):
+    """``solver``'s state before its first step from ``z`` on the model ``args`` (for
+    `fit_step`), in buffers of its own."""
+    return _fresh_state(solver, z, args)
+
+
+@dataclasses.dataclass
+class _Run:
+    """A fit in progress, on the host: what the driver keeps between steps and what a
+    checkpoint saves (`_save`)."""
+
+    t_start: float
+    history: list
+    best: tuple  # (loss, slopes)
+    stopped: str = "max_steps"
+    test: str = "max_steps"
+    start: tuple = (0, 0, False)  # level, step, whether that level had ended
+    last: tuple | None = None  # (level, step, z, state) after the last step taken here
+
+
+@dataclasses.dataclass(frozen=True)
+class _Setup:
+    """What a fit needs before its first step (`_setup`)."""
+
+    prep: Prepared
+    spread: bool
+    writer: bool
+    identifiability: dict
+    sizes: list
+    map_size: tuple[int, int]
+    gt: np.ndarray | None
+    seen: np.ndarray | None
+    fingerprint: dict | None
+    source: str | None
+    saved: Any
+    terms: tuple[int, float]
+    start_slopes: np.ndarray  # the first level's, before any checkpoint
+
+    def floor(self, loss_value: float) -> float:
+        """The loss's noise floor at ``loss_value`` (`jaxnm.fit.stopping.noise_floor`)."""
+        return stopping.noise_floor(loss_value, *self.terms)
+
+
+class _Checkpoints:
+    """When and where a fit saves itself (`jaxnm.fit.checkpoint`): every ``every`` seconds of
+    fitting and when it ends; across processes, process 0 writes."""
+
+    def __init__(self, path, every: float, setup: _Setup):
+        self.path, self.every, self.setup = path, every, setup
+        self.last_save = time.perf_counter()
+
+    def due(self, k: int, max_steps: int) -> bool:
+        """Whether to save after step ``k``."""
+        return (self.path is not None and k < max_steps
+                and time.perf_counter() - self.last_save >= self.every)
+
+    def save(self, run: _Run, level_done: bool) -> None:
+        """Save ``run`` as it stands after its last step (a collective across processes)."""
+        level, k, z, state = run.last
+        leaves = [to_host(x) for x in jax.tree_util.tree_leaves(eqx.filter(state,
+                                                                         eqx.is_array))]
+        if self.setup.writer:
+            meta = {"fingerprint": self.setup.fingerprint, "level": level, "next_step": k + 1,
+                    "level_done": level_done, "stopped": run.stopped, "stop_test": run.test,
+                    "best_loss": run.best[0], "seconds": time.perf_counter() - run.t_start,
+                    "history": run.history}
+            save_checkpoint(self.path, Checkpoint(meta=meta, z=np.asarray(z),
+                                                  best_slopes=np.asarray(run.best[1]),
+                                                  state=leaves))
+        self.last_save = time.perf_counter()
+
+
 def _agreed(*flags: bool) -> tuple[bool, ...]:
     """``flags`` or-ed over every process (a collective)."""
-    every = _allgather_json([bool(f) for f in flags])
+    every = allgather_json([bool(f) for f in flags])
     return tuple(any(p[i] for p in every) for i in range(len(flags)))
 
 
@@ -557,6 +558,149 @@ def _layout(prep: Prepared) -> list:
     """How ``prep`` was laid out: its arrays' shapes, types and device counts."""
     return [[list(x.shape), str(x.dtype), len(x.sharding.device_set)]
             for x in jax.tree_util.tree_leaves(prep) if isinstance(x, jax.Array)]
+
+
+def _setup(problem: FitProblem, options: FitOptions, *, prepared, ground_truth, error_texels,
+           strength, checkpoint, checkpoint_every, resume, start) -> _Setup:
+    """`fit_normal_map`'s arguments checked, the problem prepared, the first level's start
+    made and any checkpoint to resume from read and matched against the fit."""
+    if not (isinstance(checkpoint_every, (int, float)) and checkpoint_every >= 0):
+        raise ValueError(f"checkpoint_every must be a number of seconds >= 0, got "
+                         f"{checkpoint_every!r}")
+    source = checkpoint if resume is True else (resume or None)
+    if resume is True and checkpoint is None:
+        raise ValueError("resume=True needs the `checkpoint` to resume from")
+    prep = prepared if prepared is not None else prepare(problem)
+    spread = spread_over_processes(prep)
+    if spread and options.coarse_to_fine:
+        raise ValueError(f"{problem.source}: coarse_to_fine is not available for a fit across "
+                         "processes (solve.coarse_to_fine must be 0)")
+    # (warns when the lights cannot determine the map)
+    identifiability = check_identifiability(prep, source=problem.source)
+    h, w = problem.map_size
+    if prep.options[0].normal_map_shape != (h, w):
+        raise ValueError(f"{problem.source}: `prepared` was made for a "
+                         f"{prep.options[0].normal_map_shape} map, not {(h, w)}")
+    if start is not None and np.shape(start) != (h, w, 3):
+        raise ValueError(f"{problem.source}: the start is {np.shape(start)}, not the map's "
+                         f"{(h, w, 3)}")
+    sizes = level_sizes((h, w), options.coarse_to_fine)
+    # (on the host; the device gets z later)
+    slopes = (_start_slopes(sizes[0], options) if start is None
+              else _given_start(start, sizes[0], options, problem.source))
+    gt = seen = None
+    if ground_truth is not None:
+        gt = np.asarray(ground_truth, np.float64)
+        seen = (seen_texels(prep, (h, w)) if error_texels is None
+                else np.asarray(error_texels, bool))
+        if gt.shape != (h, w, 3) or seen.shape != (h, w):
+            raise ValueError(f"{problem.source}: the ground truth {gt.shape} and error texels "
+                             f"{seen.shape} must match the map size {(h, w)}")
+    fingerprint = saved = None
+    if checkpoint is not None or source is not None:
+        layout = _layout(prep) if start is None else [_layout(prep), _digest(slopes)]
+        fingerprint = fit_fingerprint(problem, options, strength=strength, layout=layout)
+        if spread:  # each process hashed its own targets' images
+            fingerprint = fingerprint_across_processes(fingerprint)
+    if source is not None:
+        saved = load_checkpoint(source)
+        check_fingerprint(source, saved.meta.get("fingerprint", {}), fingerprint)
+    return _Setup(prep, spread, not spread or jax.process_index() == 0, identifiability, sizes,
+                  (h, w), gt, seen, fingerprint, source, saved, stopping.loss_terms(prep),
+                  slopes)
+
+
+def _start(setup: _Setup, options: FitOptions, t_start: float) -> _Run:
+    """The fit's record before its first step: a fresh one, or the checkpoint's."""
+    run = _Run(t_start=t_start, history=[], best=(math.inf, setup.start_slopes))
+    if setup.saved is not None:
+        m = setup.saved.meta
+        run.history, run.best = m["history"], (float(m["best_loss"]), setup.saved.best_slopes)
+        run.stopped, run.test = m["stopped"], m["stop_test"]
+        run.start = (m["level"], m["next_step"], m["level_done"])
+        run.t_start = time.perf_counter() - m["seconds"]  # the fit's clock goes on
+    return run
+
+
+def _level_start(setup: _Setup, solver, resuming: bool, slopes, args: ModelArgs,
+                 scale_host: np.ndarray):
+    """The first ``(z, state)`` of a level: the checkpoint's where it ``resuming`` that
+    level, else from ``slopes``."""
+    if resuming:
+        z = jax.device_put(setup.saved.z)
+        return z, _saved_state(setup.source, _fresh_state(solver, z, args), setup.saved.state)
+    z = jax.device_put((np.asarray(slopes) / scale_host).astype(np.float32))
+    return z, _fresh_state(solver, z, args)
+
+
+def _record(run: _Run, setup: _Setup, out: StepResult, level: int, size, k: int) -> dict:
+    """The history record of step ``k`` (its loss, time and how the solver took it; the
+    angular error of the best map so far against a ground truth), and the best map
+    updated."""
+    rec = {"level": level, "size": list(size), "step": k, "loss": float(out.loss),
+           "seconds": time.perf_counter() - run.t_start}
+    if k > 0:  # (step 0 evaluates the start)
+        rec.update(accepted=bool(out.accepted), damping=float(out.damping),
+                   predicted=float(out.predicted))
+    if np.isfinite(rec["loss"]) and rec["loss"] < run.best[0]:
+        run.best = (rec["loss"], out.slopes)
+    if setup.gt is not None and size == setup.map_size:
+        err = angular_error(_unit_normals(run.best[1]), setup.gt)[setup.seen]
+        rec["mean_angular_error_deg"] = float(err.mean())
+    run.history.append(rec)
+    return rec
+
+
+def _run_level(run: _Run, setup: _Setup, options: FitOptions, solver, level: int, size, *,
+               strength, time_limit, should_stop, saves: _Checkpoints | None, bar) -> None:
+    """Steps of ``level`` until a test ends it (`jaxnm.fit.stopping.decide`) or its steps
+    are taken; saves a checkpoint when one is due."""
+    resuming = setup.saved is not None and level == run.start[0]
+    if level > 0 and not resuming:  # from the coarser level's best, upsampled
+        run.best = (math.inf, _upsample(run.best[1], size))
+    run.stopped, run.test = "max_steps", "max_steps"
+    args, scale_host = _level_args(setup.prep, size, options, strength)
+    z, state = _level_start(setup, solver, resuming, run.best[1], args, scale_host)
+    records = [rec for rec in run.history if rec["level"] == level]
+    # optimistix's first step evaluates the start and proposes the first move, so the
+    # start's loss arrives with it: it is recorded as step 0
+    for k in range(run.start[1] if resuming else 0, options.max_steps + 1):
+        out = fit_step(args, solver, z, state)
+        z, state = out.z, out.state
+        rec = _record(run, setup, out, level, size, k)
+        records.append(rec)
+        run.last = (level, k, z, state)
+        if k > 0:
+            bar.update(rec)
+        late = time_limit is not None and rec["seconds"] > time_limit
+        if setup.spread:  # what is not a function of the loss, agreed by every process
+            late, asked, due = _agreed(late, should_stop is not None and bool(should_stop(rec)),
+                                       saves is not None and saves.due(k, options.max_steps))
+        run.stopped, run.test = stopping.decide(
+            rec, records, options, setup.floor, done=bool(out.done), result=out.result,
+            late=late, asked=((lambda: asked) if setup.spread
+                              else lambda: should_stop is not None and should_stop(rec)))
+        if run.test != "max_steps":
+            return
+        if due if setup.spread else saves is not None and saves.due(k, options.max_steps):
+            saves.save(run, level_done=False)
+
+
+def _result(run: _Run, setup: _Setup) -> FitResult:
+    """The `FitResult` of a fit that has stopped: its best map, at the full size."""
+    final = run.best[1]
+    if final.shape[:2] != setup.map_size:  # stopped during a coarse level
+        final = _upsample(final, setup.map_size)
+    start_floor = setup.floor(run.history[0]["loss"]) if run.history else 0.0
+    stopped = run.stopped
+    if (run.test in ("ftol", "solver_tolerance", "max_steps") and run.history
+            and not run.best[0] < run.history[0]["loss"] - start_floor):
+        stopped = "no_progress"
+    return FitResult(normals=_unit_normals(final).astype(np.float32), slopes=np.asarray(final),
+                     history=run.history, seconds=time.perf_counter() - run.t_start,
+                     stopped=stopped, best_loss=float(run.best[0]),
+                     identifiability=setup.identifiability, stop_test=run.test,
+                     noise_floor=start_floor)
 
 
 def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
@@ -594,7 +738,7 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
       (which must then exist). The same steps, history and result as if the fit had
       never stopped (bitwise on the CPU); new checkpoints go to `checkpoint` (None: none
       are written). The checkpoint must come from the same problem, map size, solver,
-      arithmetic options (`jaxnm.fit.checkpoint._ARITHMETIC_OPTIONS`) and `strength`, else
+      arithmetic options (`jaxnm.fit.checkpoint.ARITHMETIC_OPTIONS`) and `strength`, else
       a one-line `ValueError` names the file and what differs; the stopping rule and the
       time limit (counted over the whole fit) may change. A checkpoint of a fit that had
       converged returns its result without a step.
@@ -605,8 +749,8 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
       them.
 
     **Returns:** a `FitResult`; its `stopped` says why the fit ended, `stop_test` which
-    test ended it (`STOP_TESTS`; see the module's "When a fit stops" for the stopping rule
-    and ``"no_progress"``).
+    test ended it (`STOP_TESTS`; `jaxnm.fit.stopping` has the stopping rule and
+    ``"no_progress"``).
 
     Warns (`FitWarning`) when no view has three lights with non-coplanar
     directions (`check_identifiability`; the report is in the result). A
@@ -614,163 +758,31 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     (``stopped == "interrupted"``); no signal handler is installed.
     Deterministic for a given `options.seed`. History step 0 is the start; the
     loss of each record is that of the map the solver holds after the step; from step 1
-    on, ``accepted``, ``damping`` and ``predicted`` say how the solver took the step (the
-    module's "When a fit stops").
+    on, ``accepted``, ``damping`` and ``predicted`` say how the solver took the step
+    (`jaxnm.fit.stopping`).
     """
     t_start = time.perf_counter()
-    if not (isinstance(checkpoint_every, (int, float)) and checkpoint_every >= 0):
-        raise ValueError(f"checkpoint_every must be a number of seconds >= 0, got "
-                         f"{checkpoint_every!r}")
-    source = checkpoint if resume is True else (resume or None)
-    if resume is True and checkpoint is None:
-        raise ValueError("resume=True needs the `checkpoint` to resume from")
-    prep = prepared if prepared is not None else prepare(problem)
-    spread = spread_over_processes(prep)
-    if spread and options.coarse_to_fine:
-        raise ValueError(f"{problem.source}: coarse_to_fine is not available for a fit across "
-                         "processes (solve.coarse_to_fine must be 0)")
-    writer = not spread or jax.process_index() == 0  # who writes the checkpoints
-    # (warns when the lights cannot determine the map)
-    identifiability = check_identifiability(prep, source=problem.source)
-    h, w = problem.map_size
-    if prep.options[0].normal_map_shape != (h, w):
-        raise ValueError(f"{problem.source}: `prepared` was made for a "
-                         f"{prep.options[0].normal_map_shape} map, not {(h, w)}")
-    if start is not None and np.shape(start) != (h, w, 3):
-        raise ValueError(f"{problem.source}: the start is {np.shape(start)}, not the map's "
-                         f"{(h, w, 3)}")
-    sizes = level_sizes((h, w), options.coarse_to_fine)
-    # (on the host; the device gets z below)
-    slopes = (_start_slopes(sizes[0], options) if start is None
-              else _given_start(start, sizes[0], options, problem.source))
-    seen = gt = None
-    if ground_truth is not None:
-        gt = np.asarray(ground_truth, np.float64)
-        seen = seen_texels(prep, (h, w)) if error_texels is None else np.asarray(error_texels,
-                                                                                bool)
-        if gt.shape != (h, w, 3) or seen.shape != (h, w):
-            raise ValueError(f"{problem.source}: the ground truth {gt.shape} and error texels "
-                             f"{seen.shape} must match the map size {(h, w)}")
-    fingerprint = saved = None
-    if checkpoint is not None or source is not None:
-        layout = _layout(prep) if start is None else [_layout(prep), _digest(slopes)]
-        fingerprint = _fit_fingerprint(problem, options, strength=strength, layout=layout)
-        if spread:  # each process hashed its own targets' images
-            fingerprint = _fingerprint_across_processes(fingerprint)
-    if source is not None:
-        saved = load_checkpoint(source)
-        _check_fingerprint(source, saved.meta.get("fingerprint", {}), fingerprint)
+    setup = _setup(problem, options, prepared=prepared, ground_truth=ground_truth,
+                   error_texels=error_texels, strength=strength, checkpoint=checkpoint,
+                   checkpoint_every=checkpoint_every, resume=resume, start=start)
     solver = make_solver(options)
-    history: list = []
-    stopped, test = "max_steps", "max_steps"
-    best = (math.inf, slopes)
-    start = (0, 0, False)  # level, step, whether that level had ended
-    if saved is not None:
-        m = saved.meta
-        history, best = m["history"], (float(m["best_loss"]), saved.best_slopes)
-        stopped, test = m["stopped"], m["stop_test"]
-        start = (m["level"], m["next_step"], m["level_done"])
-        t_start = time.perf_counter() - m["seconds"]  # the fit's clock goes on
-    terms = _loss_terms(prep)
-
-    def floor(loss_value: float) -> float:
-        return _noise_floor(loss_value, *terms)
-
-    bar = _Progress(options.max_steps * len(sizes), progress,
-                    done=sum(1 for rec in history if rec["step"] > 0))
-    last = None  # (level, step, z, state) after the last step taken here
-    last_save = time.perf_counter()
-
-    def save(level_done: bool) -> None:
-        level, k, z, state = last
-        # (across processes a collective: every process takes part, process 0 writes)
-        leaves = [_to_host(x) for x in jax.tree_util.tree_leaves(eqx.filter(state,
-                                                                             eqx.is_array))]
-        if not writer:
-            return
-        meta = {"fingerprint": fingerprint, "level": level, "next_step": k + 1,
-                "level_done": level_done, "stopped": stopped, "stop_test": test,
-                "best_loss": best[0], "seconds": time.perf_counter() - t_start,
-                "history": history}
-        save_checkpoint(checkpoint, Checkpoint(meta=meta, z=np.asarray(z),
-                                               best_slopes=np.asarray(best[1]), state=leaves))
-
+    run = _start(setup, options, t_start)
+    bar = _Progress(options.max_steps * len(setup.sizes), progress,
+                    done=sum(1 for rec in run.history if rec["step"] > 0))
+    saves = None if checkpoint is None else _Checkpoints(checkpoint, checkpoint_every, setup)
     try:
-        for level, size in enumerate(sizes):
-            if level < start[0] or (level == start[0] and start[2]):
+        for level, size in enumerate(setup.sizes):
+            if level < run.start[0] or (level == run.start[0] and run.start[2]):
                 continue  # done before the checkpoint
-            resuming = saved is not None and level == start[0]
-            if level > 0 and not resuming:
-                slopes = _upsample(best[1], size)
-                best = (math.inf, slopes)
-            stopped, test = "max_steps", "max_steps"
-            args, scale_host = _level_args(prep, size, options, strength)
-            if resuming:
-                z = jax.device_put(saved.z)
-                state = _saved_state(source, _fresh_state(solver, z, args), saved.state)
-            else:
-                z = jax.device_put((np.asarray(slopes) / scale_host).astype(np.float32))
-                state = _fresh_state(solver, z, args)
-            records = [rec for rec in history if rec["level"] == level]
-            # optimistix's first step evaluates the start and proposes the first move,
-            # so the start's loss arrives with it: record it as step 0
-            for k in range(start[1] if resuming else 0, options.max_steps + 1):
-                z, state, done, result, loss_value, slopes, move = _step(
-                    (args, solver), z, _unaliased(state, (args, solver)))
-                rec = {"level": level, "size": list(size), "step": k,
-                       "loss": float(loss_value), "seconds": time.perf_counter() - t_start}
-                if k > 0:  # (step 0 evaluates the start)
-                    rec.update(accepted=bool(move[0]), damping=float(move[1]),
-                               predicted=float(move[2]))
-                if np.isfinite(rec["loss"]) and rec["loss"] < best[0]:
-                    best = (rec["loss"], slopes)
-                if gt is not None and size == (h, w):
-                    err = angular_error(_unit_normals(best[1]), gt)[seen]
-                    rec["mean_angular_error_deg"] = float(err.mean())
-                history.append(rec)
-                records.append(rec)
-                last = (level, k, z, state)
-                if k > 0:
-                    bar.update(rec)
-                late = time_limit is not None and rec["seconds"] > time_limit
-                if spread:  # what is not a function of the loss, agreed by every process
-                    late, asked, due = _agreed(
-                        late, should_stop is not None and bool(should_stop(rec)),
-                        checkpoint is not None and k < options.max_steps
-                        and time.perf_counter() - last_save >= checkpoint_every)
-                if late:
-                    stopped, test = "time_limit", "time_limit"
-                elif k > 0 and bool(done) and result != optx.RESULTS.successful:
-                    stopped, test = str(result), "solver_failure"
-                elif (k > 0 and bool(done) and rec["accepted"]
-                      and rec["damping"] < _FULL_STEP_DAMPING):
-                    stopped, test = "converged", "solver_tolerance"
-                elif _stop_test(records, options, floor) is not None:
-                    stopped, test = "converged", "ftol"
-                elif (asked if spread else should_stop is not None and should_stop(rec)):
-                    stopped, test = "interrupted", "should_stop"
-                if test != "max_steps":
-                    break
-                if (due if spread else checkpoint is not None and k < options.max_steps
-                        and time.perf_counter() - last_save >= checkpoint_every):
-                    save(level_done=False)
-                    last_save = time.perf_counter()
-            if test in ("time_limit", "should_stop"):
+            _run_level(run, setup, options, solver, level, size, strength=strength,
+                       time_limit=time_limit, should_stop=should_stop, saves=saves, bar=bar)
+            if run.test in ("time_limit", "should_stop"):
                 break
-        if checkpoint is not None and last is not None:
-            save(level_done=test not in ("max_steps", "time_limit", "should_stop"))
+        if saves is not None and run.last is not None:
+            saves.save(run, level_done=run.test not in ("max_steps", "time_limit",
+                                                        "should_stop"))
     except KeyboardInterrupt:  # Ctrl-C (or a caller's `_thread.interrupt_main`)
-        stopped, test = "interrupted", "keyboard_interrupt"
+        run.stopped, run.test = "interrupted", "keyboard_interrupt"
     finally:
         bar.close()
-    final = best[1]
-    if final.shape[:2] != (h, w):  # stopped during a coarse level
-        final = _upsample(final, (h, w))
-    start_floor = floor(history[0]["loss"]) if history else 0.0
-    if (test in ("ftol", "solver_tolerance", "max_steps") and history
-            and not best[0] < history[0]["loss"] - start_floor):
-        stopped = "no_progress"
-    return FitResult(normals=_unit_normals(final).astype(np.float32), slopes=np.asarray(final),
-                     history=history, seconds=time.perf_counter() - t_start, stopped=stopped,
-                     best_loss=float(best[0]), identifiability=identifiability,
-                     stop_test=test, noise_floor=start_floor)
+    return _result(run, setup)

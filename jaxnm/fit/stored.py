@@ -48,7 +48,7 @@ from .model import ModelArgs, map_residuals
 from .prepare import Prepared, prepare
 from .problem import FitOptions, FitProblem, FitResult
 from .solve import fit_normal_map, preconditioner
-from .texel_lm import _conjugate_gradient
+from .texel_lm import conjugate_gradient
 
 __all__ = ["STORAGES", "StoredFit", "fit_stored_map", "stored_loss", "check_storage"]
 
@@ -164,7 +164,7 @@ def _lm_step(u, scale, lam, rounded, cg_steps, fixed, args, *, lay):
     jg = lin(g)
     lam = jnp.where(lam > 0, lam,
                     1e-2 * jnp.sum(jg * jg) / jnp.maximum(jnp.sum(g * g), 1e-30))
-    delta = _conjugate_gradient(lambda x: transpose(lin(x))[0] + lam * x, -g, cg_steps)
+    delta = conjugate_gradient(lambda x: transpose(lin(x))[0] + lam * x, -g, cg_steps)
     jd = lin(delta)
     predicted = -(jnp.sum(g * delta) + 0.5 * jnp.sum(jd * jd))
     u_new = jnp.clip((u + delta) * scale, 0.0, 255.0) / scale
@@ -262,7 +262,7 @@ def check_storage(problem: FitProblem, storage: str) -> None:
             raise ValueError(f"{problem.source}: a BC5 map must be a multiple of 4 texels on "
                              f"each side, got {w}x{h}")
         for module in ("quicktex", "texture2ddecoder", "PIL"):
-            _st._need(module)
+            _st.require_module(module)
 
 
 def fit_stored_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
@@ -316,45 +316,86 @@ def fit_stored_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     # the start's codes, unrounded (the re-indexing's targets) and as bytes
     target = np.asarray(encode_normal_map(n0, channels=channels, green=green,
                                           uv_origin=uv_origin), np.float64) * 255
-    codes = np.clip(np.round(target), 0, 255).astype(np.uint8)
     texel_scale = np.asarray(preconditioner(prep))[..., 0]  # (h, w)
-
-    def as_stored(data) -> np.ndarray:
-        if storage == "rgb8":
-            return np.asarray(data, np.float32) / 255
-        return _st.decode_blocks(data, (h, w), format="bc5").astype(np.float32) / 255
-
     float_loss = float(_loss_of(jnp.asarray(n0), args))
-    if storage == "bc5":
-        data = _st.encode_blocks(codes, format="bc5", encoder=encoder)
-        e, idx = _st.bc5_blocks(data, (h, w))
-        eight = e[..., 0] > e[..., 1]
-        v = e.astype(np.float32)
-        block_scale = texel_scale.reshape(h // 4, 4, w // 4, 4).mean((1, 3))
-        scale = np.broadcast_to(block_scale[:, :, None, None], v.shape).astype(np.float32)
-        tblocks = _blockwise(target)
-    else:
-        data = codes
+    run = _StoredRun(lay, map_options, args, steps, cg_steps,
+                     _start_blocks(storage, target, texel_scale, encoder))
+    start_data = run.data
+    start_loss = run.loss_of(start_data)
+    best = _stored_rounds(run, rounds, start_loss, progress, should_stop)
+    loss_final, data = best
+    texels = run.as_stored(data)
+    dec = np.asarray(_decode(jnp.asarray(texels), lay), np.float64)
+    normals = (dec / np.linalg.norm(dec, axis=-1, keepdims=True)).astype(np.float32)
+    errors = {}
+    if ground_truth is not None:
+        seen = (seen_texels(prep, (h, w)) if error_texels is None
+                else np.asarray(error_texels, bool))
+        start_dec = np.asarray(_decode(jnp.asarray(run.as_stored(start_data)), lay), np.float64)
+        for name, m in (("float", n0), ("start_stored", start_dec), ("stored", dec)):
+            errors[name] = float(angular_error(m, ground_truth)[seen].mean())
+    return StoredFit(storage=storage, data=data, texels=texels, map_options=map_options,
+                     normals=normals, loss=float(loss_final), start_loss=float(start_loss),
+                     float_loss=float_loss, errors=errors, history=run.history,
+                     seconds=time.perf_counter() - t0)
+
+
+def _start_blocks(storage: str, target: np.ndarray, texel_scale: np.ndarray, encoder: str):
+    """The stored fit's start from the float fit's unrounded codes ``target`` (h, w, C):
+    ``(data, v, scale, idx, eight, tblocks)``, the stored data (BC5 blocks by ``encoder``,
+    or the rounded codes), the variables (BC5: the blocks' endpoints; 8-bit: the codes)
+    with their scales from the texels' (`preconditioner`), and for BC5 the blocks'
+    indices, whether each uses 8 levels, and the targets block by block."""
+    h, w = texel_scale.shape
+    codes = np.clip(np.round(target), 0, 255).astype(np.uint8)
+    if storage == "rgb8":
         v = target.astype(np.float32)
         scale = np.broadcast_to(texel_scale[..., None], v.shape).astype(np.float32)
-        idx = eight = None
-    start_data = data
-    start_loss = stored_loss(as_stored(data), map_options, args)
-    best = (start_loss, data)
-    history: list = []
-    scale_d = jax.device_put(scale)
+        return codes, v, scale, None, None, None
+    data = _st.encode_blocks(codes, format="bc5", encoder=encoder)
+    e, idx = _st.bc5_blocks(data, (h, w))
+    eight = e[..., 0] > e[..., 1]
+    v = e.astype(np.float32)
+    block_scale = texel_scale.reshape(h // 4, 4, w // 4, 4).mean((1, 3))
+    scale = np.broadcast_to(block_scale[:, :, None, None], v.shape).astype(np.float32)
+    return data, v, scale, idx, eight, _blockwise(target)
 
-    def run_phase(rnd, phase, v, fixed, rounded):
-        u = jax.device_put((v / scale).astype(np.float32))
+
+class _StoredRun:
+    """A stored fit in progress: its layout and model, the current variables ``v`` and
+    stored ``data`` (BC5: with the blocks' ``idx`` and ``eight``), and its history."""
+
+    def __init__(self, lay, map_options, args, steps, cg_steps, start):
+        self.lay, self.map_options, self.args = lay, map_options, args
+        self.steps, self.cg_steps = steps, cg_steps
+        self.data, self.v, self.scale, self.idx, self.eight, self.tblocks = start
+        self.scale_d = jax.device_put(self.scale)
+        self.history: list = []
+
+    def as_stored(self, data) -> np.ndarray:
+        """The texels (h, w, C) in [0, 1] that ``data`` stores."""
+        if self.lay.storage == "rgb8":
+            return np.asarray(data, np.float32) / 255
+        return _st.decode_blocks(data, self.lay.size, format="bc5").astype(np.float32) / 255
+
+    def loss_of(self, data) -> float:
+        """The fit's loss of the map ``data`` stores."""
+        return stored_loss(self.as_stored(data), self.map_options, self.args)
+
+    def phase(self, rnd: int, phase: str, fixed, rounded: bool) -> None:
+        """Up to ``steps`` Levenberg–Marquardt steps from ``v`` (through the rounding where
+        ``rounded``), each recorded in the history; ``v`` becomes the last accepted."""
+        u = jax.device_put((self.v / self.scale).astype(np.float32))
         lam = np.float32(-1.0)
-        for _ in range(steps):
-            u_new, f, f_new, pred, lam = _lm_step(u, scale_d, lam, np.bool_(rounded),
-                                                  np.int32(cg_steps), fixed, args, lay=lay)
+        for _ in range(self.steps):
+            u_new, f, f_new, pred, lam = _lm_step(u, self.scale_d, lam, np.bool_(rounded),
+                                                  np.int32(self.cg_steps), fixed, self.args,
+                                                  lay=self.lay)
             f, f_new, pred = float(f), float(f_new), float(pred)
             gain = f - f_new
             accepted = gain >= 0 if rounded else gain > 0.01 * max(pred, 0.0)
-            history.append({"round": rnd, "phase": phase, "accepted": bool(accepted),
-                            "loss": f_new if accepted else f})
+            self.history.append({"round": rnd, "phase": phase, "accepted": bool(accepted),
+                                 "loss": f_new if accepted else f})
             if accepted:
                 u = u_new
                 lam = lam / 3.5 if pred > 0 and gain > 0.99 * pred else lam
@@ -362,47 +403,50 @@ def fit_stored_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                 lam = 4.0 * lam
             if pred <= 1e-7 * f:  # nothing left to gain at this rounding
                 break
-        return np.asarray(u) * scale
+        self.v = np.asarray(u) * self.scale
 
+    def quantized(self):
+        """The stored data of the rounded variables, and (BC5) the canonical endpoints and
+        levels they give."""
+        q = np.clip(np.round(self.v), 0, 255)
+        if self.lay.storage == "rgb8":
+            return q.astype(np.uint8), None, None
+        e_q, idx_q, eight_q = _canonical(q.astype(np.uint8), self.idx, self.eight)
+        return _st.pack_bc4_blocks(e_q.reshape(-1, 2), idx_q.reshape(-1, 16)), e_q, eight_q
+
+    def reindex(self, rnd: int, e, eight) -> None:
+        """BC5: new indices for endpoints ``e`` (the targets' nearest levels), the endpoints
+        the variables again; the loss as stored recorded."""
+        self.eight = eight
+        self.idx = _reindex(e, eight, self.tblocks)
+        self.v = e.astype(np.float32)
+        self.history.append({"round": rnd + 1, "phase": "reindex", "accepted": True,
+                             "loss": self.loss_of(_st.pack_bc4_blocks(
+                                 e.reshape(-1, 2), self.idx.reshape(-1, 16)))})
+
+
+def _stored_rounds(run: _StoredRun, rounds: int, start_loss: float, progress: bool,
+                   should_stop) -> tuple[float, np.ndarray]:
+    """`fit_stored_map`'s rounds: each fits the variables unrounded, then through the
+    rounding, and stores them; BC5 re-indexes the blocks before the next. Returns the best
+    ``(loss as stored, data)``, the start's included."""
+    best = (start_loss, run.data)
+    storage = run.lay.storage
     for rnd in range(rounds):
-        fixed = None if storage == "rgb8" else (jnp.asarray(idx), jnp.asarray(eight))
-        v = run_phase(rnd, "real", v, fixed, False)
-        v = run_phase(rnd, "rounded", v, fixed, True)
-        q = np.clip(np.round(v), 0, 255)
-        if storage == "bc5":
-            e_q, idx_q, eight_q = _canonical(q.astype(np.uint8), idx, eight)
-            data = _st.pack_bc4_blocks(e_q.reshape(-1, 2), idx_q.reshape(-1, 16))
-        else:
-            data = q.astype(np.uint8)
-        loss_now = stored_loss(as_stored(data), map_options, args)
+        fixed = None if storage == "rgb8" else (jnp.asarray(run.idx), jnp.asarray(run.eight))
+        run.phase(rnd, "real", fixed, False)
+        run.phase(rnd, "rounded", fixed, True)
+        run.data, e_q, eight_q = run.quantized()
+        loss_now = run.loss_of(run.data)
         if progress:
             print(f"stored fit ({storage}) round {rnd + 1}/{rounds}: loss as stored "
                   f"{loss_now:.5g} (start {start_loss:.5g})", file=sys.stderr, flush=True)
         if loss_now < best[0]:
-            best = (loss_now, data)
+            best = (loss_now, run.data)
         elif rnd > 0:
             break  # re-indexing found nothing better
         if should_stop is not None and should_stop():
             break
         if storage == "bc5" and rnd + 1 < rounds:
-            e, eight = e_q, eight_q
-            idx = _reindex(e, eight, tblocks)
-            v = e.astype(np.float32)
-            history.append({"round": rnd + 1, "phase": "reindex", "accepted": True,
-                            "loss": stored_loss(as_stored(_st.pack_bc4_blocks(
-                                e.reshape(-1, 2), idx.reshape(-1, 16))), map_options, args)})
-    loss_final, data = best
-    texels = as_stored(data)
-    dec = np.asarray(_decode(jnp.asarray(texels), lay), np.float64)
-    normals = (dec / np.linalg.norm(dec, axis=-1, keepdims=True)).astype(np.float32)
-    errors = {}
-    if ground_truth is not None:
-        seen = (seen_texels(prep, (h, w)) if error_texels is None
-                else np.asarray(error_texels, bool))
-        start_dec = np.asarray(_decode(jnp.asarray(as_stored(start_data)), lay), np.float64)
-        for name, m in (("float", n0), ("start_stored", start_dec), ("stored", dec)):
-            errors[name] = float(angular_error(m, ground_truth)[seen].mean())
-    return StoredFit(storage=storage, data=data, texels=texels, map_options=map_options,
-                     normals=normals, loss=float(loss_final), start_loss=float(start_loss),
-                     float_loss=float_loss, errors=errors, history=history,
-                     seconds=time.perf_counter() - t0)
+            run.reindex(rnd, e_q, eight_q)
+    return best

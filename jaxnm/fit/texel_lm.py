@@ -8,7 +8,7 @@ every view. A fit of many views then holds several copies of its pixels.
 This solver (``FitOptions(solver="lm-texel")``) keeps the Gauss–Newton model in
 the space of the *texels*. A pixel's residuals depend on its sampled map vector
 ``m`` only (3 numbers), so with ``B = dr/dm`` and ``G = B^T B = L L^T`` (the
-factor of `jaxnm.fit.model._reduced_pixel_residuals`), the Gauss–Newton matrix and
+factor of the reduced residuals, `jaxnm.fit.model.ModelArgs`), the Gauss–Newton matrix and
 gradient are
 
 .. math:: H = \sum_\text{pixels} A^T L L^T A, \qquad g = \sum_\text{pixels} A^T B^T r,
@@ -18,15 +18,15 @@ the slopes ``z``). Each step makes **one pass** over the pixels — chunk by
 chunk (`ViewBatch.chunks`), every view of a chunk at once — that shades them,
 forms ``L`` (6 numbers per pixel, kept) and sums the loss and ``g`` in texel
 space; the damped system ``(H + lambda I) dz = -g`` is then solved by conjugate
-gradients (`_conjugate_gradient`), each product ``H v`` one more gather and scatter per pixel
-from the stored factors. Nothing else per pixel outlives a chunk: the solver's
+gradients (`conjugate_gradient`), each product ``H v`` one more gather and scatter per
+pixel from the stored factors. Nothing else per pixel outlives a chunk: the solver's
 memory is the prepared problem, 24 bytes per pixel and a few texel-sized
 vectors, whatever the number of views.
 
 The damping ``lambda`` follows the classical trust-region rule optimistix's
-Levenberg–Marquardt uses (`_damping`). Like optimistix's solvers, a step
-evaluates the point the previous step proposed, accepts or rejects it, and
-proposes the next; the first step evaluates the start.
+Levenberg–Marquardt uses (the ratio of the actual to the predicted decrease sets it).
+Like optimistix's solvers, a step evaluates the point the previous step proposed, accepts
+or rejects it, and proposes the next; the first step evaluates the start.
 """
 
 from __future__ import annotations
@@ -40,18 +40,12 @@ import optimistix as optx
 from jax import Array
 
 from .. import textures as _tex
-from ..numerics import _SumTables
-from .model import (
-    ModelArgs,
-    _first_taps,
-    _mip_chain,
-    _reduce_pixels,
-    _smoothness_residuals,
-    slopes_to_normals,
-)
+from .._exec.sums import SumTables
+from ._pixels import first_taps, mip_chain, reduce_pixels, smoothness_residuals
+from .model import ModelArgs, slopes_to_normals
 from .prepare import Prepared, ViewBatch
 
-__all__ = ["TexelLM", "TexelLMState"]
+__all__ = ["TexelLM", "TexelLMState", "conjugate_gradient", "texel_sum_tables"]
 
 
 @jax.tree_util.register_dataclass
@@ -62,7 +56,7 @@ class TexelLMState:
     - `f`: () the loss ``0.5 |r|^2`` at the accepted point (inf before the first step).
     - `g`: (h, w, 2) its gradient in the solver's variables.
     - `factors`: per `ViewBatch`, the lower triangles of each pixel's ``L``, chunk-major:
-      a (count, V, size, 6) array per pixel group (see `_fold`).
+      a (count, V, size, 6) array per pixel group (its chunks, in order).
     - `delta`: (h, w, 2) the move proposed for the next step; `predicted`: () the decrease
       the model predicts for it.
     - `lam`: () the damping.
@@ -77,7 +71,7 @@ class TexelLMState:
 
 
 def _fold(batch: ViewBatch, body, carry, per_pixel: tuple[Array, ...] | None = None,
-          sums: tuple[_SumTables, ...] | None = None):
+          sums: tuple[SumTables, ...] | None = None):
     """Run ``body(carry, gbuffer, lights, images, weights, taps, per_pixel_chunk, sums_chunk)``
     over every chunk of every view of ``batch`` (one chunk of all views at a time), threading
     ``carry``.
@@ -86,7 +80,7 @@ def _fold(batch: ViewBatch, body, carry, per_pixel: tuple[Array, ...] | None = N
     per pixel group (`ViewBatch.pixel_groups`), read a chunk at a time, and ``body``'s
     second outputs come back the same way (or None) — no reordering into (V, K, ...),
     which would copy them. ``sums``: the texel sums of each group's chunks
-    (`_texel_sum_tables`), or None.
+    (`texel_sum_tables`), or None.
     Returns the final carry and that tuple."""
     outs = []
     for g, (start, size, n, taps) in enumerate(batch.pixel_groups()):
@@ -106,13 +100,13 @@ def _fold(batch: ViewBatch, body, carry, per_pixel: tuple[Array, ...] | None = N
     return carry, None if outs[0] is None else tuple(outs)
 
 
-def _texel_sum_tables(prepared: Prepared) -> tuple[tuple[_SumTables, ...], ...]:
+def texel_sum_tables(prepared: Prepared) -> tuple[tuple[SumTables, ...], ...]:
     """For each `ViewBatch` of ``prepared`` and each of its pixel groups, the fixed-order
-    texel sums (`jaxnm.textures._plan_sum_tables`) of every chunk's taps, stacked by chunk:
+    texel sums (`jaxnm.textures.plan_sum_tables`) of every chunk's taps, stacked by chunk:
     what a step's texel-space sums use in place of scatter-adds (`FitOptions.texel_sums`).
-    Built on the host, once per fit (the taps do not change between steps): ~0.01 s for
-    the benchmark's 51k pixels. The indices are copied to the host whole and cut there
-    (cutting them on a GPU would compile a program per cut)."""
+    Built on the host, once per fit (the taps do not change between steps). The indices
+    are copied to the host whole and cut there (cutting them on a GPU would compile a
+    program per cut)."""
     out = []
     for batch in prepared.batches:
         plan = batch.gbuffer.plan
@@ -121,12 +115,12 @@ def _texel_sum_tables(prepared: Prepared) -> tuple[tuple[_SumTables, ...], ...]:
         for start, size, n, taps in batch.pixel_groups():
             chunks = [index[:, start + c * size:start + (c + 1) * size, :taps]
                       for c in range(n)]
-            groups.append(_tex._plan_sum_tables(plan, chunks))
+            groups.append(_tex.plan_sum_tables(plan, chunks))
         out.append(tuple(groups))
     return tuple(out)
 
 
-def _sampler(plan: _tex.SamplePlan, mips, tables: _SumTables | None):
+def _sampler(plan: _tex.SamplePlan, mips, tables: SumTables | None):
     """``apply_plan(plan, mips)`` and its transpose w.r.t. ``mips`` (a function of the
     output's cotangent): a scatter-add (``jax.vjp``), or the fixed-order sums of
     ``tables``."""
@@ -134,7 +128,7 @@ def _sampler(plan: _tex.SamplePlan, mips, tables: _SumTables | None):
         m, pull = jax.vjp(lambda mp: _tex.apply_plan(plan, mp), mips)
         return m, lambda y: pull(y)[0]
     return (_tex.apply_plan(plan, mips),
-            lambda y: _tex._transpose_plan(plan, tables, y, mips))
+            lambda y: _tex.transpose_plan(plan, tables, y, mips))
 
 
 def _factor_shapes(batch: ViewBatch) -> tuple[tuple[int, ...], ...]:
@@ -161,15 +155,15 @@ def _lower_transpose_times(f: Array, d: Array) -> Array:
 def _mip_fn(args: ModelArgs):
     """The mip chain of the map as a function of the solver's variables ``z``."""
     opts = args.prepared.options[0]
-    return lambda z: _mip_chain(slopes_to_normals(z * args.scale), opts)
+    return lambda z: mip_chain(slopes_to_normals(z * args.scale), opts)
 
 
 def _smooth_fn(args: ModelArgs):
-    return lambda z: _smoothness_residuals(z * args.scale, args.smoothness)
+    return lambda z: smoothness_residuals(z * args.scale, args.smoothness)
 
 
 def _batch_sums(args: ModelArgs, b: int):
-    """The texel sums of batch ``b`` (`_texel_sum_tables`), or None (scatter-adds)."""
+    """The texel sums of batch ``b`` (`texel_sum_tables`), or None (scatter-adds)."""
     return None if args.texel_sums is None else args.texel_sums[b]
 
 
@@ -192,14 +186,14 @@ def _gauss_newton_parts(z: Array, args: ModelArgs) -> tuple[Array, Array, tuple[
     cot = jax.tree_util.tree_map(jnp.zeros_like, mips)
 
     def reduce(m, gb, lights, images, weights):
-        return _reduce_pixels(m, gb, lights, prep.material, opts.shading,
+        return reduce_pixels(m, gb, lights, prep.material, opts.shading,
                        jnp.asarray(args.strength, m.dtype), images, weights)
 
     factors = []
     for b, batch in enumerate(prep.batches):
         def body(carry, gb, lights, images, weights, taps, _, tables):
             f, cot = carry
-            m, pull = _sampler(_first_taps(gb.plan, taps), mips, tables)
+            m, pull = _sampler(first_taps(gb.plan, taps), mips, tables)
             rho, e, lower = jax.vmap(reduce)(m, gb, lights, images, weights)
             f = f + 0.5 * (jnp.sum(rho * rho) + jnp.sum(e * e))
             return (f, _add(cot, pull(_lower_times(lower, rho)))), lower
@@ -230,7 +224,7 @@ def _gauss_newton_product(z: Array, args: ModelArgs, factors):
         cot = jax.tree_util.tree_map(jnp.zeros_like, dmips)
         for b, (batch, lower) in enumerate(zip(prep.batches, factors)):
             def body(cot, gb, lights, images, weights, taps, lower_c, tables, dmips=dmips):
-                dm, pull = _sampler(_first_taps(gb.plan, taps), dmips, tables)
+                dm, pull = _sampler(first_taps(gb.plan, taps), dmips, tables)
                 y = _lower_times(lower_c, _lower_transpose_times(lower_c, dm))
                 return _add(cot, pull(y)), None
 
@@ -243,7 +237,7 @@ def _gauss_newton_product(z: Array, args: ModelArgs, factors):
     return product
 
 
-def _conjugate_gradient(operator, b: Array, max_steps: int, rtol: float = 1e-4) -> Array:
+def conjugate_gradient(operator, b: Array, max_steps: int, rtol: float = 1e-4) -> Array:
     """Conjugate gradients for ``operator(x) = b`` (symmetric positive definite), from
     ``x = 0``, for at most ``max_steps`` products or until ``|r| <= rtol |b|``.
 
@@ -302,8 +296,8 @@ class TexelLM:
 
     def init(self, z: Array, args: ModelArgs) -> TexelLMState:
         """The state before the first step (which evaluates ``z``): zeros made on the host
-        and put on the device in buffers of their own (as an XLA program it compiled in
-        0.02 s on the CPU, 0.1 s on an H100)."""
+        and put on the device in buffers of their own (as an XLA program it would be one
+        more compilation)."""
         dt = np.dtype(z.dtype)
         factors = tuple(tuple(np.zeros(shape, dt) for shape in _factor_shapes(b))
                         for b in args.prepared.batches)
@@ -335,7 +329,7 @@ class TexelLM:
         lam = jax.lax.cond(first, start_damping,
                            lambda: _damping(state.lam, ratio, accepted))
         lam = jnp.maximum(lam, tiny)
-        delta = _conjugate_gradient(lambda v: product(v) + lam * v, -g, self.cg_steps)
+        delta = conjugate_gradient(lambda v: product(v) + lam * v, -g, self.cg_steps)
         # the decrease the model predicts, -(g.d + d.H d / 2): a CG iterate d from 0 has
         # d.(H + lam I) d = -g.d (its residual is orthogonal to the Krylov space it lies in),
         # which saves a product

@@ -126,7 +126,7 @@ def default_fit_job(*, quick: bool = False) -> FitJob:
     held = (FitTarget(cam, size, size, lights, img, name="held-out light"),)
     # Levenberg-Marquardt in texel space (the default solver), 20 conjugate-gradient
     # iterations a step: a step's pass over the pixels (shading 12 targets and forming their
-    # Gauss-Newton blocks, ~0.2 s) costs as much as ~20 iterations, so more of them per step
+    # Gauss-Newton blocks) costs about as much as 20 iterations, so more of them per step
     # reach each accuracy sooner
     options = FitOptions(solver="lm-texel", max_steps=15, lsmr_steps=20)
     return FitJob(problem=problem, options=options,

@@ -1,7 +1,7 @@
 """Ray-cast baking: a tangent-space normal map of a high-poly mesh on a low-poly mesh's uv
 layout, with the semantics of Blender's "selected to active" bake (Cycles).
 
-Per texel of LOW's uv layout (`jaxnm.transfer._texels`, texel centres; where uv triangles
+Per texel of LOW's uv layout (texel centres; where uv triangles
 overlap, the one with the highest index holds the texel, as in Blender, which draws them in
 order):
 
@@ -32,7 +32,7 @@ order):
    ``RE_bake_normal_world_to_tangent``, or Schüler's cotangent frame).
 5. **Margin.** Texels whose ray hit nothing keep no value (they are reported), and
    ``margin`` passes of Blender's "extend" filter fill the texels around the islands
-   (`jaxnm.transfer._texels.extend_margin`; Blender uses this margin type for every
+   (Blender uses this margin type for every
    tangent-space normal bake, ``bake_init_api_data`` in
    ``source/blender/editors/object/object_bake_api.cc``).
 
@@ -43,7 +43,7 @@ agree for a smooth LOW whose normals are angle-weighted, `jaxnm.geometry.vertex_
 and the random numbers are a hash of the texel and the sample, not Cycles' sequence.
 
 The rays are cast with Embree (the ``bake`` extra's ``embreex``, robust mode: a ray through
-an edge or a vertex shared by triangles hits one of them; `jaxnm.transfer._embree`), in
+an edge or a vertex shared by triangles hits one of them), in
 chunks of texels on worker threads, so the memory is bounded whatever the map's size; the
 result depends neither on the chunks nor on the threads.
 """
@@ -388,7 +388,7 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
       (default: the machine's cores, at most 4; the result does not depend on it);
       `engine`: how to reach Embree, ``"direct"`` (its library through ctypes, rays in
       packets on every worker) or ``"embreex"`` (embreex's scene, one ray at a time), the
-      same hits (`jaxnm.transfer._embree`); None: ``"direct"`` where it can be had;
+      same hits; None: ``"direct"`` where it can be had;
       `high_name`, `low_name`: for messages (the files).
 
     **Returns:** a `RaycastBake`. Raises ValueError when no ray hits HIGH at all (the
