@@ -76,8 +76,10 @@ def _no_temporaries(folder: Path) -> None:
 # ----------------------------------------------------------------------------- Ctrl-C
 
 
-def _default_sigint() -> None:  # (a child of a background job starts with SIGINT ignored)
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
+# The child restores Python's SIGINT handler itself (a child of a background job starts with
+# SIGINT ignored): a ``preexec_fn`` would run the parent's fork hooks, JAX's warning included.
+_LAUNCH = ("import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
+           "runpy.run_module('jaxnm_launcher', run_name='__main__', alter_sys=True)")
 
 
 def _interrupt(out: Path, *, after: str | None, delay: float, count: int = 1):
@@ -86,10 +88,9 @@ def _interrupt(out: Path, *, after: str | None, delay: float, count: int = 1):
     ``delay`` seconds after the stderr line starting with ``after`` (after the start for
     None); returns the exit code and stderr."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "jaxnm_launcher", "fit", "--quick", "-o", str(out),
+        [sys.executable, "-c", _LAUNCH, "fit", "--quick", "-o", str(out),
          "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        cwd=ROOT, env={**os.environ, "JAXNM_COMPILATION_CACHE": "off"},
-        preexec_fn=_default_sigint)
+        cwd=ROOT, env={**os.environ, "JAXNM_COMPILATION_CACHE": "off"})
     lines, seen = [], threading.Event()
 
     def read():

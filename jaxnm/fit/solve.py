@@ -742,11 +742,9 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
       a one-line `ValueError` names the file and what differs; the stopping rule and the
       time limit (counted over the whole fit) may change. A checkpoint of a fit that had
       converged returns its result without a step.
-    - `start`: (h, w, 3) unit tangent-space normals to start from (e.g. a ray-cast bake)
-      instead of the flat map; a normal with ``z <= 0``, which the slopes cannot hold, starts
-      from its direction tilted to ``z = 1e-3`` (`normals_to_slopes`). With coarse-to-fine
-      levels the first level starts from its slopes resized; `options.init_noise` adds to
-      them.
+    - `start`: (h, w, 3) unit normals to start from (e.g. a ray-cast bake) instead of the
+      flat map (``z`` clamped to 1e-3; resized for a first coarse level; plus
+      `options.init_noise`).
 
     **Returns:** a `FitResult`; its `stopped` says why the fit ended, `stop_test` which
     test ended it (`STOP_TESTS`; `jaxnm.fit.stopping` has the stopping rule and

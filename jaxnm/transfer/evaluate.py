@@ -4,8 +4,9 @@ lights a fit never used (`evaluate_maps`).
 Per held-out view, HIGH and LOW are rendered by jaxnm (`jaxnm.render`), LOW once per map and
 once with no map (the floor every map should beat), and shaded under each of the view's
 lights with the bake's material (`jaxnm.shading.shade`). A pixel is scored where both meshes
-cover it and the points they show lie within the tolerance (`_surfaces.pair_mask`, with
-`_surfaces.pair_tolerance` of the held-out views unless given). Per method:
+cover it and the points they show lie within the tolerance of each other (by default three
+times the 95th percentile of that distance over the held-out views' pixels, as the bake's
+targets count it). Per method:
 
 - **PSNR** of the linear colour against HIGH's over every scored pixel and channel of every
   held-out image together, the peak being 1 (white): ``10 log10(1 / MSE)``.

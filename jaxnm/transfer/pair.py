@@ -14,9 +14,8 @@ normal where a ray from LOW meets it, Blender's selected-to-active bake.
    normals, no map) and shaded under each light with the material and albedo the map is
    fitted with (`jaxnm.shading.shade`, as `jaxnm.render` shades). A pixel counts where
    both meshes cover it, LOW faces the camera within ``max_angle_deg`` (as the plan
-   counted), and the points HIGH and LOW show there are close (`_surfaces.pair_mask`, within
-   `_surfaces.pair_tolerance`: three times the 95th percentile of that distance over such
-   pixels), which leaves out silhouettes and occlusions a map cannot reproduce.
+   counted), and the points HIGH and LOW show there are close (within three times the 95th
+   percentile of that distance over such pixels: `PairBake.tolerance`), which leaves out silhouettes and occlusions a map cannot reproduce.
 3. **The fit.** `jaxnm.fit.fit_normal_map` fits LOW's map to those targets in ``frame``
    (MikkTSpace for ``"vertex"``: LOW's tangents are computed once and carried by the
    problem), from the flat map (``"fit"``) or from the ray-cast map (``"both"``, but for
@@ -175,7 +174,7 @@ class PairBake:
     - `low`: LOW as baked for (normals, and MikkTSpace tangents for ``"vertex"``).
     - `options`, `frame`; `timings`: seconds per stage; `seconds`: in all.
     - `tolerance`: the distance within which HIGH's and LOW's points count as the same
-      pixel in the fit's targets (`_surfaces.pair_mask`; None without a fit).
+      pixel in the fit's targets (None without a fit).
     - `interrupted`: `should_stop` ended the bake early; `skipped`: what was left out.
     """
 
