@@ -14,7 +14,7 @@ view sees:
    in (the nearest texel, as the map is stored: row 0 on top) when its surface is front
    facing and LOW's interpolated normal there is within ``max_angle_deg`` of the direction
    to the camera. Texels outside LOW's uv triangles (no texel centre inside one) do not
-   count (`jaxnm.transfer._texels.rasterize_uv`).
+   count.
 3. **Greedy cover.** ``views`` times, the candidate that adds most to the texels still seen
    by fewer than ``min_views`` chosen views (a texel counts once per view) is chosen; once
    no candidate adds to those, the next gives a third view to the most texels that have
