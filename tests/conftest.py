@@ -1,26 +1,34 @@
 """Shared test configuration: strict JAX numerics, small scenes, optional GL."""
 
+import atexit
 import os
+import shutil
+import tempfile
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-# hermetic: the CLI tests must not read or fill the user's persistent compilation cache
-os.environ["JAXNM_COMPILATION_CACHE"] = "off"
 # reproducible on a GPU too (fixed-order scatter-adds; a no-op on the CPU)
 if "--xla_gpu_deterministic_ops=true" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                                + " --xla_gpu_deterministic_ops=true").strip()
-# The suite is compile-bound: with XLA's LLVM backend at optimisation level 0 its programs
-# compile in about two thirds of the time (the whole suite: 19.3 -> 14.7 min on 2 cores) and
-# compute the same values (neither level allows value-changing rewrites; the GLSL and
-# bitwise-resume tests pass at both). JAXNM_TEST_XLA_OPTIMIZED=1 keeps XLA's default level,
-# the one users run; .ci/run runs the suite both ways.
-if (os.environ.get("JAXNM_TEST_XLA_OPTIMIZED") != "1"
-        and "--xla_backend_optimization_level" not in os.environ["XLA_FLAGS"]):
-    os.environ["XLA_FLAGS"] += " --xla_backend_optimization_level=0"
+
+# The suite is compile-bound, and many programs recur: in other test modules (each module
+# drops its compiled code, see `_release_compiled_code`), in the other pytest-xdist worker,
+# and in the command-line subprocesses. One run compiles each program once: JAX's persistent
+# compilation cache, in a temporary folder that the first process (pytest's controller)
+# makes and removes, and that the workers and the command line (JAXNM_COMPILATION_CACHE)
+# share. Hermetic: the user's own cache is neither read nor filled.
+_CACHE_ENV = "JAXNM_TEST_COMPILATION_CACHE"
+if _CACHE_ENV not in os.environ:
+    os.environ[_CACHE_ENV] = tempfile.mkdtemp(prefix="jaxnm-test-xla-")
+    atexit.register(shutil.rmtree, os.environ[_CACHE_ENV], ignore_errors=True)
+os.environ["JAXNM_COMPILATION_CACHE"] = os.environ[_CACHE_ENV]
 
 import jax  # noqa: E402
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
+jax.config.update("jax_compilation_cache_dir", os.environ[_CACHE_ENV])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402
