@@ -1,11 +1,12 @@
 """The tutorials as the site shows them: each notebook of ``notebooks/`` executed once, with
 its outputs, in ``docs/tutorials/`` (ignored by git).
 
-``tests/test_notebooks.py`` executes every notebook and leaves its executed copy there
-(`write_executed`); ``mkdocs build`` (`scripts.docs.hooks`) then uses those copies and
-executes only the notebooks whose copy is missing or stale (`is_current`: the copy records
-the SHA-256 of the notebook it was executed from). So CI, which runs the tests before the
-build, executes each notebook once.
+``mkdocs build`` (`scripts.docs.hooks`) executes every notebook whose executed copy is
+missing or stale (`is_current`: the copy records the SHA-256 of the notebook it was executed
+from) and checks it (`problems`): every code cell ran, none raised, none printed a Python
+warning, and a notebook that shows figures shows at least one. A notebook that fails a check
+fails the build and leaves no copy. CI builds the site from a clean checkout, in an
+environment with the docs extra alone, so there every notebook runs and is checked.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import sys
 import tempfile
 from pathlib import Path
@@ -23,6 +25,9 @@ EXECUTED = ROOT / "docs" / "tutorials"
 #: Seconds per cell; a whole notebook takes about a minute on 2 cores.
 CELL_TIMEOUT = 300
 _KEY = "jaxnm_docs"
+# A Python warning as the warnings module prints it ("file:line: SomeWarning: message"). The
+# kernel is a separate process, so pytest's or a caller's warning filters do not reach it.
+_PY_WARNING = re.compile(r"\b\w*Warning: ")
 
 
 def notebooks() -> list[Path]:
@@ -104,14 +109,48 @@ def write_executed(nb, source: Path) -> Path:
     return dest
 
 
+def problems(nb) -> list[str]:
+    """What is wrong with an executed notebook ``nb``: code cells that did not run, error
+    outputs, a Python warning printed to stderr, no figure where the notebook calls
+    ``plt.show()``; an empty list when nothing is."""
+    code = [c for c in nb["cells"] if c["cell_type"] == "code"]
+    found = []
+    skipped = [i for i, c in enumerate(code) if c.get("execution_count") is None]
+    if skipped:
+        found.append(f"code cells {skipped} did not run")
+    outputs = [o for c in code for o in c.get("outputs", [])]
+    for o in outputs:
+        if o["output_type"] == "error":
+            found.append(f"a cell raised {o.get('ename')}: {o.get('evalue')}")
+    stderr = "".join(o.get("text", "") for o in outputs
+                     if o["output_type"] == "stream" and o.get("name") == "stderr")
+    warning = next((line for line in stderr.splitlines() if _PY_WARNING.search(line)), None)
+    if warning is not None:
+        found.append(f"it printed a warning: {warning.strip()}")
+    if ("plt.show()" in "".join("".join(c["source"]) for c in code)
+            and not any("image/png" in o.get("data", {}) for o in outputs)):
+        found.append("it calls plt.show() but shows no figure")
+    return found
+
+
 def ensure_executed(log=print) -> list[Path]:
-    """Execute every notebook without a current executed copy; returns those executed."""
+    """Execute and check (`problems`) every notebook without a current executed copy;
+    returns those executed. A failing cell or check raises a one-line ``RuntimeError``
+    naming the notebook, and leaves no executed copy of it."""
     done = []
     for source in notebooks():
         if is_current(source):
             continue
         log(f"executing {source.name} for the site (no current executed copy)")
         with tempfile.TemporaryDirectory() as folder:
-            write_executed(execute(source, Path(folder)), source)
+            try:
+                nb = execute(source, Path(folder))
+            except Exception as e:  # nbclient's CellExecutionError carries the traceback
+                raise RuntimeError(f"{source.name}: a cell failed: "
+                                   f"{str(e).strip().splitlines()[-1]}") from e
+            found = problems(nb)
+            if found:
+                raise RuntimeError(f"{source.name}: {'; '.join(found)}")
+            write_executed(nb, source)
         done.append(source)
     return done
