@@ -15,7 +15,8 @@ normal where a ray from LOW meets it, Blender's selected-to-active bake.
    fitted with (`jaxnm.shading.shade`, as `jaxnm.render` shades). A pixel counts where
    both meshes cover it, LOW faces the camera within ``max_angle_deg`` (as the plan
    counted), and the points HIGH and LOW show there are close (within three times the 95th
-   percentile of that distance over such pixels: `PairBake.tolerance`), which leaves out silhouettes and occlusions a map cannot reproduce.
+   percentile of that distance over such pixels: `PairBake.tolerance`), which leaves out
+   silhouettes and occlusions a map cannot reproduce.
 3. **The fit.** `jaxnm.fit.fit_normal_map` fits LOW's map to those targets in ``frame``
    (MikkTSpace for ``"vertex"``: LOW's tangents are computed once and carried by the
    problem), from the flat map (``"fit"``) or from the ray-cast map (``"both"``, but for
