@@ -316,3 +316,23 @@ def test_the_design_pages_module_table_matches_the_package():
     actual |= {f"jaxnm/{p.name}/" for p in (ROOT / "jaxnm").iterdir()
                if p.is_dir() and (p / "__init__.py").exists()}
     assert listed == actual, (sorted(listed - actual), sorted(actual - listed))
+
+
+def _long_functions(path: Path, limit: int = 80) -> list[str]:
+    """The functions of a Python file longer than ``limit`` lines, docstring included."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    return [f"{path}:{n.lineno} {n.name} ({n.end_lineno - n.lineno + 1} lines)"
+            for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))
+            and n.end_lineno - n.lineno + 1 > limit]
+
+
+def test_no_function_is_over_80_lines():
+    """A function reads on one screen: none in ``jaxnm/`` is over 80 lines."""
+    root = Path(jaxnm.__file__).parent
+    assert [f for p in sorted(root.rglob("*.py")) for f in _long_functions(p)] == []
+
+
+def test_the_function_length_check_can_fail(tmp_path):
+    body = "\n".join(f"    x{i} = {i}" for i in range(80))
+    (tmp_path / "m.py").write_text(f"def short():\n    return 1\n\n\ndef long():\n{body}\n")
+    assert _long_functions(tmp_path / "m.py") == [f"{tmp_path / 'm.py'}:5 long (81 lines)"]

@@ -750,10 +750,9 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     test ended it (`STOP_TESTS`; `jaxnm.fit.stopping` has the stopping rule and
     ``"no_progress"``).
 
-    Warns (`FitWarning`) when no view has three lights with non-coplanar
-    directions (`check_identifiability`; the report is in the result). A
-    `KeyboardInterrupt` (Ctrl-C) during the fit ends it and returns the best map so far
-    (``stopped == "interrupted"``); no signal handler is installed.
+    Warns (`FitWarning`) when no view has three lights with non-coplanar directions
+    (`check_identifiability`). A `KeyboardInterrupt` (Ctrl-C) ends the fit with the best
+    map so far (``stopped == "interrupted"``); no signal handler is installed.
     Deterministic for a given `options.seed`. History step 0 is the start; the
     loss of each record is that of the map the solver holds after the step; from step 1
     on, ``accepted``, ``damping`` and ``predicted`` say how the solver took the step
