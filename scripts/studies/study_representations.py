@@ -475,14 +475,15 @@ def unit_length(maps: dict) -> list:
     return rows
 
 
-def atlas(maps: dict) -> list:
+def atlas(maps: dict, *, warm: bool = True) -> list:
     """Every map stored every way of `ATLAS_STORAGES`: the angle (degrees) of the decoded
     normal to the map's float normal (renormalised), bits per texel and encode seconds.
-    The angular encoder is run once first, so that its compilation is not timed."""
+    With ``warm`` the angular encoder is run once first at each size, so that its
+    compilation is not timed."""
     from jaxnm import storage
 
-    storage.encode_blocks(np.full((512, 512, 2), 128, np.uint8), encoder="angular")
-    storage.encode_blocks(np.full((128, 128, 2), 128, np.uint8), encoder="angular")
+    for shape in {m["unit"].shape[:2] for m in maps.values()} if warm else ():
+        storage.encode_blocks(np.full(shape + (2,), 128, np.uint8), encoder="angular")
     rows = []
     for name, m in maps.items():
         for label, bits in ATLAS_STORAGES.items():
