@@ -201,7 +201,7 @@ def test_the_atlas_data_file_names_its_run_and_its_maps(atlas_data):
 def test_conclusion_the_angular_encoder_beats_quicktex_on_real_maps(atlas_data):
     """Conclusion: on real maps the angular encoder is 15-25 % closer than quicktex in the
     mean (14.9 % on one), 9-15 % at p99, closer than every other BC5 encoder in mean, p99 and
-    max; a 2048x2048 map in under 10 s."""
+    max; a 2048x2048 map in about 11 s of CPU time, so at best under 6 s on two cores."""
     rows = _atlas_rows(atlas_data)
     real = [k for k, v in atlas_data["maps"].items() if v["source"]]
     gains, p99 = [], []
@@ -216,7 +216,8 @@ def test_conclusion_the_angular_encoder_beats_quicktex_on_real_maps(atlas_data):
     assert 0.145 < min(gains) and max(gains) < 0.25 and np.mean(gains) > 0.15, gains
     assert 0.09 < min(p99) and max(p99) < 0.15, p99
     speed = atlas_data["angular_speed"]
-    assert speed["size"] == 2048 and speed["angular_s"] < 10
+    assert speed["size"] == 2048 and 10 < speed["angular_cpu_s"] < 12
+    assert speed["angular_s"] >= speed["angular_cpu_s"] / 2 > 5
 
 
 def test_conclusion_bc5_leads_the_8_bit_formats(atlas_data):

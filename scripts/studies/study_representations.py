@@ -525,6 +525,14 @@ def atlas_study(*, quick: bool = False) -> dict:
     import subprocess
 
     load0 = os.getloadavg()
+    try:  # the code that runs: read before the run, which takes minutes
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).parent, check=True).stdout.strip()
+        modified = bool(subprocess.run(["git", "status", "--porcelain", "--", "jaxnm",
+                                        "scripts"], capture_output=True, text=True,
+                                       cwd=Path(__file__).parent, check=True).stdout.strip())
+    except (OSError, subprocess.CalledProcessError):
+        commit, modified = None, None
     t0 = time.perf_counter()
     maps = atlas_maps(quick=quick)
     res = {"maps": {k: {"size": list(m["unit"].shape[:2]), "source": m["source"]}
@@ -532,14 +540,10 @@ def atlas_study(*, quick: bool = False) -> dict:
            "unit_length": unit_length(maps), "atlas": atlas(maps),
            "angular_speed": angular_speed(256 if quick else 2048, 1 if quick else 2),
            "held_out": held_out_fits(64, 32, fit_steps=10) if quick else held_out_fits()}
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = None
     res["metadata"] = {
         "date": datetime.date.today().isoformat(), "jaxnm": jaxnm.__version__,
-        "jax": jax.__version__, "commit": commit, "backend": jax.default_backend(),
+        "jax": jax.__version__, "commit": commit, "modified": modified,
+        "backend": jax.default_backend(),
         "machine": f"{platform.machine()}, {_cores()} cores", "python": platform.python_version(),
         "load_average_before": load0[0], "load_average_after": os.getloadavg()[0],
         "run_s": time.perf_counter() - t0,
