@@ -34,7 +34,25 @@ container is written here.
 **Encoders** (`ENCODERS`): ``"quicktex"`` (the usual tool), ``"etcpak"`` (faster, coarser
 endpoints on normal maps; its ``decompress_bc5`` is never called: it crashes) and
 ``"pillow"`` (Pillow's own BC5 and DXT5 encoders; its BC5 blocks are all in the six-value
-mode, whose end codes 0 and 255 it never selects). None of them searches for endpoints.
+mode, whose end codes 0 and 255 it never selects). None of them searches for endpoints, and
+all three minimise the error of the codes, channel by channel.
+
+``"angular"`` is jaxnm's own BC5 encoder. It minimises the angle between each texel's
+decoded unit normal (``x`` and ``y`` from the blocks, ``z`` rebuilt) and the target normal,
+not the codes' error: a texel whose normal is tilted far from ``z`` turns more per code of
+``x`` or ``y``, and the two channels' errors add up in one angle. Per block it starts from
+the channels' minimum and maximum (eight-value mode), then repeats three times: a weighted
+least-squares fit of the four endpoints for the current indices, in the angle's local metric
+(the first-order change of the rebuilt normal, ``|dn|^2 = dx^2 + dy^2 + (x dx + y dy)^2 /
+z^2``, each texel weighted by the inverse of its current angle, so that the sum of angles
+rather than of their squares is minimised), rounded to bytes; then a search of each
+channel's endpoints (each moved by up to 3 codes, the other endpoint and the other
+channel's decoded values held) with every texel's index chosen for the smallest angle; a
+block keeps the best endpoints it has seen. A texel's pair of indices is chosen jointly
+(the palette entries around its ``x`` and ``y``, then each channel given the other), on the
+palette the decoders read: interpolated entries truncated to 8 bits, as texture2ddecoder and
+Pillow decode them. It runs in JAX over all blocks at once (`encode_blocks` with
+``encoder="angular"``; BC5 only).
 
 These need the ``storage`` extra: ``pip install jaxnm[storage]`` (Pillow, texture2ddecoder,
 quicktex, etcpak).
@@ -43,6 +61,7 @@ quicktex, etcpak).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import io
 import os
 import struct
@@ -80,7 +99,7 @@ __all__ = [
 #: "DXT5nm" swizzle: x alpha, y green).
 DDS_FORMATS = ("bc5", "bc3nm")
 #: Block encoders (`encode_blocks`).
-ENCODERS = ("quicktex", "etcpak", "pillow")
+ENCODERS = ("quicktex", "etcpak", "pillow", "angular")
 #: Block decoders (`decode_blocks`): texture2ddecoder, or Pillow's own.
 DECODERS = ("texture2ddecoder", "pillow")
 
@@ -144,7 +163,9 @@ def encode_blocks(xy: ArrayLike, *, format: str = "bc5", encoder: str = "quickte
     - `xy`: (H, W, 2) uint8 codes (``x``, ``y`` as stored: e.g. `encode_normal_map` with
       ``channels=2`` and 8-bit `quantize`, times 255); H and W multiples of 4.
     - `format`: one of `DDS_FORMATS`.
-    - `encoder`: one of `ENCODERS`.
+    - `encoder`: one of `ENCODERS`; ``"angular"`` (BC5 only) minimises the angle of each
+      texel's decoded normal to the normal the codes decode to (``z`` rebuilt), not the
+      codes' error. `save_dds_normal_map` gives it the float normals instead of the codes.
 
     **Returns:** the blocks, row by row of blocks, 16 bytes each (``H W`` bytes).
     """
@@ -157,6 +178,11 @@ def encode_blocks(xy: ArrayLike, *, format: str = "bc5", encoder: str = "quickte
     h, w, _ = xy.shape
     if h % 4 or w % 4 or not h or not w:
         raise ValueError(f"encode_blocks: the size must be a multiple of 4 texels, got {h}x{w}")
+    if encoder == "angular":
+        if format != "bc5":
+            raise ValueError(f"encode_blocks: encoder='angular' writes BC5 only, got "
+                             f"format={format!r}")
+        return _angular_bc5(xy.astype(np.float32) * np.float32(2 / 255) - 1)
     rgba = _rgba(xy, format)
     if encoder == "quicktex":
         require_module("quicktex")
@@ -329,10 +355,12 @@ def save_dds_normal_map(path: str | os.PathLike, normals: ArrayLike, *, format: 
     - `path`: the ``.dds`` file to write.
     - `normals`: (H, W, 3) decoded unit normals with ``z >= 0`` (image layout), H and W
       multiples of 4.
-    - `format`: one of `DDS_FORMATS`; `encoder`: one of `ENCODERS`.
+    - `format`: one of `DDS_FORMATS`; `encoder`: one of `ENCODERS` (``"angular"``: BC5
+      only, fitted to the normals themselves, normalised, rather than to their 8-bit codes).
     - `green`, `uv_origin`: the map's conventions, as in `encode_normal_map`.
 
-    **Returns:** (H, W, 2) uint8, the codes that were compressed (before compression).
+    **Returns:** (H, W, 2) uint8, the codes that were compressed (before compression); for
+    ``"angular"``, the codes of the normals, which it does not round first.
     """
     _check_option("save_dds_normal_map", "format", format, DDS_FORMATS)
     _check_option("save_dds_normal_map", "encoder", encoder, ENCODERS)
@@ -341,8 +369,17 @@ def save_dds_normal_map(path: str | os.PathLike, normals: ArrayLike, *, format: 
         raise ValueError(f"save_dds_normal_map: `normals` must be (H, W, 3), got {n.shape}")
     codes = np.asarray(np.round(np.asarray(quantize(encode_normal_map(
         n, channels=2, green=green, uv_origin=uv_origin))) * 255), np.uint8)
-    save_dds_blocks(path, encode_blocks(codes, format=format, encoder=encoder),
-                    codes.shape[:2], format=format)
+    if encoder == "angular" and format == "bc5":
+        h, w = codes.shape[:2]
+        if h % 4 or w % 4 or not h or not w:
+            raise ValueError(f"save_dds_normal_map: the size must be a multiple of 4 texels, "
+                             f"got {h}x{w}")
+        unit = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+        xy = np.asarray(encode_normal_map(unit, channels=2, green=green, uv_origin=uv_origin))
+        blocks = _angular_bc5(xy * 2 - 1)
+    else:
+        blocks = encode_blocks(codes, format=format, encoder=encoder)
+    save_dds_blocks(path, blocks, codes.shape[:2], format=format)
     return codes
 
 
@@ -511,3 +548,188 @@ def bc5_decode(endpoints: ArrayLike, indices: ArrayLike, size_hw: tuple[int, int
     v = v.reshape(bh, bw, 2, 4, 4).transpose(0, 3, 1, 4, 2).reshape(4 * bh, 4 * bw, 2)
     h, w = int(size_hw[0]), int(size_hw[1])
     return v[:h, :w] / 255
+
+
+# --------------------------------------------------------------------------- the angular encoder
+#
+# Each channel's block is held as (hi, lo) = (e_0, e_1) with e_0 > e_1 (the eight-value mode);
+# its palette sorted from lo to hi is position k = 0..7, BC4 index 1 (k = 0), 8 - k, 0 (k = 7).
+
+_ANGULAR_ROUNDS = 3  # least-squares fits, each followed by an endpoint search
+_ANGULAR_REACH = 3  # codes each endpoint moves in the search
+_ANGULAR_CHUNK = 32768  # blocks per call (bounds the search's memory to about 100 MB)
+
+
+def _palette_value(k, hi, lo):
+    """The decoded value in [-1, 1] of sorted position ``k``: ``((7 - k) lo + k hi) / 7``
+    truncated to 8 bits, as the decoders read it (``floor`` in float32, exact for these
+    integers)."""
+    a = ((7 - k) * lo + k * hi).astype(jnp.float32)
+    return jnp.floor(a * (1.0 / 7.0) + 1e-3) * (2.0 / 255.0) - 1.0
+
+
+def _cosine(x, y, t0, t1, t2):
+    """cos of the angle between the decoded normal (x, y, z rebuilt; normalised when
+    ``x^2 + y^2 > 1``, as ``z`` is then 0) and the unit target (t0, t1, t2)."""
+    s = 1.0 - x * x - y * y
+    xy = x * t0 + y * t1
+    inside = xy + t2 * jnp.sqrt(jnp.maximum(s, 0.0))
+    outside = xy * jax.lax.rsqrt(jnp.maximum(1.0 - s, 1e-12))
+    return jnp.where(s >= 0, inside, outside)
+
+
+def _chord(c):
+    """``|a - b|`` of unit vectors from their cosine: the angle, to within 0.01 % below 5 deg."""
+    return jnp.sqrt(jnp.maximum(2.0 - 2.0 * c, 0.0))
+
+
+def _around(x, hi, lo):
+    """The two sorted positions whose values bracket ``x``."""
+    u = ((x + 1.0) * 127.5 - lo) * (7.0 / jnp.maximum(hi - lo, 1).astype(jnp.float32))
+    k0 = jnp.clip(jnp.floor(u), 0, 6).astype(jnp.int32)
+    return k0, k0 + 1
+
+
+def _best_given_other(hi, lo, other, t0, t1, t2):
+    """One channel's best position for each texel, the other channel's decoded value held:
+    the palette entries around the value that points the normal closest to the target
+    (``t0 sqrt((1 - other^2) / (t0^2 + t2^2))``)."""
+    best = t0 * jnp.sqrt(jnp.maximum(1.0 - other * other, 0.0)
+                         / jnp.maximum(t0 * t0 + t2 * t2, 1e-12))
+    k0, k1 = _around(best, hi, lo)
+    c0 = _cosine(_palette_value(k0, hi, lo), other, t0, t1, t2)
+    c1 = _cosine(_palette_value(k1, hi, lo), other, t0, t1, t2)
+    return jnp.where(c1 > c0, k1, k0), jnp.maximum(c0, c1)
+
+
+@jax.jit
+def _angular_select(ex, ey, t):
+    """Each texel's positions (B, 16) in both channels and the cosine they reach: the best
+    of the 2 x 2 entries around the target's ``x`` and ``y``, then ``x`` given ``y`` and
+    ``y`` given ``x``."""
+    t0, t1, t2 = t[..., 0], t[..., 1], t[..., 2]
+    hx, lx, hy, ly = ex[:, :1], ex[:, 1:], ey[:, :1], ey[:, 1:]
+    best = None
+    for a in _around(t0, hx, lx):
+        for b in _around(t1, hy, ly):
+            c = _cosine(_palette_value(a, hx, lx), _palette_value(b, hy, ly), t0, t1, t2)
+            if best is None:
+                best, kx, ky = c, a, b
+            else:
+                m = c > best
+                best, kx, ky = jnp.where(m, c, best), jnp.where(m, a, kx), jnp.where(m, b, ky)
+    kx, _ = _best_given_other(hx, lx, _palette_value(ky, hy, ly), t0, t1, t2)
+    ky, c = _best_given_other(hy, ly, _palette_value(kx, hx, lx), t1, t0, t2)
+    return kx, ky, c
+
+
+@functools.partial(jax.jit, static_argnames=("channel",))
+def _angular_search(e, other_e, k_other, t, channel):
+    """One channel's endpoints moved by up to `_ANGULAR_REACH` codes, one endpoint at a
+    time, the other channel's decoded values held: the candidate with the smallest sum of
+    angles, and its positions."""
+    t0, t1, t2 = (t[..., 0], t[..., 1], t[..., 2]) if channel == 0 else \
+        (t[..., 1], t[..., 0], t[..., 2])
+    other = _palette_value(k_other, other_e[:, :1], other_e[:, 1:])
+    r = _ANGULAR_REACH
+    d = jnp.asarray([[a, 0] for a in range(-r, r + 1)]
+                    + [[0, b] for b in range(-r, r + 1) if b], jnp.int32)
+    hi = jnp.clip(e[:, None, 0] + d[None, :, 0], 1, 255)
+    lo = jnp.minimum(jnp.clip(e[:, None, 1] + d[None, :, 1], 0, 254), hi - 1)
+    k, c = _best_given_other(hi[..., None], lo[..., None], other[:, None], t0[:, None],
+                             t1[:, None], t2[:, None])
+    pick = jnp.argmin(_chord(c).sum(-1), -1)[:, None]
+    e = jnp.concatenate([jnp.take_along_axis(hi, pick, 1), jnp.take_along_axis(lo, pick, 1)],
+                        1)
+    return e, jnp.take_along_axis(k, pick[..., None], 1)[:, 0]
+
+
+@jax.jit
+def _angular_lsq(kx, ky, t, weight):
+    """The four endpoints minimising ``sum weight dn^T M dn`` for fixed positions, ``M``
+    the rebuilt normal's first-order metric at the target, rounded to bytes (half a code up,
+    for the decoders' truncation)."""
+    t0, t1, t2 = t[..., 0], t[..., 1], t[..., 2]
+    s = 2.0 / 255.0 / 7.0
+    kx, ky = kx.astype(jnp.float32), ky.astype(jnp.float32)
+    ax = jnp.stack([kx * s, (7 - kx) * s], -1)  # d x / d (hi, lo)
+    ay = jnp.stack([ky * s, (7 - ky) * s], -1)
+    tz = jnp.maximum(t2, 0.15)  # the metric's weight is at most 1 + 1 / 0.15^2
+    g0, g1 = t0 / tz, t1 / tz
+    m00, m01, m11 = (1 + g0 * g0) * weight, g0 * g1 * weight, (1 + g1 * g1) * weight
+
+    def outer(a, m, b):
+        return (a[..., :, None] * (m[..., None, None] * b[..., None, :])).sum(1)
+
+    h = jnp.concatenate([jnp.concatenate([outer(ax, m00, ax), outer(ax, m01, ay)], -1),
+                         jnp.concatenate([outer(ay, m01, ax), outer(ay, m11, ay)], -1)], -2)
+    r0, r1 = t0 + 1.0, t1 + 1.0  # the target minus the palette's constant term (-1)
+    rhs = jnp.concatenate([(ax * (m00 * r0 + m01 * r1)[..., None]).sum(1),
+                           (ay * (m01 * r0 + m11 * r1)[..., None]).sum(1)], -1)
+    h = h + 1e-6 * jnp.trace(h, axis1=-2, axis2=-1)[:, None, None] * jnp.eye(4)[None]
+    sol = jnp.round(jnp.linalg.solve(h, rhs[..., None])[..., 0] + 0.5).astype(jnp.int32)
+
+    def ends(hi, lo):
+        hi = jnp.clip(hi, 1, 255)
+        return jnp.stack([hi, jnp.minimum(jnp.clip(lo, 0, 254), hi - 1)], -1)
+
+    return ends(sol[:, 0], sol[:, 1]), ends(sol[:, 2], sol[:, 3])
+
+
+@jax.jit
+def _angular_start(t):
+    c = (t[..., :2] + 1.0) * 127.5
+    hi = jnp.clip(jnp.ceil(c.max(1)), 1, 255).astype(jnp.int32)
+    lo = jnp.minimum(jnp.clip(jnp.floor(c.min(1)), 0, 254).astype(jnp.int32), hi - 1)
+    return jnp.stack([hi[:, 0], lo[:, 0]], -1), jnp.stack([hi[:, 1], lo[:, 1]], -1)
+
+
+@jax.jit
+def _angular_keep(ex, ey, c, bx, by, best):
+    d = _chord(c)
+    s = d.sum(-1)
+    m = (s < best)[:, None]
+    return jnp.where(m, ex, bx), jnp.where(m, ey, by), jnp.minimum(s, best), \
+        1.0 / jnp.maximum(d, 2e-3)
+
+
+def _angular_blocks(t):
+    """Endpoints (B, 2, 2) and BC4 indices (B, 2, 16) of the blocks of unit targets t
+    (B, 16, 3)."""
+    ex, ey = _angular_start(t)
+    kx, ky, c = _angular_select(ex, ey, t)
+    bx, by, best, weight = _angular_keep(ex, ey, c, ex, ey, jnp.full(c.shape[:1], jnp.inf))
+    for _ in range(_ANGULAR_ROUNDS):
+        ex, ey = _angular_lsq(kx, ky, t, weight)
+        kx, ky, c = _angular_select(ex, ey, t)
+        ex, kx = _angular_search(ex, ey, ky, t, 0)
+        ey, ky = _angular_search(ey, ex, kx, t, 1)
+        kx, ky, c = _angular_select(ex, ey, t)
+        bx, by, best, weight = _angular_keep(ex, ey, c, bx, by, best)
+    kx, ky, _ = _angular_select(bx, by, t)
+    index = lambda k: jnp.where(k == 7, 0, jnp.where(k == 0, 1, 8 - k))  # noqa: E731
+    return (np.stack([np.asarray(bx), np.asarray(by)], 1),
+            np.stack([np.asarray(index(kx)), np.asarray(index(ky))], 1))
+
+
+def _angular_bc5(xy: np.ndarray) -> bytes:
+    """BC5 blocks of (H, W, 2) stored ``x, y`` in [-1, 1] (H, W multiples of 4), chosen for
+    the angle of the decoded normals to ``(x, y, sqrt(1 - x^2 - y^2))``."""
+    xy = np.clip(np.asarray(xy, np.float32), -1, 1)
+    h, w, _ = xy.shape
+    z = np.sqrt(np.maximum(1 - (xy.astype(np.float64) ** 2).sum(-1), 0))[..., None]
+    t = np.concatenate([xy, z.astype(np.float32)], -1)
+    t /= np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-12)
+    t = t.reshape(h // 4, 4, w // 4, 4, 3).transpose(0, 2, 1, 3, 4).reshape(-1, 16, 3)
+    n = len(t)
+    size = min(_ANGULAR_CHUNK, 1 << max(n - 1, 0).bit_length())  # few distinct shapes
+    ends, idx = [], []
+    for s in range(0, n, size):
+        part = t[s:s + size]
+        pad = np.concatenate([part, np.broadcast_to(np.float32([0, 0, 1]),
+                                                    (size - len(part), 16, 3))])
+        e, i = _angular_blocks(jnp.asarray(pad, jnp.float32))
+        ends.append(e[:len(part)])
+        idx.append(i[:len(part)])
+    return pack_bc4_blocks(np.concatenate(ends).reshape(-1, 2),
+                           np.concatenate(idx).reshape(-1, 16))

@@ -349,6 +349,8 @@ def encoders(size: int, extra_map: np.ndarray | None = None, *, repeats: int = 3
         ref = np.asarray(decode_normal_map(codes.astype(np.float32) / 255, channels=2))
         for fmt in storage.DDS_FORMATS:
             for enc in storage.ENCODERS:
+                if enc == "angular" and fmt != "bc5":
+                    continue
                 t = time_call(lambda: storage.encode_blocks(codes, format=fmt, encoder=enc),
                               repeats=repeats)
                 blocks = storage.encode_blocks(codes, format=fmt, encoder=enc)
@@ -363,6 +365,191 @@ def encoders(size: int, extra_map: np.ndarray | None = None, *, repeats: int = 3
                              "encode_ms": t.median_ms,
                              "decoders_agree": bool(np.array_equal(dec, pil))})
     return rows
+
+
+#: The atlas's storages: label -> bits per texel. BC5 and DXT5nm store ``x, y`` (``z``
+#: rebuilt), BC1 and BC7 all three channels (normalised after decoding).
+ATLAS_STORAGES = {"RGB8": 24, "RG8, z rebuilt": 16, "RGB16": 48,
+                  "BC5 quicktex": 8, "BC5 etcpak": 8, "BC5 Pillow": 8, "BC5 angular": 8,
+                  "DXT5nm quicktex": 8, "DXT5nm etcpak": 8,
+                  "BC1 quicktex": 4, "BC1 etcpak": 4, "BC7 etcpak": 8}
+
+
+def _rebuilt(xy_codes, top: int = 255) -> np.ndarray:
+    """Unit normals of (..., 2) codes, ``z`` rebuilt (float64)."""
+    v = np.asarray(xy_codes, np.float64) / top * 2 - 1
+    n = np.concatenate([v, np.sqrt(np.maximum(1 - (v**2).sum(-1), 0))[..., None]], -1)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def _normalised(rgb_codes, top: int = 255) -> np.ndarray:
+    v = np.asarray(rgb_codes, np.float64) / top * 2 - 1
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def _store(label: str, n: np.ndarray) -> tuple[np.ndarray, float | None]:
+    """The unit normals ``n`` stored as ``label`` and decoded (float64), and the encoder's
+    seconds (None for plain codes). Block data is decoded by texture2ddecoder."""
+    import texture2ddecoder as t2d
+
+    from jaxnm import storage
+
+    h, w, _ = n.shape
+    rgb8 = np.round((n + 1) / 2 * 255).astype(np.uint8)
+    xy8 = np.ascontiguousarray(rgb8[..., :2])
+    if label == "RGB8":
+        return _normalised(rgb8), None
+    if label == "RGB16":
+        return _normalised(np.round((n + 1) / 2 * 65535), 65535), None
+    if label == "RG8, z rebuilt":
+        return _rebuilt(xy8), None
+    kind, enc = label.split(" ", 1)
+    if kind in ("BC5", "DXT5nm"):
+        fmt = "bc5" if kind == "BC5" else "bc3nm"
+        enc = enc.lower()
+        t0 = time.perf_counter()
+        blocks = storage.encode_blocks(xy8, format=fmt, encoder=enc)
+        dt = time.perf_counter() - t0
+        return _rebuilt(storage.decode_blocks(blocks, (h, w), format=fmt)), dt
+    rgba = np.concatenate([rgb8, np.full((h, w, 1), 255, np.uint8)], -1).tobytes()
+    t0 = time.perf_counter()
+    if label == "BC1 quicktex":
+        from quicktex import RawTexture
+        from quicktex.s3tc.bc1 import BC1Encoder
+
+        blocks = BC1Encoder(5).encode(RawTexture.frombytes(rgba, w, h)).tobytes()
+    else:
+        import etcpak
+
+        blocks = bytes((etcpak.compress_bc1 if kind == "BC1" else etcpak.compress_bc7)(
+            rgba, w, h))
+    dt = time.perf_counter() - t0
+    fn = t2d.decode_bc1 if kind == "BC1" else t2d.decode_bc7
+    bgra = np.frombuffer(fn(blocks, w, h), np.uint8).reshape(h, w, 4)
+    return _normalised(bgra[..., [2, 1, 0]]), dt
+
+
+def _stats99(err) -> dict:
+    err = np.asarray(err, np.float64).ravel()
+    return {"mean": float(err.mean()), "p95": float(np.percentile(err, 95)),
+            "p99": float(np.percentile(err, 99)), "max": float(err.max())}
+
+
+def atlas_maps(*, quick: bool = False) -> dict:
+    """The atlas's maps: the procedural one (unit normals of the height field, 512 texels, 128
+    with ``quick``) and the real maps of `scripts.studies.real_maps` (``raw``: as stored,
+    decoded, not unit length; ``unit``: renormalised)."""
+    from scripts.studies import real_maps
+
+    size = 128 if quick else 512
+    u, v = texel_uv(size)
+    proc = truth_normal(u, v)
+    maps = {"procedural": {"raw": proc, "unit": proc, "source": None}}
+    for m in real_maps.REAL_MAPS:
+        raw, unit = real_maps.load(m)
+        if quick:
+            raw, unit = raw[:128, :128], unit[:128, :128]
+        maps[m.name] = {"raw": raw, "unit": unit,
+                        "source": {"package": m.package, "version": m.version,
+                                   "path": m.path, "sha256": m.sha256, "title": m.title,
+                                   "author": m.author, "license": m.license, "kind": m.kind,
+                                   "url": m.source}}
+    return maps
+
+
+def unit_length(maps: dict) -> list:
+    """How far each map's stored vectors are from unit length, and what rebuilding ``z``
+    from the stored ``x, y`` without renormalising costs (against the renormalised map),
+    beside renormalising first (both 8-bit two-channel codes)."""
+    rows = []
+    for name, m in maps.items():
+        length = np.linalg.norm(m["raw"], axis=-1)
+        raw_xy = np.round((np.clip(m["raw"][..., :2], -1, 1) + 1) / 2 * 255)
+        unit_xy = np.round((m["unit"][..., :2] + 1) / 2 * 255)
+        rows.append({"map": name, "length_mean": float(length.mean()),
+                     "length_p1": float(np.percentile(length, 1)),
+                     "length_p99": float(np.percentile(length, 99)),
+                     "off_by_2pct": float(np.mean(np.abs(length - 1) > 0.02)),
+                     "z_rebuilt_unnormalised": _stats99(angle(_rebuilt(raw_xy), m["unit"])),
+                     "z_rebuilt_renormalised": _stats99(angle(_rebuilt(unit_xy), m["unit"]))})
+    return rows
+
+
+def atlas(maps: dict, *, warm: bool = True) -> list:
+    """Every map stored every way of `ATLAS_STORAGES`: the angle (degrees) of the decoded
+    normal to the map's float normal (renormalised), bits per texel and encode seconds.
+    With ``warm`` the angular encoder is run once first at each size, so that its
+    compilation is not timed."""
+    from jaxnm import storage
+
+    for shape in {m["unit"].shape[:2] for m in maps.values()} if warm else ():
+        storage.encode_blocks(np.full(shape + (2,), 128, np.uint8), encoder="angular")
+    rows = []
+    for name, m in maps.items():
+        for label, bits in ATLAS_STORAGES.items():
+            dec, dt = _store(label, m["unit"])
+            rows.append({"map": name, "storage": label, "bits_per_texel": bits,
+                         **_stats99(angle(dec, m["unit"])),
+                         "encode_s": dt, "size": list(m["unit"].shape[:2])})
+    return rows
+
+
+def angular_speed(size: int = 2048, repeats: int = 2) -> dict:
+    """Seconds (wall and this process's CPU) of the angular encoder and quicktex on the
+    procedural map at ``size`` texels, compiled first."""
+    from jaxnm import storage
+
+    u, v = texel_uv(size)
+    xy8 = np.round((truth_normal(u, v)[..., :2] + 1) / 2 * 255).astype(np.uint8)
+    out = {"size": size}
+    t0, c0 = time.perf_counter(), time.process_time()
+    storage.encode_blocks(xy8, encoder="angular")
+    out["angular_first_call_s"] = time.perf_counter() - t0
+    out["angular_first_call_cpu_s"] = time.process_time() - c0
+    for enc in ("angular", "quicktex"):
+        walls, cpus = [], []
+        for _ in range(repeats):
+            t0, c0 = time.perf_counter(), time.process_time()
+            storage.encode_blocks(xy8, encoder=enc)
+            walls.append(time.perf_counter() - t0)
+            cpus.append(time.process_time() - c0)
+        out[f"{enc}_s"], out[f"{enc}_cpu_s"] = min(walls), min(cpus)
+    return out
+
+
+def atlas_study(*, quick: bool = False) -> dict:
+    """The atlas of storage error on the real maps and the procedural one, the maps' unit
+    length, and the angular encoder's speed, with the machine's load before and after."""
+    import datetime
+    import os
+    import subprocess
+
+    load0 = os.getloadavg()
+    try:  # the code that runs: read before the run, which takes minutes
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).parent, check=True).stdout.strip()
+        modified = bool(subprocess.run(["git", "status", "--porcelain", "--", "jaxnm",
+                                        "scripts"], capture_output=True, text=True,
+                                       cwd=Path(__file__).parent, check=True).stdout.strip())
+    except (OSError, subprocess.CalledProcessError):
+        commit, modified = None, None
+    t0 = time.perf_counter()
+    maps = atlas_maps(quick=quick)
+    res = {"maps": {k: {"size": list(m["unit"].shape[:2]), "source": m["source"]}
+                    for k, m in maps.items()},
+           "unit_length": unit_length(maps), "atlas": atlas(maps),
+           "angular_speed": angular_speed(256 if quick else 2048, 1 if quick else 2),
+           "held_out": held_out_fits(64, 32, fit_steps=10) if quick else held_out_fits()}
+    res["metadata"] = {
+        "date": datetime.date.today().isoformat(), "jaxnm": jaxnm.__version__,
+        "jax": jax.__version__, "commit": commit, "modified": modified,
+        "backend": jax.default_backend(),
+        "machine": f"{platform.machine()}, {_cores()} cores", "python": platform.python_version(),
+        "load_average_before": load0[0], "load_average_after": os.getloadavg()[0],
+        "run_s": time.perf_counter() - t0,
+        "command": "python -m scripts.studies.study_representations --atlas"
+                   + (" --quick" if quick else "") + " --out DIR"}
+    return res
 
 
 #: The fitting problems of `stored_fits`: (render size, map size); the rivets of the built-in
@@ -417,6 +604,68 @@ def stored_fits(problems=STORED_PROBLEMS, *, fit_steps: int = 40) -> dict:
                         img = render_with_map(prep, n)[0]
                         images[name] = np.abs(img - target).mean((0, -1))
     return {"views": 2, "lights": 6, "float_fits": fits, "rows": rows, "images": images}
+
+
+def held_out_fits(render_size: int = 128, map_size: int = 64, *, fit_steps: int = 40) -> dict:
+    """The fit through BC5 under views and lights it did not use. The built-in problem
+    (2 views x 6 lights) is fitted as a float map, then stored as BC5 four ways: the float
+    map compressed afterwards by quicktex or by the angular encoder, and fitted through the
+    blocks (`jaxnm.fit.fit_stored_map`) from quicktex's or the angular encoder's blocks.
+    Each map as stored is scored in PSNR (dB, the targets' peak, over covered pixels) under
+    the fitted targets, under 6 other lights in the same 2 views, and under the third view
+    with those lights (``default_problem(views=3, seed=1)``), and by its angle to the true
+    map over the texels the fit saw."""
+    from jaxnm import storage as st
+    from jaxnm.fit import FitOptions, fit_normal_map, prepare, render_with_map, seen_texels
+    from jaxnm.fit.stored import fit_stored_map
+    from jaxnm.procedural import default_problem
+
+    problem, gt, _ = default_problem(render_size=render_size, map_size=map_size, n_lights=6,
+                                     views=2)
+    other, _, _ = default_problem(render_size=render_size, map_size=map_size, n_lights=6,
+                                  views=3, seed=1)
+    prep, prep_other = prepare(problem), prepare(other)
+    seen = seen_texels(prep, (map_size, map_size))
+    t0 = time.perf_counter()
+    fit = fit_normal_map(problem, FitOptions(max_steps=fit_steps), prepared=prep,
+                         progress=False)
+    float_s = time.perf_counter() - t0
+    codes = np.round(np.asarray(encode_normal_map(fit.normals, channels=2)) * 255)
+    codes = codes.astype(np.uint8)
+    maps, seconds = {"float fit, unstored": np.asarray(fit.normals, np.float64)}, {}
+    for enc in ("quicktex", "angular"):
+        blocks = st.encode_blocks(codes, encoder=enc)
+        maps[f"{enc} afterwards"] = _rebuilt(st.decode_blocks(blocks, codes.shape[:2]))
+    for enc in ("quicktex", "angular"):
+        t0 = time.perf_counter()
+        sf = fit_stored_map(problem, storage="bc5", start=fit, encoder=enc, prepared=prep)
+        seconds[f"fitted through BC5 from {enc}"] = time.perf_counter() - t0
+        maps[f"fitted through BC5 from {enc}"] = _rebuilt(
+            np.round(np.asarray(sf.texels) * 255))
+
+    def psnr(p, views, n):
+        se, count, peak = 0.0, 0, 0.0
+        imgs = render_with_map(p, jnp.asarray(n, jnp.float32))
+        for v in views:
+            target = p.target_images(v)
+            for t in range(target.shape[0]):
+                mask = p.target_mask(v, t)
+                d = (imgs[v][t] - target[t])[mask]
+                se, count = se + float((d.astype(np.float64) ** 2).sum()), count + d.size
+                peak = max(peak, float(target[t].max()))
+        return float(10 * np.log10(peak**2 / (se / count)))
+
+    rows = []
+    for name, n in maps.items():
+        err = angle(n, gt)[seen]
+        rows.append({"map": name, "psnr_fitted": psnr(prep, (0, 1), n),
+                     "psnr_other_lights": psnr(prep_other, (0, 1), n),
+                     "psnr_other_view": psnr(prep_other, (2,), n),
+                     "angle_mean": float(err.mean()),
+                     "angle_p99": float(np.percentile(err, 99)),
+                     "seconds": seconds.get(name)})
+    return {"render_size": render_size, "map_size": map_size, "fit_steps": fit_steps,
+            "float_fit_s": float_s, "seen_texels": int(seen.sum()), "rows": rows}
 
 
 def _lobe_of(n, h):
@@ -678,9 +927,18 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", default="representations_out")
     ap.add_argument("--quick", action="store_true", help="a 128-texel map, smaller views")
     ap.add_argument("--map", help="a tangent-space normal map (8-bit PNG) for the encoders")
+    ap.add_argument("--atlas", action="store_true",
+                    help="only the atlas of storage error on real maps (fetched from Debian "
+                         "packages by scripts.studies.real_maps): representations_atlas.json")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.atlas:
+        res = atlas_study(quick=args.quick)
+        (out / "representations_atlas.json").write_text(json.dumps(res, indent=1) + "\n")
+        print(json.dumps({k: res[k] for k in ("unit_length", "angular_speed", "metadata")},
+                         indent=1))
+        return res
     extra = _load_png_normals(args.map) if args.map else None
     res = run(quick=args.quick, extra_map=extra)
     figs = _figures(res, out)
