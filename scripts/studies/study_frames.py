@@ -871,7 +871,7 @@ QUICK_METHODS = ("cotangent", "nonperspective", "vertex", "surface_gradient")
 
 
 def sweeps(size: int, quick: bool, only=DEFAULT_SWEEPS, asset: Path | None = None,
-           real_sizes=(256, 1024)) -> tuple[list, dict]:
+           real_sizes=(256, 1024), time_size=-1) -> tuple[list, dict]:
     """The records of the sweeps ``only``, and error images (per frame) of the real asset
     (``real_<frame>``) and of the torus (``torus_<frame> (<derivatives>)``).
 
@@ -964,7 +964,7 @@ def sweeps(size: int, quick: bool, only=DEFAULT_SWEEPS, asset: Path | None = Non
         recs, rmaps = real_mesh(asset, sizes=(64,) if quick else real_sizes,
                                 methods=("cotangent", "vertex") if quick else methods,
                                 small_methods=REAL_METHODS, reps=5,
-                                time_size=0 if quick else -1, keep_maps=True)
+                                time_size=0 if quick else time_size, keep_maps=True)
         rows.extend(recs)
         maps.update({f"real_{k}": v for k, v in rmaps.items()})
         forget()
@@ -1290,6 +1290,8 @@ def main(argv=None) -> None:
                     "when missing; the real sweep is left out without Blender)")
     ap.add_argument("--real-sizes", default="256,1024",
                     help="image sizes of the real asset (timed at the largest)")
+    ap.add_argument("--time-size", type=int, default=-1,
+                    help="the real-asset size whose renders are timed (default: the largest)")
     ap.add_argument("--update", default=None, metavar="SUMMARY",
                     help="also replace this run's sweeps in a summary file (e.g. "
                     "docs/studies/data/frames_summary.json), keeping the other sweeps' rows "
@@ -1319,7 +1321,8 @@ def main(argv=None) -> None:
         if asset is None:
             print("no Blender environment: the real asset is left out")
     rows, maps = sweeps(args.size, args.quick, only, asset=asset,
-                        real_sizes=tuple(int(x) for x in args.real_sizes.split(",")))
+                        real_sizes=tuple(int(x) for x in args.real_sizes.split(",")),
+                        time_size=args.time_size)
     meta = metadata(time.perf_counter() - t0, sys.argv[1:] if argv is None else argv)
     meta["cpu_s"] = round(time.process_time() - c0, 1)
     # the figures from the summary, exactly as --figures draws them from the data file
