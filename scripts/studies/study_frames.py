@@ -241,7 +241,7 @@ class Padded:
     ``faces``: meshes of different sizes then share one array shape, and so one compiled
     render program per frame. The padding triangles all sit on one unused vertex (zero
     area): they cover no pixel, and MikkTSpace and the area-weighted tangents take nothing
-    from them (`tests/test_study_frames.py` checks that padding changes no record)."""
+    from them (`tests/test_study_frames.py` checks the tangents of the mesh's own faces)."""
 
     def __init__(self, surf, vertices: int, faces: int):
         nv, nf = len(surf.pos), len(surf.faces)
