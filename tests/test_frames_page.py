@@ -228,3 +228,47 @@ def test_the_tessellation_orders():
     for m in ("cotangent", "vertex"):
         rs = _tessellation("torus", m)
         assert f"{rs[-1]['error_mean']:.3g}" in text
+
+
+def _precision(method, precision, mode="fine", key="error_mean"):
+    rs = [r for r in rows(sweep="precision", surface="plane", method=method, mode=mode,
+                          precision=precision) if "case" not in r]
+    assert sorted(r["distance"] for r in rs) == [0.003, 0.03, 0.3, 3], (method, precision)
+    return {r["distance"]: r[key] for r in rs}
+
+
+def test_half_precision_breaks_the_screen_space_frames_close_up():
+    for m in ("cotangent", "cotangent_unnormalized", "exact", "exact_face", "vertex",
+              "vertex_area", "cross", "surface_gradient"):
+        assert max(_precision(m, "float32").values()) < 1e-3, m
+    # the worst over the hemisphere (independent of the map): about tenfold per tenfold
+    # approach with fine differences, flat with rounded analytic derivatives
+    worst = _precision("cotangent", "float16", key="worst_mean")
+    assert worst[0.3] > 5 * worst[3] and worst[0.03] > 5 * worst[0.3] and worst[0.003] > 60
+    assert max(_precision("cotangent", "float16", "analytic", "worst_mean").values()) < 0.1
+    for m in ("exact", "exact_face", "vertex", "vertex_area"):
+        assert max(_precision(m, "float16").values()) < 0.05, m
+        assert max(_precision(m, "float16", key="worst_mean").values()) < 0.1, m
+    for m in ("cross", "surface_gradient"):
+        assert _precision(m, "float16")[3] > 10.0, m
+        assert min(_precision(m, "float16", key="worst_mean").values()) > 80.0, m
+    text = flat(section(8))
+    assert "(0.384° → 2.5° → 25.6° → 95°)" in text
+    assert f"{worst[0.03]:.3g}°" in text
+
+
+def _far(case, offset, precision):
+    rs = rows(sweep="precision", case=case, offset=offset, precision=precision)
+    return {r["distance"]: r["error_mean"] for r in rs}
+
+
+def test_world_positions_far_from_the_origin_lose_precision_camera_relative_ones_do_not():
+    for precision in ("float32", "float16"):
+        near = _far("camera-relative position", 0.0, precision)
+        assert len(near) == 4
+        far = _far("camera-relative position", 100.0, precision)
+        assert far == pytest.approx(near, rel=0.05)
+        world = _far("world position", 100.0, precision)
+        assert world[3] > 10 * near[3] or world[0.003] > 10 * near[0.003], precision
+    assert _far("world position", 100.0, "float32")[0.003] > 0.1
+    assert "position far from the origin would be" not in PAGE

@@ -973,17 +973,18 @@ def sweeps(size: int, quick: bool, only=DEFAULT_SWEEPS, asset: Path | None = Non
         print(json.dumps({"sweep": "decoding", "records": len(DECODINGS) + 1}), flush=True)
         forget()
     if "precision" in only:  # shader precision against the camera distance (close-ups)
-        # the plane (the fixed map value) and the torus (the rivet map); the analytic
-        # derivatives for Schüler's frame
+        # the plane and the torus padded to one shape, both with the rivet map: one program
+        # per frame and precision for both; the analytic derivatives for Schüler's frame
+        pplane, ptorus = padded_all([plane, Torus(32)])
         for precision in ("float32", "float16", "bfloat16"):
             for f in ((0.01, 1) if quick else (0.003, 0.03, 0.3, 3)):
-                recs = measure(plane, _camera(60, 60, dist=f * base), size, methods,
-                               precision=precision)
-                recs += measure(plane, _camera(60, 60, dist=f * base), size, pick(
-                    ("cotangent",)), modes=("analytic",), precision=precision)
+                recs = measure(pplane, _camera(60, 60, dist=f * base), size, methods,
+                               normal_map="rivets", precision=precision)
+                recs += measure(pplane, _camera(60, 60, dist=f * base), size, pick(
+                    ("cotangent",)), modes=("analytic",), normal_map="rivets",
+                    precision=precision)
                 tag(recs, sweep="precision", fov=60, view=60, distance=f, surface="plane",
-                    uv="sheared 30 deg")
-            ptorus = Torus(32)
+                    uv="sheared 30 deg", map="rivets")
             tag(measure(ptorus, _torus_camera(), size, methods, modes=("fine",),
                         normal_map="rivets", precision=precision),
                 sweep="precision", surface="torus", segments=32, normals="smooth",
@@ -1031,7 +1032,7 @@ FIGURES = {
     "frames_uv.png": "mean error per uv layout",
     "frames_real_cost.png": "cost against error on Suzanne",
     "frames_decoding.png": "MikkTSpace decodings against the reference",
-    "frames_precision.png": "mean error against the distance per shader precision",
+    "frames_precision.png": "hemisphere's worst against the distance per precision",
     "frames_tessellation.png": "mean error against the segments of curved meshes",
 }
 #: The command that draws the figures of the frames page from its data file.
@@ -1175,14 +1176,14 @@ def plot_figures(rows, out: Path) -> list:
             ax = fig.add_subplot(1, 3, k + 1)
             for method in METHOD_STYLE:
                 for mode, ls in (("fine", "-"), ("analytic", "--")):
-                    pts = sorted((r["distance"], _floor(r["error_mean"])) for r in prec
+                    pts = sorted((r["distance"], _floor(r["worst_mean"])) for r in prec
                                  if r["method"] == method and r["mode"] == mode
                                  and r["precision"] == precision)
                     if pts:
                         ax.loglog(*zip(*pts), ls=ls, ms=4, mfc="none", **_style(method),
                                   label=method if mode == "fine" else None)
             ax.set(xlabel="camera distance / distance that frames the plane",
-                   ylabel="mean error vs own truth (deg)",
+                   ylabel="worst over the hemisphere, mean (deg)",
                    title=f"{precision}: solid fine, dashed analytic")
             if k == 0:
                 ax.legend(fontsize=5, ncol=2)
@@ -1202,6 +1203,9 @@ def plot_figures(rows, out: Path) -> list:
                                   label=method)
                 ax.set(xlabel="segments", ylabel="mean error vs smooth truth (deg)",
                        title=f"{surf}, {normals} normals")
+                segs = sorted({r["segments"] for r in tess})
+                ax.set_xticks(segs, [str(x) for x in segs])
+                ax.set_xticks([], minor=True)
                 if i == 0 and j == 0:
                     ax.legend(fontsize=5, ncol=2)
         save(fig, "frames_tessellation.png")
