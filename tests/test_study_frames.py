@@ -200,3 +200,21 @@ def test_on_suzanne_only_mikktspace_decodes_blenders_bake(tmp_path):
     assert r["vertex"]["error_mean"] < 1.2
     assert r["cotangent"]["error_mean"] > max(1.5, 2 * r["vertex"]["error_mean"])
     assert r["cotangent"]["error_max"] > 10.0
+
+
+def test_padding_a_mesh_leaves_its_tangents_unchanged():
+    """`Padded` appends zero-area triangles on one unused vertex: the MikkTSpace corner
+    tangents and the area-weighted vertex tangents of the mesh's own faces are unchanged."""
+    from jaxnm.frames import vertex_tangents
+    from jaxnm.tangents import mikktspace_tangents
+
+    surf = S.mirrored_torus(4)
+    pad = S.padded_all([surf, S.flat_shaded(S.Torus(6))])[0]
+    assert len(pad.faces) > len(surf.faces) and len(pad.pos) > len(surf.pos)
+    nf, nv = len(surf.faces), len(surf.pos)
+    a = mikktspace_tangents(surf.pos, surf.nrm, surf.uv, surf.faces)
+    b = mikktspace_tangents(pad.pos, pad.nrm, pad.uv, pad.faces)
+    np.testing.assert_array_equal(a, b[:nf])
+    va = np.asarray(vertex_tangents(surf.pos, surf.nrm, surf.uv, surf.faces))
+    vb = np.asarray(vertex_tangents(pad.pos, pad.nrm, pad.uv, pad.faces))
+    np.testing.assert_allclose(va, vb[:nv], atol=1e-6)

@@ -47,12 +47,13 @@ uv happens to run along its axes (the ``axis-aligned`` layout: on a +z plane ``T
 ``B = -y``) and wrong by tens of degrees elsewhere, which the uv sweep shows.
 
 Writes ``frames.json`` (one record per configuration and method), ``frames.csv``,
-``frames_summary.json``, plots (``error_vs_fov.png``, ``error_vs_view_angle.png``,
-``error_vs_distance.png``, ``error_vs_tilt_orthographic.png``, ``error_vs_uv.png``,
-``cost_vs_error_real.png``, and with their sweeps ``error_vs_precision.png``,
-``error_vs_tessellation.png``) and per-pixel error images of every frame on Suzanne
-(``real_error_maps.png``) and of the derivative modes on the torus
-(``torus_error_maps.png``) into ``--out``; ``--sweeps`` picks a subset. Render programs
+``frames_summary.json``, the figures of `FIGURES` drawn from that summary (``--figures
+SUMMARY`` draws them from a summary file alone, e.g. the one beside the frames page), and
+per-pixel error images of every frame on Suzanne (``frames_real_error_maps.png``) and of
+the derivative modes on the torus (``frames_torus_error_maps.png``) into ``--out``;
+``--sweeps`` picks a subset. ``decoding`` compares ways of decoding a MikkTSpace map
+(`DECODINGS`: where the bitangent is formed, what is renormalised) with the reference, on
+Suzanne and on a torus with mirrored u, in degrees and in shading. Render programs
 are compiled once per image size, mesh shape and static option set and shared by every
 sweep point (the camera is an argument, not a constant), which is what keeps the default
 run to minutes.
@@ -79,6 +80,7 @@ from jaxnm.camera import Camera, look_at, orthographic, perspective
 from jaxnm.frames import FRAMES, SCREEN_FRAMES
 from jaxnm.interpolate import DERIVATIVE_MODES
 from jaxnm.scene import Scene
+from jaxnm.tangents import mikktspace_tangents
 from jaxnm.textures import NormalMapOptions, decode_normal_map, sample
 
 MAP_VALUE = np.array([0.35, -0.25, 0.9]) / np.linalg.norm([0.35, -0.25, 0.9])
@@ -232,6 +234,32 @@ class MirrorPlane(Plane):
         dp_du[left, 0] *= -1  # x -> -x on the left half
         dp_dv[left, 0] *= -1
         return dp_du, dp_dv, n
+
+
+class Padded:
+    """``surf`` with unused vertices and zero-area triangles appended up to ``vertices`` and
+    ``faces``: meshes of different sizes then share one array shape, and so one compiled
+    render program per frame. The padding triangles all sit on one unused vertex (zero
+    area): they cover no pixel, and MikkTSpace and the area-weighted tangents take nothing
+    from them (`tests/test_study_frames.py` checks the tangents of the mesh's own faces)."""
+
+    def __init__(self, surf, vertices: int, faces: int):
+        nv, nf = len(surf.pos), len(surf.faces)
+        if nv >= vertices or nf > faces:
+            raise ValueError(f"cannot pad {nv} vertices, {nf} faces to {vertices}, {faces}")
+        self.surf = surf
+        self.pos = np.concatenate([surf.pos, np.tile([0.0, 0.0, 1e4], (vertices - nv, 1))])
+        self.uv = np.concatenate([surf.uv, np.zeros((vertices - nv, 2))])
+        self.nrm = np.concatenate([surf.nrm, np.tile([0.0, 0.0, 1.0], (vertices - nv, 1))])
+        self.faces = np.concatenate([surf.faces, np.full((faces - nf, 3), nv)])
+        self.frame_at = surf.frame_at
+
+
+def padded_all(surfs):
+    """Every surface of ``surfs`` padded (`Padded`) to the largest vertex and face count."""
+    nv = max(len(s.pos) for s in surfs) + 1
+    nf = max(len(s.faces) for s in surfs)
+    return [Padded(s, nv, nf) for s in surfs]
 
 
 def flat_shaded(surf):
@@ -505,6 +533,31 @@ def _barycentric(p, tri):
     return np.stack([1 - b1 - b2, b1, b2], -1)
 
 
+def _asset_pixels(out, d, filter="trilinear"):
+    """The measured pixels of a render ``out`` of the asset ``d`` (mask, front-facing), their
+    triangle, float64 barycentric weights, and the map value sampled at their uv (float64):
+    jaxnm's sampler (``filter``, with the render's uv derivatives for the mip level) and
+    decode, independent of any frame."""
+    m = (np.asarray(out["mask"])[..., 0] > 0) & (np.asarray(out["front_facing"])[..., 0] > 0)
+    tri = np.asarray(out["triangle_id"])[..., 0][m].astype(np.int64)
+    bary = _barycentric(np.asarray(out["position"], np.float64)[m],
+                        d["positions"][d["faces"][tri]])
+    raw = sample(jnp.asarray(d["image"], jnp.float32), out["uv"], out["duvdx"], out["duvdy"],
+                 filter=filter, wrap="repeat")
+    mv = np.asarray(decode_normal_map(raw), np.float64)[m]
+    return m, tri, bary, mv
+
+
+def _interpolated_corners(tangents, normals, signs, tri, bary):
+    """Per pixel, the corner tangents (F, 3, 3) and normals (F, 3, 3) of its triangle ``tri``
+    interpolated with ``bary``, *not* normalised, and the sign of the interpolated corner
+    signs (F, 3) as ``(P, 1)`` (+1 at 0)."""
+    t = np.einsum("pk,pkj->pj", bary, tangents[tri])
+    n = np.einsum("pk,pkj->pj", bary, normals[tri])
+    s = np.where(np.einsum("pk,pk->p", bary, signs[tri]) < 0, -1.0, 1.0)[:, None]
+    return t, n, s
+
+
 def _time_render(scene, method, reps):
     """Median wall time (ms) of a compiled render of the perturbed normal (steady state)."""
     def run():
@@ -526,9 +579,13 @@ def real_mesh(asset: Path, sizes=(256, 1024), methods=METHODS, reps=5,
     """Each frame decoding a real baked map on a real uv layout, against the baker's decode.
 
     The reference is MikkTSpace as Blender decodes it, in float64: Blender's own corner
-    tangents and signs (`blender_suzanne.py`) interpolated with the pixel's barycentric
-    weights, ``B = sign N x T``, ``normalize(m.x T + m.y B + m.z N)``, with ``m`` the map
-    value jaxnm sampled (trilinear, mip-mapped) at the pixel. ``ms``: the compiled,
+    tangents and signs (`blender_suzanne.py`) and normals interpolated with the pixel's
+    barycentric weights and not normalised, ``B = sign N x T``,
+    ``normalize(m.x T + m.y B + m.z N)``, with ``m`` the map value sampled (trilinear,
+    mip-mapped) at the pixel's uv by jaxnm's sampler, apart from any frame
+    (`_asset_pixels`). The first record (``case="tangents"``) compares jaxnm's MikkTSpace
+    corner tangents with Blender's directly (``T_*``: angles in degrees over the corners of
+    the triangles, ``sign_mismatches``). ``ms``: the compiled,
     steady-state time of rendering the perturbed normal (median of ``reps``), at
     ``time_size`` only (-1: the largest of ``sizes``, None: every size, 0: none);
     ``frame_ms``: less the time of the same render with no frame (``none``). With
@@ -539,8 +596,13 @@ def real_mesh(asset: Path, sizes=(256, 1024), methods=METHODS, reps=5,
                                                                                 jnp.int32),
                       jnp.asarray(d["uv"], jnp.float32),
                       jnp.asarray(d["normals"], jnp.float32)).with_tangents()
-    pos, faces, nrm = d["positions"], d["faces"], d["normals"]
-    rows, maps = [], {}
+    faces, nrm = d["faces"], d["normals"]
+    ours = np.asarray(mesh.tangents, np.float64)
+    e = angle(ours[..., :3], d["tangents"])
+    rec = {"sweep": "real", "case": "tangents", "surface": "Suzanne", "method": "vertex",
+           "pixels": int(e.size), "sign_mismatches": int(np.sum(ours[..., 3] != d["signs"]))}
+    _stats(rec, "T", e)
+    rows, maps = [rec], {}
     if time_size == -1:
         time_size = max(sizes)
     for size in sizes:
@@ -548,21 +610,11 @@ def real_mesh(asset: Path, sizes=(256, 1024), methods=METHODS, reps=5,
                       normal_map=jnp.asarray(d["image"], jnp.float32),
                       normal_map_options=NormalMapOptions(filter="trilinear", wrap="repeat"),
                       source="<Suzanne>")
-        ref_out = jaxnm.render(scene, outputs=("perturbed_normal", "tangent", "bitangent",
-                                                "normal", "position", "triangle_id", "mask",
-                                                "front_facing"), frame="vertex")
-        m = (np.asarray(ref_out["mask"])[..., 0] > 0) & (
-            np.asarray(ref_out["front_facing"])[..., 0] > 0)
-        tri = np.asarray(ref_out["triangle_id"])[..., 0][m].astype(np.int64)
-        bary = _barycentric(np.asarray(ref_out["position"], np.float64)[m], pos[faces[tri]])
-        t_b = np.einsum("pk,pkj->pj", bary, d["tangents"][tri])
-        sgn = np.where(np.einsum("pk,pk->p", bary, d["signs"][tri]) < 0, -1.0, 1.0)[:, None]
-        n_b = np.einsum("pk,pkj->pj", bary, nrm[faces[tri]])
-        # the sampled map value, from jaxnm's MikkTSpace decode: m ~ F^-1 n'
-        f = np.stack([np.asarray(ref_out[k], np.float64)[m] for k in
-                      ("tangent", "bitangent", "normal")], -1)
-        pn = np.asarray(ref_out["perturbed_normal"], np.float64)[m]
-        mv = _unit(np.linalg.solve(f, pn[..., None])[..., 0])
+        ref_out = jaxnm.render(scene, outputs=("perturbed_normal", "position", "triangle_id",
+                                                "mask", "front_facing", "uv", "duvdx",
+                                                "duvdy"), frame="vertex")
+        m, tri, bary, mv = _asset_pixels(ref_out, d)
+        t_b, n_b, sgn = _interpolated_corners(d["tangents"], nrm[faces], d["signs"], tri, bary)
         ref = _unit(t_b * mv[:, :1] + sgn * np.cross(n_b, t_b) * mv[:, 1:2] + n_b * mv[:, 2:3])
         none_ms = (_time_render(scene, "none", reps)
                    if time_size in (None, size) else None)
@@ -590,6 +642,187 @@ def real_mesh(asset: Path, sizes=(256, 1024), methods=METHODS, reps=5,
                   flush=True)
         jax.clear_caches()
     return (rows, maps) if keep_maps else rows
+
+
+# --------------------------------------------------------------------------------------
+# MikkTSpace decoding: where the bitangent is formed, and what is normalised
+# --------------------------------------------------------------------------------------
+
+#: The ways a renderer may decode a MikkTSpace map from per-corner unit tangents ``T_c``,
+#: signs ``s_c`` and normals ``N_c``, each against the reference (the first): what
+#: ``mikktspace.h`` prescribes ("unnormalized" interpolated ``T`` and ``N``,
+#: ``B = sign cross(N, T)`` formed per fragment, only the result normalised) and Blender's
+#: baker does (``RE_bake_normal_world_to_tangent``). "per vertex": ``B_c = s_c N_c x T_c``
+#: formed at each corner and interpolated. "renormalised": after interpolation.
+DECODINGS = ("B per fragment, nothing renormalised (reference)",
+             "B per fragment, T renormalised",
+             "B per fragment, N renormalised",
+             "B per fragment, T and N renormalised",
+             "B per vertex, nothing renormalised",
+             "B per vertex, T, B and N renormalised",
+             "B per fragment, T Gram-Schmidt to N, both renormalised")
+#: The light of the shading comparison (directional, world space) and the Blinn-Phong
+#: exponent: diffuse ``max(0, n . l)`` and specular ``max(0, n . h)^e``, in 8-bit levels.
+DECODING_LIGHT = np.array([0.5, -1.5, 2.0]) / np.linalg.norm([0.5, -1.5, 2.0])
+DECODING_SHININESS = 64
+
+
+def decoding_frames(t_c, n_c, s_c, tri, bary) -> dict:
+    """Per pixel, the frame ``(T, B, N)`` of every `DECODINGS` entry (float64), from corner
+    tangents ``t_c`` (F, 3, 3), normals ``n_c`` (F, 3, 3), signs ``s_c`` (F, 3), the pixels'
+    triangles ``tri`` and barycentric weights ``bary`` (P, 3)."""
+    t, n, s = _interpolated_corners(t_c, n_c, s_c, tri, bary)
+    b_c = s_c[..., None] * np.cross(n_c, t_c)  # (F, 3, 3): the bitangent at each corner
+    b_v = np.einsum("pk,pkj->pj", bary, b_c[tri])
+    tu, nu = _unit(t), _unit(n)
+    gs = _unit(t - nu * np.sum(t * nu, -1, keepdims=True))
+    frames = ((t, s * np.cross(n, t), n),
+              (tu, s * np.cross(n, tu), n),
+              (t, s * np.cross(nu, t), nu),
+              (tu, s * np.cross(nu, tu), nu),
+              (t, b_v, n),
+              (tu, _unit(b_v), nu),
+              (gs, s * np.cross(nu, gs), nu))
+    return dict(zip(DECODINGS, frames))
+
+
+def _shading(nrm, view_dir):
+    h = _unit(DECODING_LIGHT + view_dir)
+    diffuse = np.maximum(np.sum(nrm * DECODING_LIGHT, -1), 0.0)
+    return diffuse, np.maximum(np.sum(nrm * h, -1), 0.0) ** DECODING_SHININESS
+
+
+def decoding_records(frames, mv, view_dir, extra=None) -> list:
+    """One record per decoding (and per ``extra`` perturbed normal, a name to (P, 3)): the
+    angle of its perturbed normal for the sampled map values ``mv`` to the reference's
+    (``error_*``), the worst over the hemisphere of map values (``worst_*``), and the
+    difference of diffuse and specular shading under `DECODING_LIGHT` in 8-bit levels
+    (``diffuse_*``, ``specular_*``: 255 times the absolute difference)."""
+    ref = frames[DECODINGS[0]]
+    ref_n = perturbed(*ref, mv)
+    ref_d, ref_s = _shading(ref_n, view_dir)
+    normals = {k: perturbed(*f, mv) for k, f in frames.items()}
+    normals.update(extra or {})
+    rows = []
+    for name, pn in normals.items():
+        rec = {"case": name, "pixels": len(mv)}
+        _stats(rec, "error", angle(pn, ref_n))
+        if name in frames:
+            _stats(rec, "worst", frame_measures(*frames[name], *ref)[0])
+        d, sp = _shading(pn, view_dir)
+        _stats(rec, "diffuse", 255 * np.abs(d - ref_d))
+        _stats(rec, "specular", 255 * np.abs(sp - ref_s))
+        rows.append(rec)
+    return rows
+
+
+def mirrored_torus(segments=32):
+    """The `Torus` with its u mirrored at phi = 0 and pi (``u -> 0.5 - |u - 0.5|``): the
+    two halves share their texels, with opposite handedness."""
+    t = Torus(segments)
+    t.uv = np.stack([0.5 - np.abs(t.uv[:, 0] - 0.5), t.uv[:, 1]], -1)
+    return t
+
+
+def decoding(asset: Path | None, size: int, quick: bool = False) -> list:
+    """`DECODINGS` against MikkTSpace's reference decoding (`decoding_records`), on the real
+    asset with Blender's corner tangents and its baked map (trilinear), and on a torus with
+    mirrored u (`mirrored_torus`, jaxnm's MikkTSpace tangents, the rivet map). Also jaxnm's
+    own ``vertex`` frame, as rendered (float32), against the same reference."""
+    cases = []
+    if asset is not None:
+        d = dict(np.load(asset))
+        cases.append(("Suzanne", d, d["tangents"], d["signs"], _suzanne_camera()))
+    torus = mirrored_torus(16 if quick else 32)
+    t = mikktspace_tangents(torus.pos, torus.nrm, torus.uv, torus.faces)
+    d = {"positions": torus.pos, "faces": torus.faces, "uv": torus.uv, "normals": torus.nrm,
+         "image": _map_texels("rivets")}
+    cases.append(("torus, mirrored u", d, t[..., :3], t[..., 3], _torus_camera()))
+    rows = []
+    for surface, d, tangents, signs, camera in cases:
+        mesh = jaxnm.Mesh(jnp.asarray(d["positions"], jnp.float32),
+                          jnp.asarray(d["faces"], jnp.int32), jnp.asarray(d["uv"], jnp.float32),
+                          jnp.asarray(d["normals"], jnp.float32)).with_tangents()
+        scene = Scene(mesh=mesh, camera=camera, width=size, height=size,
+                      normal_map=jnp.asarray(d["image"], jnp.float32),
+                      normal_map_options=NormalMapOptions(filter="trilinear", wrap="repeat"),
+                      source="<frame study>")
+        out = jaxnm.render(scene, outputs=("perturbed_normal", "position", "triangle_id",
+                                            "mask", "front_facing", "uv", "duvdx", "duvdy"),
+                           frame="vertex")
+        m, tri, bary, mv = _asset_pixels(out, d)
+        frames = decoding_frames(tangents, d["normals"][d["faces"]], signs, tri, bary)
+        view_dir = _unit(np.asarray(camera.eye, np.float64)
+                         - np.asarray(out["position"], np.float64)[m])
+        jax_n = np.asarray(out["perturbed_normal"], np.float64)[m]
+        recs = decoding_records(frames, mv, view_dir, {"jaxnm vertex (float32 render)": jax_n})
+        for r in recs:
+            r.update(sweep="decoding", surface=surface, method="vertex", size=size,
+                     map="baked" if surface == "Suzanne" else "rivets")
+        rows += recs
+        jax.clear_caches()
+    return rows
+
+
+# --------------------------------------------------------------------------------------
+# half precision far from the origin: world positions against camera-relative ones
+# --------------------------------------------------------------------------------------
+
+
+def _schuler(n, dp1, dp2, duv1, duv2):
+    """Schüler's frame (float64, max-normalised) from y-up screen differences."""
+    perp2, perp1 = np.cross(dp2, n), np.cross(n, dp1)
+    t = perp2 * duv1[:, :1] + perp1 * duv2[:, :1]
+    b = perp2 * duv1[:, 1:] + perp1 * duv2[:, 1:]
+    s = np.sqrt(np.maximum(np.maximum(np.sum(t * t, -1), np.sum(b * b, -1)), 1e-300))
+    return t / s[:, None], b / s[:, None]
+
+
+def far_from_origin(size, offsets=(0.0, 10.0, 100.0), distances=(3, 0.3, 0.03, 0.003)):
+    """The cotangent frame from fine differences of positions rounded to the shader's
+    precision, where the position is the world position (the plane moved ``offset`` along
+    x, the camera with it) or the camera-relative one (jaxnm's, Schüler's ``-V``).
+
+    A model, not a render: jaxnm renders the plane (sheared 30 deg uv, 60 deg view and
+    field of view) and returns its camera-relative position and uv per pixel in float32;
+    the world position is that plus the eye in float64. Each is rounded to ``precision``
+    (float32 or float16), and each fully covered 2x2 quad's lower-left pixel takes the
+    quad's differences (``dFdx``, ``dFdy`` up), then Schüler's frame in float64 with the
+    plane's exact normal, against the gradient truth."""
+    plane = Plane(UV_LAYOUTS["sheared 30 deg"])
+    (tg, bg), _, _ = truth_frames(*plane.frame_at(np.zeros((1, 3))))
+    n = np.array([[0.0, 0.0, 1.0]])
+    want = perturbed(tg, bg, n)
+    base = 1.15 / math.tan(math.radians(30))
+    rows = []
+    for off in offsets:
+        moved = Plane(plane.a)
+        moved.pos = plane.pos + [off, 0.0, 0.0]
+        for f in distances:
+            cam = _camera(60, 60, target=(off, 0.0, 0.0), dist=f * base)
+            scene = Scene(mesh=_mesh(moved), camera=cam, width=size, height=size,
+                          source="<frame study>")
+            out = jaxnm.render(scene, outputs=("view", "uv", "mask"))
+            mask = np.asarray(out["mask"])[..., 0] > 0
+            quad = mask.reshape(size // 2, 2, size // 2, 2).all((1, 3))
+            view = np.asarray(out["view"], np.float64)
+            world = view + np.asarray(cam.eye, np.float64)
+            for case, pos in (("world position", world), ("camera-relative position", view)):
+                for precision in ("float32", "float16"):
+                    def q(x):  # rounded, then the quad's lower-left pixel's differences
+                        x = x.astype(precision).astype(np.float64)
+                        x = x.reshape(size // 2, 2, size // 2, 2, -1).transpose(0, 2, 1, 3, 4)
+                        x = x[quad]  # (quads, row, column, channel), row 0 on top
+                        return x[:, 1, 1] - x[:, 1, 0], x[:, 0, 0] - x[:, 1, 0]
+                    (dp1, dp2), (duv1, duv2) = q(pos), q(np.asarray(out["uv"]))
+                    t, b = _schuler(n, dp1, dp2, duv1, duv2)
+                    rec = {"sweep": "precision", "case": case, "offset": off, "distance": f,
+                           "precision": precision, "method": "cotangent", "mode": "fine",
+                           "surface": "plane", "uv": "sheared 30 deg", "fov": 60, "view": 60,
+                           "pixels": int(quad.sum())}
+                    _stats(rec, "error", angle(perturbed(t, b, n), want))
+                    rows.append(rec)
+    return rows
 
 
 def metadata(run_s: float, argv) -> dict:
@@ -620,7 +853,7 @@ def metadata(run_s: float, argv) -> dict:
 
 
 SWEEPS = ("fov", "view angle", "uv", "distance", "derivatives", "orthographic",
-          "conventions", "real", "precision", "tessellation")
+          "conventions", "real", "decoding", "precision", "tessellation")
 #: The default run (the two long ones, precision and tessellation, on request).
 DEFAULT_SWEEPS = SWEEPS[:-2]
 #: The derivative modes of the fov, view-angle and distance sweeps.
@@ -630,8 +863,6 @@ DDY_METHODS = ("cotangent", "nonperspective", "gram_schmidt", "separate", "cross
                "surface_gradient")
 #: The frames of the orthographic sweep.
 ORTHO_METHODS = ("cotangent", "nonperspective", "cross", "exact")
-#: The frames of the precision sweep.
-PRECISION_METHODS = ("cotangent", "nonperspective", "exact", "exact_face", "vertex")
 #: The frames of the real asset at its smaller sizes (every frame at the largest).
 REAL_METHODS = ("cotangent", "nonperspective", "vertex", "cross", "surface_gradient")
 #: ``--quick``: these frames, fine derivatives, two or three points per sweep (a smoke test
@@ -640,7 +871,7 @@ QUICK_METHODS = ("cotangent", "nonperspective", "vertex", "surface_gradient")
 
 
 def sweeps(size: int, quick: bool, only=DEFAULT_SWEEPS, asset: Path | None = None,
-           real_sizes=(256, 1024)) -> tuple[list, dict]:
+           real_sizes=(256, 1024), time_size=-1) -> tuple[list, dict]:
     """The records of the sweeps ``only``, and error images (per frame) of the real asset
     (``real_<frame>``) and of the torus (``torus_<frame> (<derivatives>)``).
 
@@ -733,162 +964,274 @@ def sweeps(size: int, quick: bool, only=DEFAULT_SWEEPS, asset: Path | None = Non
         recs, rmaps = real_mesh(asset, sizes=(64,) if quick else real_sizes,
                                 methods=("cotangent", "vertex") if quick else methods,
                                 small_methods=REAL_METHODS, reps=5,
-                                time_size=0 if quick else -1, keep_maps=True)
+                                time_size=0 if quick else time_size, keep_maps=True)
         rows.extend(recs)
         maps.update({f"real_{k}": v for k, v in rmaps.items()})
         forget()
+    if "decoding" in only:
+        rows.extend(decoding(asset, 128 if quick else 512, quick))
+        print(json.dumps({"sweep": "decoding", "records": len(DECODINGS) + 1}), flush=True)
+        forget()
     if "precision" in only:  # shader precision against the camera distance (close-ups)
+        # the plane and the torus padded to one shape, both with the rivet map: one program
+        # per frame and precision for both; the analytic derivatives for Schüler's frame
+        pplane, ptorus = padded_all([plane, Torus(32)])
         for precision in ("float32", "float16", "bfloat16"):
             for f in ((0.01, 1) if quick else (0.003, 0.03, 0.3, 3)):
-                tag(measure(plane, _camera(60, 60, dist=f * base), size,
-                            pick(PRECISION_METHODS), modes=("fine", "analytic"),
-                            precision=precision),
-                    sweep="precision", fov=60, view=60, distance=f, surface="plane",
-                    uv="sheared 30 deg")
-        forget()
-        for precision in ("float32", "float16", "bfloat16"):
-            tag(measure(Torus(32), _torus_camera(), size, pick(PRECISION_METHODS),
-                        modes=("fine",), normal_map="rivets", precision=precision),
+                recs = measure(pplane, _camera(60, 60, dist=f * base), size, methods,
+                               normal_map="rivets", precision=precision)
+                recs += measure(pplane, _camera(60, 60, dist=f * base), size, pick(
+                    ("cotangent",)), modes=("analytic",), normal_map="rivets",
+                    precision=precision)
+                tag(recs, sweep="precision", fov=60, view=60, distance=f, surface="plane",
+                    uv="sheared 30 deg", map="rivets")
+            tag(measure(ptorus, _torus_camera(), size, methods, modes=("fine",),
+                        normal_map="rivets", precision=precision),
                 sweep="precision", surface="torus", segments=32, normals="smooth",
                 uv="surface", map="rivets")
+            forget()
+        recs = far_from_origin(size, distances=(0.01, 1) if quick else (0.003, 0.03, 0.3, 3))
+        rows.extend(recs)
+        print(json.dumps({"sweep": "precision", "case": "far from the origin",
+                          "records": len(recs)}), flush=True)
         forget()
-    for seg in ([] if "tessellation" not in only else (8, 32) if quick else (8, 16, 32, 64)):
-        for name, surf in (("torus", Torus(seg)), ("sphere", Sphere(seg)),
-                           ("cylinder", Cylinder(seg))):
-            for normals in ("smooth", "flat"):
-                s = surf if normals == "smooth" else flat_shaded(surf)
-                target = (1.4, 0.0, 0.0) if name == "torus" else (0.7, 0.0, 0.0)
-                cam = Camera.from_matrices(
-                    look_at(np.array(target) + [2.6, -1.4, 1.6], target, (0, 0, 1)),
-                    perspective(40, 1.0, 0.05, 50))
-                tag(measure(s, cam, size, methods=("cotangent", "exact", "exact_face",
-                                                   "vertex", "vertex_area")),
-                    sweep="tessellation", surface=name, segments=seg, normals=normals,
-                    uv="surface")
-                forget()
+    if "tessellation" in only:
+        # every surface, both normals, padded to one shape: one program per frame
+        cases = [(name, seg, normals) for seg in ((8, 32) if quick else (8, 16, 32, 64))
+                 for name in ("torus", "sphere", "cylinder") for normals in ("smooth", "flat")]
+        make = {"torus": Torus, "sphere": Sphere, "cylinder": Cylinder}
+        surfs = [make[name](seg) for name, seg, _ in cases]
+        surfs = padded_all([s if normals == "smooth" else flat_shaded(s)
+                            for s, (_, _, normals) in zip(surfs, cases)])
+        for (name, seg, normals), s in zip(cases, surfs):
+            target = (1.4, 0.0, 0.0) if name == "torus" else (0.7, 0.0, 0.0)
+            cam = Camera.from_matrices(
+                look_at(np.array(target) + [2.6, -1.4, 1.6], target, (0, 0, 1)),
+                perspective(40, 1.0, 0.05, 50))
+            tag(measure(s, cam, size, methods=methods), sweep="tessellation", surface=name,
+                segments=seg, normals=normals, uv="surface")
+        forget()
     return rows, maps
 
 
-def _plot(rows, out: Path) -> None:
+#: Each frame method's colour and marker in every figure (no two share either).
+METHOD_STYLE = {
+    "cotangent": ("#1f77b4", "o"), "cotangent_unnormalized": ("#aec7e8", "s"),
+    "nonperspective": ("#d62728", "^"), "exact": ("#2ca02c", "v"),
+    "exact_face": ("#98df8a", "D"), "vertex": ("#000000", "P"),
+    "vertex_area": ("#7f7f7f", "X"), "axis": ("#8c564b", "*"),
+    "gram_schmidt": ("#ff7f0e", "h"), "separate": ("#ffbb78", "<"),
+    "cross": ("#9467bd", ">"), "surface_gradient": ("#e377c2", "p"),
+}
+#: The figures `plot_figures` writes, by file name: what each shows.
+FIGURES = {
+    "frames_fov.png": "fixed map value's mean error and hemisphere's p95 against the fov",
+    "frames_view_angle.png": "the same against the view angle",
+    "frames_distance.png": "the same against the camera distance",
+    "frames_orthographic.png": "mean error against the tilt under an orthographic camera",
+    "frames_uv.png": "mean error per uv layout",
+    "frames_real_cost.png": "cost against error on Suzanne",
+    "frames_decoding.png": "MikkTSpace decodings against the reference",
+    "frames_precision.png": "hemisphere's worst against the distance per precision",
+    "frames_tessellation.png": "mean error against the segments of curved meshes",
+}
+#: The command that draws the figures of the frames page from its data file.
+FIGURES_COMMAND = ("python -m scripts.studies.study_frames --figures "
+                   "docs/studies/data/frames_summary.json --out docs/img")
+
+
+def _style(method):
+    color, marker = METHOD_STYLE[method]
+    return {"color": color, "marker": marker}
+
+
+def _floor(v, lo=1e-6):
+    return max(v, lo) if v is not None else np.nan
+
+
+def plot_figures(rows, out: Path) -> list:
+    """Every figure of `FIGURES` whose sweep is in ``rows`` (run records, or the rows of a
+    summary, `summary_rows`) into ``out``; returns the file names written. Each frame method
+    keeps its `METHOD_STYLE` in every figure."""
     try:
         from matplotlib.figure import Figure
     except ImportError:
         print("matplotlib missing: no plots (pip install '.[notebook]')")
-        return
-    for sweep, key, fname, xlabel in (("fov", "fov", "error_vs_fov.png", "field of view (deg)"),
-                                      ("view angle", "view", "error_vs_view_angle.png",
-                                       "view angle from the normal (deg)"),
-                                      ("distance", "distance", "error_vs_distance.png",
-                                       "camera distance / distance that frames the plane")):
-        if not any(r["sweep"] == sweep for r in rows):
+        return []
+    out = Path(out)
+    written = []
+
+    def save(fig, name):
+        fig.tight_layout()
+        fig.savefig(out / name)
+        written.append(name)
+
+    def sel(**kw):
+        return [r for r in rows if all(r.get(k) == v for k, v in kw.items())]
+
+    for sweep, key, name, xlabel in (("fov", "fov", "frames_fov.png", "field of view (deg)"),
+                                     ("view angle", "view", "frames_view_angle.png",
+                                      "view angle from the normal (deg)"),
+                                     ("distance", "distance", "frames_distance.png",
+                                      "camera distance / distance that frames the plane")):
+        if not sel(sweep=sweep):
             continue
-        fig = Figure(figsize=(10, 4), dpi=90)
+        fig = Figure(figsize=(10, 4.2), dpi=80)
         for k, (stat, label) in enumerate((("error_mean", "mean error, the fixed map value"),
                                            ("worst_p95", "p95 of the worst over the "
                                             "hemisphere"))):
             ax = fig.add_subplot(1, 2, k + 1)
-            for j, method in enumerate(METHODS):
-                for mode, style in (("fine", "o-"), ("coarse", "x:"), ("analytic", "+--")):
-                    pts = sorted((r[key], r[stat]) for r in rows if r["sweep"] == sweep
-                                 and r["method"] == method and r["mode"] == mode)
+            for method in METHOD_STYLE:
+                for mode, ls in (("fine", "-"), ("coarse", ":"), ("analytic", "--")):
+                    pts = sorted((r[key], _floor(r[stat])) for r in
+                                 sel(sweep=sweep, method=method, mode=mode))
                     if pts:
                         plot = ax.loglog if sweep == "distance" else ax.semilogy
-                        plot(*zip(*[(x, max(y, 1e-6)) for x, y in pts]), style,
-                             color=f"C{j % 10}", ms=4,
+                        plot(*zip(*pts), ls=ls, ms=4, mfc="none", **_style(method),
                              label=method if mode == "fine" else None)
-            ax.set(xlabel=xlabel, ylabel=f"{label} (deg)", title=f"{sweep}: o fine, x coarse, "
-                   "+ analytic")
+            ax.set(xlabel=xlabel, ylabel=f"{label} (deg)",
+                   title=f"{sweep}: solid fine, dotted coarse, dashed analytic")
             if k == 0:
                 ax.legend(fontsize=6, ncol=2)
-        fig.tight_layout()
-        fig.savefig(out / fname)
-    ortho = [r for r in rows if r["sweep"] == "orthographic"]
+        save(fig, name)
+    ortho = sel(sweep="orthographic")
     if ortho:
-        fig = Figure(figsize=(6.5, 4), dpi=90)
+        fig = Figure(figsize=(6.5, 4), dpi=80)
         ax = fig.add_subplot()
-        for j, (method, uv) in enumerate((("nonperspective", "orthogonal"),
-                                          ("nonperspective", "sheared 30 deg"),
-                                          ("cotangent", "sheared 30 deg"),
-                                          ("cross", "orthogonal"))):
-            pts = sorted((r["view"], r["error_mean"], r.get("predicted")) for r in ortho
-                         if r["method"] == method and r["uv"] == uv)
-            ax.semilogy([x for x, _, _ in pts], [max(y, 1e-6) for _, y, _ in pts], "o-",
-                        color=f"C{j}", label=f"{method}, {uv} uv")
-            if method == "nonperspective":
-                ax.semilogy([x for x, _, _ in pts], [max(z, 1e-6) for _, _, z in pts], "k:",
-                            lw=1)
+        for method in METHOD_STYLE:
+            for uv, ls in (("orthogonal", "-"), ("sheared 30 deg", "--")):
+                pts = sorted((r["view"], _floor(r["error_mean"]), r.get("predicted"))
+                             for r in ortho if r["method"] == method and r["uv"] == uv)
+                if not pts:
+                    continue
+                ax.semilogy([x for x, _, _ in pts], [y for _, y, _ in pts], ls=ls,
+                            **_style(method), mfc="none", label=f"{method}, {uv} uv")
+                if method == "nonperspective":
+                    ax.semilogy([x for x, _, _ in pts], [_floor(z) for _, _, z in pts], "k:",
+                                lw=1)
         ax.set(xlabel="tilt of the plane from the image plane (deg)",
                ylabel="mean error vs own truth (deg)",
-               title="orthographic camera (dotted: closed form)")
-        ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(out / "error_vs_tilt_orthographic.png")
-    real = [r for r in rows if r["sweep"] == "real" and "frame_ms" in r]
+               title="orthographic camera (dotted black: closed form)")
+        ax.legend(fontsize=6)
+        save(fig, "frames_orthographic.png")
+    uvrows = sel(sweep="uv")
+    if uvrows:
+        fig = Figure(figsize=(9, 4), dpi=80)
+        ax = fig.add_subplot()
+        layouts = list(UV_LAYOUTS)
+        methods = [m for m in METHOD_STYLE if sel(sweep="uv", method=m)]
+        w = 0.8 / len(methods)
+        for k, method in enumerate(methods):
+            vals = [next((_floor(r["error_mean"]) for r in sel(sweep="uv", uv=u, method=method)),
+                         np.nan) for u in layouts]
+            x = np.arange(len(layouts)) + w * k
+            color, marker = METHOD_STYLE[method]
+            ax.bar(x, vals, w, color=color, label=method)
+            ax.plot(x, vals, ls="none", marker=marker, color="k", ms=3)
+        ax.set_yscale("log")
+        ax.set_xticks(np.arange(len(layouts)) + 0.4, layouts, fontsize=7)
+        ax.set(ylabel="mean error vs own truth (deg)", title="uv layout")
+        ax.legend(fontsize=6, ncol=2)
+        save(fig, "frames_uv.png")
+    real = [r for r in sel(sweep="real") if r.get("frame_ms") is not None]
     if real:
         big = max(r["size"] for r in real)
-        fig = Figure(figsize=(6.5, 4.2), dpi=90)
+        fig = Figure(figsize=(6.5, 4.2), dpi=80)
         ax = fig.add_subplot()
-        for j, r in enumerate(x for x in real if x["size"] == big):
-            ax.scatter(max(r["frame_ms"], 0.01), max(r["error_mean"], 1e-4), color=f"C{j % 10}",
-                       marker="os^D"[j // 10])
-            ax.annotate(r["method"], (max(r["frame_ms"], 0.01), max(r["error_mean"], 1e-4)),
-                        fontsize=7)
+        for r in (x for x in real if x["size"] == big):
+            xy = (_floor(r["frame_ms"], 0.01), _floor(r["error_mean"], 1e-5))
+            ax.scatter(*xy, s=30, **_style(r["method"]), label=r["method"])
         ax.set(xscale="log", yscale="log", xlabel=f"frame's cost at {big}x{big} (ms, above "
                "'none')", ylabel="mean angle to Blender's decode (deg)",
                title="Suzanne, baked map, trilinear")
-        fig.tight_layout()
-        fig.savefig(out / "cost_vs_error_real.png")
-    prec = [r for r in rows if r["sweep"] == "precision" and r["surface"] == "plane"]
+        ax.legend(fontsize=6, ncol=2)
+        save(fig, "frames_real_cost.png")
+    dec = sel(sweep="decoding")
+    if dec:
+        surfaces = list(dict.fromkeys(r["surface"] for r in dec))
+        names = list(dict.fromkeys(r["case"] for r in dec))
+        fig = Figure(figsize=(9, 4.2), dpi=80)
+        for k, (stat, label) in enumerate((("error_mean", "mean angle (deg)"),
+                                           ("error_max", "max angle (deg)"),
+                                           ("specular_max", "max specular (8-bit levels)"))):
+            ax = fig.add_subplot(1, 3, k + 1)
+            for j, surface in enumerate(surfaces):
+                vals = [next((_floor(r[stat]) for r in dec if r["surface"] == surface
+                              and r["case"] == c), np.nan) for c in names]
+                ax.barh(np.arange(len(names)) + 0.4 * j, vals, 0.4, label=surface,
+                        color=("#1f77b4", "#ff7f0e")[j % 2])
+            ax.set_xscale("log")
+            ax.set_yticks(np.arange(len(names)) + 0.2,
+                          names if k == 0 else [""] * len(names), fontsize=6)
+            ax.set(xlabel=label)
+            if k == 0:
+                ax.legend(fontsize=6)
+        fig.suptitle("decoding a MikkTSpace map, against the reference (B per fragment, "
+                     "nothing renormalised)", fontsize=9)
+        save(fig, "frames_decoding.png")
+    prec = [r for r in sel(sweep="precision", surface="plane") if r.get("case") is None]
     if prec:
-        fig = Figure(figsize=(9, 4), dpi=100)
-        for k, mode in enumerate(("fine", "analytic")):
-            ax = fig.add_subplot(1, 2, k + 1)
-            for method, color in (("cotangent", "C0"), ("exact", "C1"), ("vertex", "C2"),
-                                  ("nonperspective", "C3")):
-                for precision, style in (("float32", ":"), ("float16", "-"),
-                                         ("bfloat16", "--")):
-                    pts = sorted((r["distance"], r["error_mean"]) for r in prec
+        fig = Figure(figsize=(11, 4), dpi=80)
+        for k, precision in enumerate(("float32", "float16", "bfloat16")):
+            ax = fig.add_subplot(1, 3, k + 1)
+            for method in METHOD_STYLE:
+                for mode, ls in (("fine", "-"), ("analytic", "--")):
+                    pts = sorted((r["distance"], _floor(r["worst_mean"])) for r in prec
                                  if r["method"] == method and r["mode"] == mode
                                  and r["precision"] == precision)
                     if pts:
-                        ax.loglog(*zip(*[(x, max(y, 1e-6)) for x, y in pts]), style,
-                                  color=color, marker="o", ms=3, label=f"{method} {precision}")
+                        ax.loglog(*zip(*pts), ls=ls, ms=4, mfc="none", **_style(method),
+                                  label=method if mode == "fine" else None)
             ax.set(xlabel="camera distance / distance that frames the plane",
-                   ylabel="mean error vs own truth (deg)", title=f"{mode} derivatives")
-            ax.legend(fontsize=5)
-        fig.tight_layout()
-        fig.savefig(out / "error_vs_precision.png")
-    fig = Figure(figsize=(8, 4), dpi=100)
-    ax = fig.add_subplot()
-    layouts = list(UV_LAYOUTS)
-    for k, method in enumerate(METHODS):
-        vals = [next((r["error_mean"] for r in rows if r["sweep"] == "uv" and r["uv"] == u
-                      and r["method"] == method), np.nan) for u in layouts]
-        w = 0.8 / len(METHODS)
-        ax.bar(np.arange(len(layouts)) + w * k, np.maximum(vals, 1e-6), w, label=method)
-    ax.set_yscale("log")
-    ax.set_xticks(np.arange(len(layouts)) + 0.4, layouts, fontsize=7)
-    ax.set(ylabel="mean error vs own truth (deg)", title="uv layout")
-    ax.legend(fontsize=6)
-    fig.tight_layout()
-    fig.savefig(out / "error_vs_uv.png")
-    fig = Figure(figsize=(9, 4), dpi=100)
-    if not any(r["sweep"] == "tessellation" for r in rows):
-        return
-    for k, normals in enumerate(("smooth", "flat")):
-        ax = fig.add_subplot(1, 2, k + 1)
-        for surf in ("torus", "sphere", "cylinder"):
-            for method, style in (("cotangent", "-"), ("vertex", "--")):
-                pts = sorted((r["segments"], r["error_mean"]) for r in rows
-                             if r["sweep"] == "tessellation" and r["surface"] == surf
-                             and r["normals"] == normals and r["method"] == method)
-                if pts:
-                    ax.loglog(*zip(*pts), style, marker="o", label=f"{surf} {method}")
-        ax.set(xlabel="segments", ylabel="mean error vs smooth truth (deg)",
-               title=f"{normals} normals")
-        ax.legend(fontsize=6)
-    fig.tight_layout()
-    fig.savefig(out / "error_vs_tessellation.png")
+                   ylabel="worst over the hemisphere, mean (deg)",
+                   title=f"{precision}: solid fine, dashed analytic")
+            if k == 0:
+                ax.legend(fontsize=5, ncol=2)
+        save(fig, "frames_precision.png")
+    tess = sel(sweep="tessellation")
+    if tess:
+        fig = Figure(figsize=(12, 7), dpi=72)
+        for i, normals in enumerate(("smooth", "flat")):
+            for j, surf in enumerate(("torus", "sphere", "cylinder")):
+                ax = fig.add_subplot(2, 3, 3 * i + j + 1)
+                for method in METHOD_STYLE:
+                    pts = sorted((r["segments"], _floor(r["error_mean"])) for r in tess
+                                 if r["surface"] == surf and r["normals"] == normals
+                                 and r["method"] == method)
+                    if pts:
+                        ax.loglog(*zip(*pts), ms=4, mfc="none", **_style(method),
+                                  label=method)
+                ax.set(xlabel="segments", ylabel="mean error vs smooth truth (deg)",
+                       title=f"{surf}, {normals} normals")
+                segs = sorted({r["segments"] for r in tess})
+                ax.set_xticks(segs, [str(x) for x in segs])
+                ax.set_xticks([], minor=True)
+                if i == 0 and j == 0:
+                    ax.legend(fontsize=5, ncol=2)
+        save(fig, "frames_tessellation.png")
+    return written
+
+
+def update_summary(old: dict, new: dict, sweeps) -> dict:
+    """``old`` (a summary) with the rows of ``sweeps`` replaced by ``new``'s. The metadata
+    becomes ``{"runs": [...]}``: each run's metadata with the ``sweeps`` whose rows it gave."""
+    meta = old["metadata"]
+    runs = meta["runs"] if "runs" in meta else [
+        dict(meta, sweeps=list(dict.fromkeys(r["sweep"] for r in summary_rows(old))))]
+    runs = [dict(r, sweeps=[x for x in r["sweeps"] if x not in sweeps]) for r in runs]
+    runs = [r for r in runs if r["sweeps"]]
+    kept = [r for r in summary_rows(old) if r["sweep"] not in sweeps] + summary_rows(new)
+    runs.append(dict(new["metadata"], sweeps=list(dict.fromkeys(
+        r["sweep"] for r in summary_rows(new)))))
+    cols = list(dict.fromkeys(old["columns"] + new["columns"]))
+    return {"metadata": {"runs": runs}, "columns": cols,
+            "rows": [[r.get(k) for k in cols] for r in kept]}
+
+
+def summary_rows(data: dict) -> list:
+    """The records of a summary (`summary`) as dicts, without the fields a record lacked."""
+    cols = data["columns"]
+    return [{k: v for k, v in zip(cols, row) if v is not None} for row in data["rows"]]
 
 
 def summary(rows, meta) -> dict:
@@ -896,10 +1239,11 @@ def summary(rows, meta) -> dict:
     (``columns``, and ``rows`` of values, None where a record has no such field; numbers
     to 4 significant digits): small enough to keep beside the document."""
     keep = ("sweep", "case", "method", "mode", "convention", "fov", "view", "distance", "uv",
-            "surface", "camera", "map", "precision", "segments", "normals", "size", "pixels",
-            "predicted", "ddy", "above_5deg", "ms", "frame_ms")
-    stats = [f"{k}_{q}" for k in ("error", "gradient", "orthonormal", "worst", "other_worst")
-             for q in ("mean", "p95", "max")]
+            "surface", "camera", "map", "precision", "segments", "normals", "offset", "size",
+            "pixels", "predicted", "ddy", "above_5deg", "sign_mismatches", "ms", "frame_ms")
+    stats = [f"{k}_{q}" for k in ("error", "gradient", "orthonormal", "worst", "other_worst",
+                                  "diffuse", "specular") for q in ("mean", "p95", "max")]
+    stats += ["T_mean"]
     stats += [f"{k}_{q}" for k in ("opnorm", "T", "B", "Tlen", "Blen") for q in ("p95", "max")]
     stats += ["face_mean"]
     cols = [k for k in keep + tuple(stats) if any(k in r for r in rows)]
@@ -946,7 +1290,25 @@ def main(argv=None) -> None:
     ap.add_argument("--asset", default=None,
                     help="the real asset's npz (default: OUT/suzanne.npz, baked by Blender "
                     "when missing; the real sweep is left out without Blender)")
+    ap.add_argument("--real-sizes", default="256,1024",
+                    help="image sizes of the real asset (timed at the largest)")
+    ap.add_argument("--time-size", type=int, default=-1,
+                    help="the real-asset size whose renders are timed (default: the largest)")
+    ap.add_argument("--update", default=None, metavar="SUMMARY",
+                    help="also replace this run's sweeps in a summary file (e.g. "
+                    "docs/studies/data/frames_summary.json), keeping the other sweeps' rows "
+                    "and the metadata of the runs they came from")
+    ap.add_argument("--figures", default=None, metavar="SUMMARY",
+                    help="only draw the figures from a summary file (frames_summary.json, "
+                    "e.g. docs/studies/data/frames_summary.json) into --out; runs nothing")
     args = ap.parse_args(argv)
+    if args.figures:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        data = json.loads(Path(args.figures).read_text())
+        names = plot_figures(summary_rows(data), out)
+        print(f"wrote {', '.join(names)} into {out}")
+        return
     if args.size is None:
         args.size = 32 if args.quick else 128
     only = SWEEPS if args.sweeps == "all" else tuple(x.strip() for x in args.sweeps.split(","))
@@ -954,22 +1316,30 @@ def main(argv=None) -> None:
         ap.error(f"--sweeps: unknown {bad}; expected any of {', '.join(SWEEPS)}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     asset = None
-    if "real" in only:
+    if "real" in only or "decoding" in only:
         asset = Path(args.asset) if args.asset else bake_asset(out / "suzanne.npz")
         if asset is None:
-            print("no Blender environment: the real-asset sweep is left out")
-    rows, maps = sweeps(args.size, args.quick, only, asset=asset)
-    _plot(rows, out)
+            print("no Blender environment: the real asset is left out")
+    rows, maps = sweeps(args.size, args.quick, only, asset=asset,
+                        real_sizes=tuple(int(x) for x in args.real_sizes.split(",")),
+                        time_size=args.time_size)
+    meta = metadata(time.perf_counter() - t0, sys.argv[1:] if argv is None else argv)
+    meta["cpu_s"] = round(time.process_time() - c0, 1)
+    # the figures from the summary, exactly as --figures draws them from the data file
+    plot_figures(summary_rows(summary(rows, meta)), out)
     for family, title in (("real", "Suzanne"), ("torus", "torus")):
         fam = {k.split("_", 1)[1]: v for k, v in maps.items() if k.startswith(family + "_")}
         if fam:
-            _error_maps(fam, out / f"{family}_error_maps.png", title)
-    meta = metadata(time.perf_counter() - t0, sys.argv[1:] if argv is None else argv)
+            _error_maps(fam, out / f"frames_{family}_error_maps.png", title)
     (out / "frames.json").write_text(json.dumps({"metadata": meta, "rows": rows}, indent=1)
                                      + "\n")
     (out / "frames_summary.json").write_text(json.dumps(summary(rows, meta)) + "\n")
+    if args.update:
+        path = Path(args.update)
+        data = update_summary(json.loads(path.read_text()), summary(rows, meta), only)
+        path.write_text(json.dumps(data) + "\n")
     keys = sorted({k for r in rows for k in r})
     with open(out / "frames.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=keys)
