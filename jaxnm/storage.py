@@ -156,6 +156,13 @@ def _pillow_dds(rgba: np.ndarray, fmt: str) -> tuple[bytes, int]:
     return data, offset
 
 
+def _check_block_size(caller: str, h: int, w: int) -> None:
+    """A one-line ``ValueError`` from ``caller`` unless an ``h x w`` map is a whole number of
+    4x4 blocks (and not empty)."""
+    if h % 4 or w % 4 or not h or not w:
+        raise ValueError(f"{caller}: the size must be a multiple of 4 texels, got {h}x{w}")
+
+
 def encode_blocks(xy: ArrayLike, *, format: str = "bc5", encoder: str = "quicktex") -> bytes:
     """Block-compress two channels of 8-bit codes.
 
@@ -176,8 +183,7 @@ def encode_blocks(xy: ArrayLike, *, format: str = "bc5", encoder: str = "quickte
         raise ValueError(f"encode_blocks: `xy` must be (H, W, 2) uint8, got {xy.shape} "
                          f"{xy.dtype}")
     h, w, _ = xy.shape
-    if h % 4 or w % 4 or not h or not w:
-        raise ValueError(f"encode_blocks: the size must be a multiple of 4 texels, got {h}x{w}")
+    _check_block_size("encode_blocks", h, w)
     if encoder == "angular":
         if format != "bc5":
             raise ValueError(f"encode_blocks: encoder='angular' writes BC5 only, got "
@@ -370,10 +376,7 @@ def save_dds_normal_map(path: str | os.PathLike, normals: ArrayLike, *, format: 
     codes = np.asarray(np.round(np.asarray(quantize(encode_normal_map(
         n, channels=2, green=green, uv_origin=uv_origin))) * 255), np.uint8)
     if encoder == "angular" and format == "bc5":
-        h, w = codes.shape[:2]
-        if h % 4 or w % 4 or not h or not w:
-            raise ValueError(f"save_dds_normal_map: the size must be a multiple of 4 texels, "
-                             f"got {h}x{w}")
+        _check_block_size("save_dds_normal_map", *codes.shape[:2])
         unit = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
         xy = np.asarray(encode_normal_map(unit, channels=2, green=green, uv_origin=uv_origin))
         blocks = _angular_bc5(xy * 2 - 1)
@@ -396,9 +399,7 @@ def save_dds_blocks(path: str | os.PathLike, blocks: bytes, size_hw: tuple[int, 
     """
     _check_option("save_dds_blocks", "format", format, DDS_FORMATS)
     h, w = int(size_hw[0]), int(size_hw[1])
-    if h % 4 or w % 4 or not h or not w:
-        raise ValueError(f"save_dds_blocks: the size must be a multiple of 4 texels, got "
-                         f"{h}x{w}")
+    _check_block_size("save_dds_blocks", h, w)
     if len(blocks) != h * w:
         raise ValueError(f"save_dds_blocks: {len(blocks)} bytes of blocks for {h}x{w} texels; "
                          f"expected {h * w}")
