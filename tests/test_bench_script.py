@@ -93,3 +93,25 @@ def test_forward_rows_take_the_median_of_the_runs():
     assert row["jaxnm"]["forward_ms_runs"] == [4.0, 9.0, 5.0]
     (one,) = bench._forward_rows([("mesh", q, 2.0, mi, first)], [runs[1:2]], echo=False)
     assert one["forward_ratio"] == 2.25 and "forward_ratio_runs" not in one
+
+
+def test_forward_cells_include_a_larger_map_than_the_problems():
+    """The forward table's cells: every mesh at every size with the problem's 256^2 map,
+    plus the 20k torus at 512^2 with a 512^2 map, the same procedural map made larger."""
+    from scripts.benchmarks import bench_problem as B
+
+    p = B.make_problem(render_size=8, map_size=8, major=3, minor=3)
+    cells = list(bench._cells(p, (512,), quick=False))
+    assert [n for n, _ in cells] == ["4k sphere", "20k torus", "200k torus",
+                                     "20k torus, 512x512 map"]
+    name, q = cells[-1]
+    assert q.gt_texels.shape == (512, 512, 3) and q.faces.shape == (20480, 3)
+    assert (q.width, q.height) == (512, 512)
+    np.testing.assert_allclose(np.linalg.norm(q.gt_normals, axis=-1), 1.0, atol=1e-5)
+    # the same map as the problem's at 256^2 (its 2x2 box filter is far closer to it than to
+    # the same map moved by half a bump cell)
+    p256 = B.make_problem(render_size=8, map_size=256, major=3, minor=3).gt_texels
+    box = q.gt_texels.reshape(256, 2, 256, 2, 3).mean(axis=(1, 3))
+    near = np.abs(box - p256).mean()
+    assert near < 0.02 and near < 0.5 * np.abs(box - np.roll(p256, 16, axis=1)).mean()
+    assert [n for n, _ in bench._cells(p, (512,), quick=True)] == ["4k sphere", "20k torus"]

@@ -96,11 +96,40 @@ def _meshes(quick: bool) -> dict:
             "200k torus": procedural.torus(1.0, 0.4, 500, 200)}
 
 
+#: Forward cells beyond the problem's own map size: the 20k torus at 512^2 with a map of
+#: 512^2 texels (the same procedural map, `bench_problem.make_problem`), so that a change
+#: tuned to the table's 256^2 map shows on another (a larger map's samples miss the caches
+#: more often).
+MAP_CELLS = (("20k torus", 512, 512),)
+
+
+def _cells(p: B.BenchProblem, sizes, quick: bool):
+    """``(row name, problem)`` for each forward cell: every mesh at every size with the
+    problem's map, then `MAP_CELLS` (full runs only)."""
+    meshes = _meshes(quick)
+    for name, mesh in meshes.items():
+        for size in sizes:
+            yield name, _with_mesh(p, mesh, size)
+    if quick:
+        return
+    for name, size, map_size in MAP_CELLS:
+        if size in sizes:
+            yield (f"{name}, {map_size}x{map_size} map",
+                   _with_map(_with_mesh(p, meshes[name], size), map_size))
+
+
 def _with_mesh(p: B.BenchProblem, mesh, size: int) -> B.BenchProblem:
     return dataclasses.replace(
         p, positions=np.asarray(mesh.positions, np.float64), faces=np.asarray(mesh.faces),
         uv=np.asarray(mesh.uv, np.float64), normals=np.asarray(mesh.normals, np.float64),
         width=size, height=size)
+
+
+def _with_map(p: B.BenchProblem, map_size: int) -> B.BenchProblem:
+    """``p`` with the benchmark's map made at ``map_size`` texels a side."""
+    m = B.make_problem(render_size=8, map_size=map_size, major=3, minor=3)
+    return dataclasses.replace(p, gt_texels=m.gt_texels, gt_normals=m.gt_normals,
+                               flat_texels=m.flat_texels)
 
 
 def jaxnm_calls(p: B.BenchProblem) -> dict:
@@ -163,28 +192,27 @@ def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool,
     Mitsuba's frames were up to 1.5x slower (4k sphere 3.7 -> 5.5 ms at 512^2)."""
     cells, timed = {}, {}
     for r in range(runs):
-        for name, mesh in _meshes(quick).items():
-            for size in sizes:
-                q = _with_mesh(p, mesh, size)
-                jc = jaxnm_calls(q)
-                calls = {f"jaxnm {k}": jc[k] for k in JAXNM_CALLS}
-                mi = None
-                if mitsuba is not None:
-                    mi = mitsuba.forward_calls(q)
-                    calls.update({f"mitsuba {k}": mi[k] for k in MITSUBA_CALLS})
-                first, ms, faults = timing.side_by_side(calls, repeats, seed=r,
-                                                          first_calls=r == 0)
-                if r == 0:  # what the rows keep of the cell: its first calls
-                    mi = None if mi is None else {
-                        k: mi[k] for k in ("first_s", "kernel_cache_files_at_start")}
-                    cells[name, size] = (name, q, jc["first_forward_s"], mi, first)
-                timed.setdefault((name, size), []).append((ms, faults))
-                del calls, jc, mi
-                if runs == 1:  # the cell's row now
-                    _forward_rows([cells[name, size]], [timed[name, size]])
-                else:
-                    print(f"bench forward: {name} at {size}^2, run {r + 1} of {runs}",
-                          file=sys.stderr, flush=True)
+        for name, q in _cells(p, sizes, quick):
+            size = q.width
+            jc = jaxnm_calls(q)
+            calls = {f"jaxnm {k}": jc[k] for k in JAXNM_CALLS}
+            mi = None
+            if mitsuba is not None:
+                mi = mitsuba.forward_calls(q)
+                calls.update({f"mitsuba {k}": mi[k] for k in MITSUBA_CALLS})
+            first, ms, faults = timing.side_by_side(calls, repeats, seed=r,
+                                                  first_calls=r == 0)
+            if r == 0:  # what the rows keep of the cell: its first calls
+                mi = None if mi is None else {
+                    k: mi[k] for k in ("first_s", "kernel_cache_files_at_start")}
+                cells[name, size] = (name, q, jc["first_forward_s"], mi, first)
+            timed.setdefault((name, size), []).append((ms, faults))
+            del calls, jc, mi
+            if runs == 1:  # the cell's row now
+                _forward_rows([cells[name, size]], [timed[name, size]])
+            else:
+                print(f"bench forward: {name} at {size}^2, run {r + 1} of {runs}",
+                      file=sys.stderr, flush=True)
     return _forward_rows(list(cells.values()), list(timed.values()), echo=runs > 1)
 
 
@@ -649,19 +677,22 @@ def markdown(res: dict) -> str:
                      f"({r.get('forward_moved_ratio', '-')}) |")
     f = res.get("fit", {})
     if f:
-        lines += ["", "| fit | time to well-observed < 1 deg (s) | first loss after (s) | "
-                  "s / step | XLA compile (s) | steps | final seen / well mean (deg) | "
-                  "held-out PSNR (dB) |", "|---|---|---|---|---|---|---|---|"]
+        lines += ["", "| fit | time to well-observed < 1 deg (s) | prepare (s) | "
+                  "first loss after (s) | s / step | XLA compile (s) | steps | "
+                  "final seen / well mean (deg) | held-out PSNR (dB) |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         for k in ("cold", "warm", "steady"):
             j = f["jaxnm"][k]
             lines.append(f"| jaxnm {f['jaxnm'].get('solver', 'LM')}, {k} | "
-                         f"{_r(j['time_to_1deg_s'])} | {j['first_loss_s']} | "
+                         f"{_r(j['time_to_1deg_s'])} | {j['prepare_s']} | "
+                         f"{j['first_loss_s']} | "
                          f"{j['s_per_step']} | {j['backend_compile_s']} | {j['steps']} | "
                          f"{j['seen_mean_deg']} / {j['well_mean_deg']} | "
                          f"{j['held_out_psnr_db']} |")
         if "mitsuba" in f:
             m = f["mitsuba"]
-            lines.append(f"| Mitsuba 3 + Adam | {_r(m['time_to_1deg_s'])} | {m['first_step_s']} | "
+            lines.append(f"| Mitsuba 3 + Adam | {_r(m['time_to_1deg_s'])} | - | "
+                         f"{m['first_step_s']} | "
                          f"{_r(m['s_per_step'], 3)} | - | {m['steps']} | {m['seen_mean_deg']} / "
                          f"{m['well_mean_deg']} | {m['held_out_psnr_db']} |")
     c = res.get("cli")
