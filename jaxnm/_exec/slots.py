@@ -140,9 +140,10 @@ def slot_owners(slots: SlotList, slot0: Array) -> tuple[Array, Array, Array]:
 
 
 #: Where programs are resident, the slots their rounds hold without a conditional: this many
-#: per triangle and per tile of the image, whichever is more (a frame of the 20k-triangle
-#: benchmark torus at 512x512 has 2.9 slots per triangle, the 200k torus at 1024x1024 1.7,
-#: the 4k sphere at 512x512 1.7 per tile: ``python -m scripts.benchmarks.gpu_check --slots``).
+#: per triangle and per tile of the image, whichever is more. Frames of the benchmark scene
+#: (scripts/benchmarks/bench_problem.py, block 4) have 2.9 slots per triangle with the 20k
+#: torus at 512x512, 1.7 with the 200k torus at 1024x1024, and 1.7 per tile with the 4k
+#: sphere at 512x512 (the sum of `jaxnm._exec.triangles.triangle_setup`'s counts).
 RESIDENT_SLOTS = (4, 2)
 
 
