@@ -5,7 +5,8 @@ grid that a triangle's box touches (`jaxnm._exec.triangles`). Slots are numbered
 after triangle, and evaluated a fixed number at a time, a *round*, until all are done: the
 memory of a frame is bounded, nothing is dropped, and the number of rounds adapts at run
 time (on the CPU: a while loop; where programs are `jaxnm._exec.device.resident`, a fixed
-number of rounds and a conditional overflow, `round_limits`). A frame that could count more slots than int32 holds is split into *passes* over its
+number of rounds and a conditional overflow, `round_limits`). A frame that could count more
+slots than int32 holds is split into *passes* over its
 triangles. How the work is split is a `RasterStrategy`, which changes the time and memory
 of a frame, never its result; `default_strategy` chooses one per backend and scene size.
 """
@@ -172,27 +173,29 @@ def over_rounds(evaluate, update, carry, *, total: Array, size: int,
     result, without a condition read back for the usual frame."""
     x64 = bool(jax.config.jax_enable_x64)  # the caller's
 
-    def round_(q, carry):
-        q = jnp.asarray(q, jnp.int32)  # (a loop index under the carry's x64 may be int64)
+    def round_(c):
+        q, carry = c
         with jax.enable_x64(x64):
             out = evaluate(q * size)
-        return update(carry, *out)
+        return q + 1, update(carry, *out)
+
+    def one(q, carry):  # (a loop index under the carry's x64 may be int64)
+        return round_((jnp.asarray(q, jnp.int32), carry))[1]
 
     with jax.enable_x64(x64 or any(x.dtype == np.uint64 for x in jax.tree.leaves(carry))):
         if not resident():
-            return jax.lax.while_loop(lambda c: c[0] * size < total,
-                                      lambda c: (c[0] + 1, round_(*c)),
+            return jax.lax.while_loop(lambda c: c[0] * size < total, round_,
                                       (jnp.int32(0), carry))[1]
         if limits is None:
             raise ValueError("over_rounds: a resident program needs `limits` (round_limits)")
         first, most = limits
-        carry = jax.lax.fori_loop(0, first, round_, carry)
+        carry = jax.lax.fori_loop(0, first, one, carry)
         if most <= first:
             return carry
 
         def rest(carry):
             def more(q, carry):
-                return jax.lax.cond(q * size < total, round_, lambda q, c: c, q, carry)
+                return jax.lax.cond(q * size < total, one, lambda q, c: c, q, carry)
             return jax.lax.fori_loop(first, most, more, carry)
 
         return jax.lax.cond(first * size < total, rest, lambda c: c, carry)

@@ -20,7 +20,6 @@ import json
 import math
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 import jaxnm
@@ -81,7 +80,7 @@ def frame_timings(quick: bool, repeats: int) -> dict:
 
 def metadata() -> dict:
     dev = jax.devices()[0]
-    return {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    return {"date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
             "jax": jax.__version__, "jaxnm": jaxnm.__version__, "backend": jax.default_backend(),
             "device": getattr(dev, "device_kind", str(dev)), "devices": jax.device_count()}
 
