@@ -205,3 +205,17 @@ def test_the_cpu_keeps_its_loops():
         assert hlo_report(jax.jit(ids).lower(clip).compile().as_text())["unknown_trip_count"]
     with forced():
         assert_resident(jax.jit(ids).lower(clip).compile().as_text(), conditionals=2)
+
+
+def test_the_gpu_check_script_parses_and_names_every_frame_goal():
+    """`scripts/benchmarks/gpu_check.sh` is for a GPU machine: here only its shell syntax and
+    its helper's goals (its --quick run on the CPU takes minutes)."""
+    import subprocess
+    from pathlib import Path
+
+    from scripts.benchmarks import gpu_check
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "benchmarks" / "gpu_check.sh"
+    assert subprocess.run(["bash", "-n", str(script)]).returncode == 0
+    assert set(gpu_check.GOALS_MS) == {"20k torus 512", "200k torus 1024",
+                                       "64 views 20k torus 512"}
