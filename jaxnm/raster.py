@@ -61,6 +61,7 @@ from ._exec.slots import (
     default_strategy,
     each_pass,
     over_rounds,
+    round_limits,
     slot_list,
     slot_owners,
 )
@@ -401,12 +402,13 @@ def _fragment_source(tri, tri_depth, setup, counts, *, width, height, block, slo
 _STATIC = ("width", "height", "cull_back", "subpixel_bits", "strategy")
 
 
-def _depth_test(tri, tri_depth, setup, counts, buf, *, width, height, block, slots):
+def _depth_test(tri, tri_depth, setup, counts, buf, *, width, height, block, slots, limits):
     """Depth-test triangles into the tiled buffer ``buf`` (`jaxnm._exec.depth`), a round of
-    slots at a time. ``counts`` (F,): each triangle's slots (`each_pass`)."""
+    slots at a time. ``counts`` (F,): each triangle's slots (`each_pass`); ``limits``:
+    `round_limits`."""
     fragments, total = _fragment_source(tri, tri_depth, setup, counts, width=width,
                                         height=height, block=block, slots=slots)
-    return over_rounds(fragments, tiled.write, buf, total=total, size=slots)
+    return over_rounds(fragments, tiled.write, buf, total=total, size=slots, limits=limits)
 
 
 @functools.partial(jax.jit, static_argnames=_STATIC)
@@ -426,8 +428,9 @@ def _visible_triangles(clip, faces, *, width, height, cull_back, subpixel_bits,
     (F,) in the window (the snapped corners' ``sign(det M)``: +1 counter-clockwise, i.e.
     front-facing) and the unsnapped corners (`Corners`)."""
     block = strategy.block
-    kw = dict(width=width, height=height, block=block, slots=strategy.slots)
     tiles = (-(-width // block)) * (-(-height // block))
+    kw = dict(width=width, height=height, block=block, slots=strategy.slots,
+              limits=round_limits(faces.shape[0], tiles, strategy.slots, strategy.pass_slots))
     tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
                                      subpixel_bits=subpixel_bits)
     setup = triangle_setup(tri, width, height, block, cull_back)
@@ -495,7 +498,9 @@ def _overdraw(clip, faces, *, width, height, cull_back, subpixel_bits, strategy)
         def add(count, tile, depth, _):
             return count.at[tile].add((depth < jnp.inf).astype(jnp.int32), mode="drop")
 
-        return over_rounds(fragments, add, count, total=total, size=slots)
+        return over_rounds(fragments, add, count, total=total, size=slots,
+                           limits=round_limits(faces.shape[0], tiles, slots,
+                                               strategy.pass_slots))
 
     count = each_pass(one_pass, setup.count, jnp.zeros((tiles, block, block), jnp.int32),
                       tiles=tiles, pass_slots=strategy.pass_slots)

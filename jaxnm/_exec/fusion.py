@@ -4,12 +4,19 @@ XLA's CPU backend fuses a producer into every consumer that reads it and recompu
 there; where several consumers read one per-pixel value (a texture gather, the barycentric
 set-up of a pixel), that recomputation can cost several times the value itself.
 `jax.lax.optimization_barrier` does not stop it on the CPU; `materialize` does.
+
+On the other backends (`jaxnm._exec.device.resident`) `materialize` is an
+`jax.lax.optimization_barrier`: XLA's GPU compiler removes the barriers only after fusion
+and scheduling, so they keep their values out of the fusions that follow, and a GPU would
+read a data-dependent loop's condition on the host.
 """
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+
+from .device import resident
 
 __all__ = ["materialize"]
 
@@ -25,8 +32,12 @@ def materialize(x):
     value goes through a while loop whose trip count (0 or 1; the body is an
     identity) depends on the data, so the compiler can neither delete the loop
     nor fuse across it. An identity for values and (forward and reverse)
-    derivatives; use it where profiling shows recomputation.
+    derivatives; use it where profiling shows recomputation. Where programs are
+    `jaxnm._exec.device.resident` (every backend but the CPU), a
+    `jax.lax.optimization_barrier` instead, which those compilers keep until after fusion.
     """
+    if resident():
+        return jax.lax.optimization_barrier(x)
     leaves = jax.tree_util.tree_leaves(x)
     probe = leaves[0].reshape(-1)[0]
     one = jax.lax.bitcast_convert_type(probe.astype(jnp.float32), jnp.int32) & 1

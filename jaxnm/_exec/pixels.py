@@ -25,6 +25,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from .compaction import ranked_nonzero
+from .device import resident
 
 __all__ = ["PACK_MIN_PIXELS", "PASS_SLOTS", "PIXEL_CHUNK", "capacity", "over_covered_pixels",
            "packs"]
@@ -48,9 +49,10 @@ def packs(pixels: int, *, neighbours: bool, backend: str | None = None) -> bool:
     """Whether per-pixel stages of a ``pixels``-pixel image run on its packed covered pixels
     (`over_covered_pixels`) on ``backend`` (JAX's default if None): on the CPU, for images of
     at least `PACK_MIN_PIXELS`, unless the stages read their ``neighbours`` (stored values of
-    adjacent pixels, which only the whole image has). A GPU evaluates every pixel at once."""
-    backend = jax.default_backend() if backend is None else backend
-    return backend == "cpu" and pixels >= PACK_MIN_PIXELS and not neighbours
+    adjacent pixels, which only the whole image has). A GPU evaluates every pixel at once
+    (and where programs are `jaxnm._exec.device.resident`, one program per frame: packing
+    counts the covered pixels at run time)."""
+    return not resident(backend) and pixels >= PACK_MIN_PIXELS and not neighbours
 
 
 def capacity(count: int, pixels: int) -> int:

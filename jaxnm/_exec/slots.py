@@ -4,7 +4,9 @@ The rasterizer's work is one *slot* per (triangle, tile) pair, for every tile of
 grid that a triangle's box touches (`jaxnm._exec.triangles`). Slots are numbered triangle
 after triangle, and evaluated a fixed number at a time, a *round*, until all are done: the
 memory of a frame is bounded, nothing is dropped, and the number of rounds adapts at run
-time. A frame that could count more slots than int32 holds is split into *passes* over its
+time (on the CPU: a while loop; where programs are `jaxnm._exec.device.resident`, a fixed
+number of rounds and a conditional overflow, `round_limits`). A frame that could count more
+slots than int32 holds is split into *passes* over its
 triangles. How the work is split is a `RasterStrategy`, which changes the time and memory
 of a frame, never its result; `default_strategy` chooses one per backend and scene size.
 """
@@ -21,9 +23,11 @@ from jax import Array
 
 from .arrays import cumsum
 from .compaction import flat_nonzero
+from .device import resident
 
-__all__ = ["MAX_SLOTS", "MAX_SLOTS_ACCELERATOR", "RasterStrategy", "SlotList", "default_strategy",
-           "each_pass", "over_rounds", "slot_list", "slot_owners", "slot_passes"]
+__all__ = ["MAX_SLOTS", "MAX_SLOTS_ACCELERATOR", "RESIDENT_SLOTS", "RasterStrategy", "SlotList",
+           "default_strategy", "each_pass", "over_rounds", "round_limits", "slot_list",
+           "slot_owners", "slot_passes"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,11 +140,37 @@ def slot_owners(slots: SlotList, slot0: Array) -> tuple[Array, Array, Array]:
     return t, local, live
 
 
-def over_rounds(evaluate, update, carry, *, total: Array, size: int):
+#: Where programs are resident, the slots their rounds hold without a conditional: this many
+#: per triangle and per tile of the image, whichever is more. Frames of the benchmark scene
+#: (scripts/benchmarks/bench_problem.py, block 4) have 2.9 slots per triangle with the 20k
+#: torus at 512x512, 1.7 with the 200k torus at 1024x1024, and 1.7 per tile with the 4k
+#: sphere at 512x512 (the sum of `jaxnm._exec.triangles.triangle_setup`'s counts).
+RESIDENT_SLOTS = (4, 2)
+
+
+def round_limits(num_faces: int, tiles: int, size: int, pass_slots: int) -> tuple[int, int]:
+    """``(first, most)`` for `over_rounds` where programs are resident: the rounds of
+    ``size`` slots always run (enough for `RESIDENT_SLOTS` of ``num_faces`` triangles on an
+    image of ``tiles`` tiles), and the most a pass of at most ``pass_slots`` slots can need
+    (every triangle on every tile). Static."""
+    most = max(1, -(-min(num_faces * tiles, pass_slots) // size))
+    want = max(RESIDENT_SLOTS[0] * num_faces, RESIDENT_SLOTS[1] * tiles, 1)
+    return min(most, -(-want // size)), most
+
+
+def over_rounds(evaluate, update, carry, *, total: Array, size: int,
+                limits: tuple[int, int] | None = None):
     """``carry = update(carry, *evaluate(slot0))`` for the rounds ``slot0 = 0, size, 2 size,
-    ...`` below ``total`` slots (a while loop: the number of rounds is known at run time
-    only). ``evaluate`` runs under the caller's ``jax_enable_x64``; the loop keeps a carry
-    of 64-bit integers (depth keys) 64-bit whatever it is."""
+    ...`` below ``total`` slots. ``evaluate`` runs under the caller's ``jax_enable_x64``; the
+    loop keeps a carry of 64-bit integers (depth keys) 64-bit whatever it is.
+
+    On the CPU a while loop: the number of rounds is known at run time only, and reading the
+    condition costs nothing. Where programs are `jaxnm._exec.device.resident`, ``limits =
+    (first, most)`` (`round_limits`, static) bound it instead: the first ``first`` rounds
+    always run (a loop of known trip count; a round past ``total`` evaluates only dead
+    slots, which write nothing), and only a frame with more slots takes the rest, up to
+    ``most`` rounds, behind one conditional (each further round behind its own): the same
+    result, without a condition read back for the usual frame."""
     x64 = bool(jax.config.jax_enable_x64)  # the caller's
 
     def round_(c):
@@ -149,9 +179,26 @@ def over_rounds(evaluate, update, carry, *, total: Array, size: int):
             out = evaluate(q * size)
         return q + 1, update(carry, *out)
 
+    def one(q, carry):  # (a loop index under the carry's x64 may be int64)
+        return round_((jnp.asarray(q, jnp.int32), carry))[1]
+
     with jax.enable_x64(x64 or any(x.dtype == np.uint64 for x in jax.tree.leaves(carry))):
-        return jax.lax.while_loop(lambda c: c[0] * size < total, round_,
-                                  (jnp.int32(0), carry))[1]
+        if not resident():
+            return jax.lax.while_loop(lambda c: c[0] * size < total, round_,
+                                      (jnp.int32(0), carry))[1]
+        if limits is None:
+            raise ValueError("over_rounds: a resident program needs `limits` (round_limits)")
+        first, most = limits
+        carry = jax.lax.fori_loop(0, first, one, carry)
+        if most <= first:
+            return carry
+
+        def rest(carry):
+            def more(q, carry):
+                return jax.lax.cond(q * size < total, one, lambda q, c: c, q, carry)
+            return jax.lax.fori_loop(first, most, more, carry)
+
+        return jax.lax.cond(first * size < total, rest, lambda c: c, carry)
 
 
 def slot_passes(counts: Array, pass_slots: int) -> tuple[Array, Array]:
@@ -177,10 +224,14 @@ def each_pass(fn, counts, carry, *, tiles: int, pass_slots: int):
     itself where the frame cannot have more than ``pass_slots`` slots (faces x tiles;
     static). A while loop, not a ``lax.cond`` between it and one pass: XLA's CPU
     conditional around the depth test made the whole frame slower for large meshes
-    (the ``lax.cond`` below only chooses how the passes are counted)."""
+    (the ``lax.cond`` below only chooses how the passes are counted). Where programs are
+    `jaxnm._exec.device.resident`, `_resident_passes`."""
     n = counts.shape[0]
     if n * tiles <= pass_slots:
         return fn(counts, carry)
+    if resident():
+        return _resident_passes(fn, counts, carry, most=-(-n * tiles // pass_slots),
+                                pass_slots=pass_slots)
     # Most frames fit in one pass, and a float32 sum of the counts (each < 2**28) says so
     # for far less than `slot_passes`' exact running sums:
     # its rounding error is below F * 2**-24 of the sum
@@ -200,3 +251,28 @@ def each_pass(fn, counts, carry, *, tiles: int, pass_slots: int):
     with jax.enable_x64(x64 or any(x.dtype == np.uint64 for x in jax.tree.leaves(carry))):
         return jax.lax.while_loop(lambda c: c[0] < n_passes, one_pass,
                                   (jnp.int32(0), carry))[1]
+
+
+def _resident_passes(fn, counts, carry, *, most: int, pass_slots: int):
+    """`each_pass` where programs are resident: the passes counted exactly (`slot_passes`,
+    a few running sums over the triangles, cheaper on an accelerator than a conditional
+    read back), the first pass always run, and the others, up to ``most`` (static), only in
+    a frame that has them: behind one conditional, each behind its own."""
+    passes, n_passes = slot_passes(counts, pass_slots)
+    x64 = bool(jax.config.jax_enable_x64)  # the caller's
+
+    def one_pass(p, carry):
+        p = jnp.asarray(p, jnp.int32)  # (a loop index under the carry's x64 may be int64)
+        with jax.enable_x64(x64):
+            return fn(jnp.where(passes == p, counts, 0), carry)
+
+    # (a carry of 64-bit depth keys stays 64-bit whatever the caller's jax_enable_x64)
+    with jax.enable_x64(x64 or any(x.dtype == np.uint64 for x in jax.tree.leaves(carry))):
+        carry = one_pass(0, carry)
+
+        def rest(carry):
+            def more(p, carry):
+                return jax.lax.cond(p < n_passes, one_pass, lambda p, c: c, p, carry)
+            return jax.lax.fori_loop(1, most, more, carry)
+
+        return jax.lax.cond(n_passes > 1, rest, lambda c: c, carry)

@@ -21,6 +21,7 @@ import numpy as np
 from jax import Array
 
 from .arrays import div
+from .device import choose
 from .fusion import materialize
 
 __all__ = ["Corners", "TriangleSetup", "orientation", "triangle_setup"]
@@ -102,7 +103,8 @@ def triangle_setup(tri: Corners, width: int, height: int, block: int,
     q = h[:, :2] * 256.0
     on_grid = jnp.all(q == jnp.round(q))
     kw = dict(width=width, height=height, block=block, cull_back=cull_back)
-    sigma, tx0, ty0, nbx, count = jax.lax.cond(
+    # (`choose`: on accelerators both set-ups and a select, no conditional to read back)
+    sigma, tx0, ty0, nbx, count = choose(
         snapped, functools.partial(_snapped_setup, **kw),
         lambda h, faces, _: _general_setup(h, faces, **kw), h, tri.faces, on_grid)
     # a face index out of range stands for no vertex: the triangle covers nothing (a
@@ -190,7 +192,7 @@ def _general_setup(h: Array, faces: Array, *, width, height, block, cull_back):
     # the usual scene lies wholly in front of the near plane: then the crossings, their
     # divisions and selects are not computed
     in_front = functools.reduce(jnp.logical_and, [jnp.all(f) for f in front])
-    xmin, xmax, ymin, ymax, bad_w = jax.lax.cond(in_front, corners, clipped, v)
+    xmin, xmax, ymin, ymax, bad_w = choose(in_front, corners, clipped, v)
     # a weird projection (kept point with w <= 0): fall back to the whole screen
     xmin = jnp.where(bad_w, 0.0, xmin)
     ymin = jnp.where(bad_w, 0.0, ymin)

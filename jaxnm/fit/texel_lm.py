@@ -40,6 +40,7 @@ import optimistix as optx
 from jax import Array
 
 from .. import textures as _tex
+from .._exec.device import choose, resident
 from .._exec.sums import SumTables
 from ._pixels import first_taps, mip_chain, reduce_pixels, smoothness_residuals
 from .model import ModelArgs, slopes_to_normals
@@ -244,7 +245,9 @@ def conjugate_gradient(operator, b: Array, max_steps: int, rtol: float = 1e-4) -
     Written out rather than lineax's ``CG``: that one spends a product on the residual of
     its zero start and another every ten steps to re-stabilise it, and it reports a
     breakdown (NaN) wherever ``p.Ap <= 100 eps n |r|^2`` — a test in absolute units that
-    a Gauss-Newton matrix with weakly observed texels (curvature ~ the damping) fails."""
+    a Gauss-Newton matrix with weakly observed texels (curvature ~ the damping) fails.
+    Where programs are `jaxnm._exec.device.resident`, always ``max_steps`` iterations, the
+    iterate frozen once the test ends it (the same result)."""
     gamma0 = jnp.sum(b * b)
     stop = (rtol * rtol) * gamma0
 
@@ -265,7 +268,18 @@ def conjugate_gradient(operator, b: Array, max_steps: int, rtol: float = 1e-4) -
         return x, r, p, jnp.where(pap > 0, gamma_new, 0), k + 1
 
     state = (jnp.zeros_like(b), b, b, gamma0, jnp.zeros((), jnp.int32))
-    return jax.lax.while_loop(more, body, state)[0]
+    if not resident():
+        return jax.lax.while_loop(more, body, state)[0]
+
+    # where programs are resident (`jaxnm._exec.device`): ``max_steps`` iterations, a loop
+    # of known trip count (a GPU reads no condition back), the state kept as it is once the
+    # test ends it: the same iterate, for the products a converged solve would have skipped
+    def step(_, state):
+        go = more(state)
+        return jax.tree_util.tree_map(lambda new, old: jnp.where(go, new, old), body(state),
+                                      state)
+
+    return jax.lax.fori_loop(0, max_steps, step, state)[0]
 
 
 def _damping(lam, ratio, accepted):
@@ -326,8 +340,8 @@ class TexelLM:
         def start_damping():  # lam0 times the curvature along the gradient (first step only)
             return self.lam0 * jnp.sum(g * product(g)) / jnp.maximum(jnp.sum(g * g), tiny)
 
-        lam = jax.lax.cond(first, start_damping,
-                           lambda: _damping(state.lam, ratio, accepted))
+        # (`choose`: on accelerators both, and a select; the first costs one product)
+        lam = choose(first, start_damping, lambda: _damping(state.lam, ratio, accepted))
         lam = jnp.maximum(lam, tiny)
         delta = conjugate_gradient(lambda v: product(v) + lam * v, -g, self.cg_steps)
         # the decrease the model predicts, -(g.d + d.H d / 2): a CG iterate d from 0 has
