@@ -46,8 +46,8 @@ least-squares fit of the four endpoints for the current indices, in the angle's 
 (the first-order change of the rebuilt normal, ``|dn|^2 = dx^2 + dy^2 + (x dx + y dy)^2 /
 z^2``, each texel weighted by the inverse of its current angle, so that the sum of angles
 rather than of their squares is minimised), rounded to bytes; then a search of each
-channel's endpoints (each moved by up to 3 codes, the other endpoint and the other
-channel's decoded values held) with every texel's index chosen for the smallest angle; a
+channel's endpoints (each moved by 1, 3 or 6 codes up or down, the other endpoint and the
+other channel's decoded values held) with every texel's index chosen for the smallest angle; a
 block keeps the best endpoints it has seen. A texel's pair of indices is chosen jointly
 (the palette entries around its ``x`` and ``y``, then each channel given the other), on the
 palette the decoders read: interpolated entries truncated to 8 bits, as texture2ddecoder and
@@ -557,7 +557,7 @@ def bc5_decode(endpoints: ArrayLike, indices: ArrayLike, size_hw: tuple[int, int
 # its palette sorted from lo to hi is position k = 0..7, BC4 index 1 (k = 0), 8 - k, 0 (k = 7).
 
 _ANGULAR_ROUNDS = 3  # least-squares fits, each followed by an endpoint search
-_ANGULAR_REACH = 3  # codes each endpoint moves in the search
+_ANGULAR_MOVES = (1, 3, 6)  # codes each endpoint moves by, up and down, in the search
 _ANGULAR_CHUNK = 32768  # blocks per call (bounds the search's memory to about 100 MB)
 
 
@@ -626,15 +626,14 @@ def _angular_select(ex, ey, t):
 
 @functools.partial(jax.jit, static_argnames=("channel",))
 def _angular_search(e, other_e, k_other, t, channel):
-    """One channel's endpoints moved by up to `_ANGULAR_REACH` codes, one endpoint at a
-    time, the other channel's decoded values held: the candidate with the smallest sum of
-    angles, and its positions."""
+    """One channel's endpoints moved by each of `_ANGULAR_MOVES` codes, up or down, one
+    endpoint at a time, the other channel's decoded values held: the candidate with the
+    smallest sum of angles, and its positions."""
     t0, t1, t2 = (t[..., 0], t[..., 1], t[..., 2]) if channel == 0 else \
         (t[..., 1], t[..., 0], t[..., 2])
     other = _palette_value(k_other, other_e[:, :1], other_e[:, 1:])
-    r = _ANGULAR_REACH
-    d = jnp.asarray([[a, 0] for a in range(-r, r + 1)]
-                    + [[0, b] for b in range(-r, r + 1) if b], jnp.int32)
+    moves = [m * sign for m in _ANGULAR_MOVES for sign in (1, -1)]
+    d = jnp.asarray([[0, 0]] + [[a, 0] for a in moves] + [[0, b] for b in moves], jnp.int32)
     hi = jnp.clip(e[:, None, 0] + d[None, :, 0], 1, 255)
     lo = jnp.minimum(jnp.clip(e[:, None, 1] + d[None, :, 1], 0, 254), hi - 1)
     k, c = _best_given_other(hi[..., None], lo[..., None], other[:, None], t0[:, None],

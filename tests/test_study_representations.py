@@ -199,9 +199,9 @@ def test_the_atlas_data_file_names_its_run_and_its_maps(atlas_data):
 
 
 def test_conclusion_the_angular_encoder_beats_quicktex_on_real_maps(atlas_data):
-    """Conclusion: on real maps the angular encoder is 15-25 % closer than quicktex in the
-    mean (14.9 % on one), 9-15 % at p99, closer than every other BC5 encoder in mean, p99 and
-    max; a 2048x2048 map in about 11 s of CPU time, so at best under 6 s on two cores."""
+    """Conclusion: on every real map the angular encoder is 16-27 % closer than quicktex in
+    the mean (at least 15 %), 9-13 % at p99, closer than every other BC5 encoder in mean, p99
+    and max; a 2048x2048 map in about 11 s of CPU time, so at best under 6 s on two cores."""
     rows = _atlas_rows(atlas_data)
     real = [k for k, v in atlas_data["maps"].items() if v["source"]]
     gains, p99 = [], []
@@ -213,8 +213,8 @@ def test_conclusion_the_angular_encoder_beats_quicktex_on_real_maps(atlas_data):
         for enc in ("quicktex", "etcpak", "Pillow"):
             o = rows[(m, f"BC5 {enc}")]
             assert all(a[k] < o[k] for k in ("mean", "p99", "max")), (m, enc)
-    assert 0.145 < min(gains) and max(gains) < 0.25 and np.mean(gains) > 0.15, gains
-    assert 0.09 < min(p99) and max(p99) < 0.15, p99
+    assert 0.155 < min(gains) and max(gains) < 0.27, gains
+    assert 0.085 < min(p99) and max(p99) < 0.13, p99
     speed = atlas_data["angular_speed"]
     assert speed["size"] == 2048 and 10 < speed["angular_cpu_s"] < 12
     assert speed["angular_s"] >= speed["angular_cpu_s"] / 2 > 5
