@@ -246,8 +246,8 @@ def conjugate_gradient(operator, b: Array, max_steps: int, rtol: float = 1e-4) -
     its zero start and another every ten steps to re-stabilise it, and it reports a
     breakdown (NaN) wherever ``p.Ap <= 100 eps n |r|^2`` — a test in absolute units that
     a Gauss-Newton matrix with weakly observed texels (curvature ~ the damping) fails.
-    Where programs are `jaxnm._exec.device.resident`, always ``max_steps`` iterations, the
-    iterate frozen once the test ends it (the same result)."""
+    On accelerators (programs that must not wait for the host), always ``max_steps``
+    iterations, the iterate frozen once the test ends it (the same result)."""
     gamma0 = jnp.sum(b * b)
     stop = (rtol * rtol) * gamma0
 
