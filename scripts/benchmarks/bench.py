@@ -178,8 +178,9 @@ MITSUBA_CALLS = ("forward", "forward_moved", "forward_backward")
 
 
 def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool,
-                  runs: int = 1) -> list[dict]:
-    """Per mesh and size: jaxnm's and Mitsuba's forward and forward+backward calls, taking
+                  runs: int = 1, only: str | None = None) -> list[dict]:
+    """Per cell (`_cells`; with ``only``, those whose "mesh size" contains it): jaxnm's and
+    Mitsuba's forward and forward+backward calls, taking
     turns in blocks (`timing.side_by_side`: the ratios compare the same phases of a noisy
     machine), one cell after the other; ``runs`` times over, where each figure is the
     median of the runs' (and each ratio the median of the runs' ratios, each side by side
@@ -194,6 +195,8 @@ def bench_forward(p: B.BenchProblem, mitsuba, sizes, repeats: int, quick: bool,
     for r in range(runs):
         for name, q in _cells(p, sizes, quick):
             size = q.width
+            if only is not None and only not in f"{name} {size}x{size}":
+                continue
             jc = jaxnm_calls(q)
             calls = {f"jaxnm {k}": jc[k] for k in JAXNM_CALLS}
             mi = None
@@ -758,6 +761,8 @@ def main(argv=None) -> None:
     ap.add_argument("--parts", default="forward,fit,cli",
                     help="comma-separated parts to run, of forward, fit, cli, views, raster, "
                          "compiles (default: %(default)s)")
+    ap.add_argument("--only", help="forward: only the cells whose 'mesh size' contains this, "
+                                   "e.g. '512x512 map' or '200k torus 1024x1024'")
     ap.add_argument("--budget", type=float, default=30.0, help="seconds per fit")
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--runs", type=int, default=1,
@@ -803,7 +808,7 @@ def main(argv=None) -> None:
     sizes = (256,) if args.quick else (512, 1024)
     if "forward" in parts:
         res["forward"] = bench_forward(p, mitsuba, sizes, args.repeats, args.quick,
-                                       runs=args.runs)
+                                       runs=args.runs, only=args.only)
     if "fit" in parts:
         res["fit"] = bench_fit(args, mitsuba)
     if "cli" in parts and not args.no_cli:
