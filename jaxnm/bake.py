@@ -130,26 +130,39 @@ def world_to_tangent(mesh: Mesh, tri: np.ndarray, bary: np.ndarray, normals: np.
         return np.einsum("tk,tkc->tc", bary, c)
 
     n = interp(corners(mesh.normals))
-    n_unit = n / np.linalg.norm(n, axis=-1, keepdims=True)
     if frame in ("cotangent", "exact"):
-        args = (corners(mesh.positions), corners(mesh.uv), n_unit)
+        args = (corners(mesh.positions), corners(mesh.uv), _unit_rows(n))
     elif frame == "vertex":  # per face corner, reconstructed as the renderer does
         args = (n, interp(np.asarray(mesh.tangents, np.float64)[tri]))
     else:
         vt = _frames.vertex_tangents(mesh.positions, mesh.normals, mesh.uv, mesh.faces)
-        args = (n_unit, interp(corners(vt)))
+        args = (_unit_rows(n), interp(corners(vt)))
     fr = _frame_of(frame, *(jnp.asarray(a, jnp.float32) for a in args))
-    t_, b_, n_ = (np.asarray(x, np.float64)[:n_points] for x in (fr.T, fr.B, fr.N))
-    target = np.asarray(normals, np.float64)
+    t_, b_, n_ = (np.asarray(np.asarray(x)[:n_points].T, np.float64) for x in (fr.T, fr.B, fr.N))
+    target = np.asarray(normals, np.float64).T
     # [T B N] m = target by Cramer's rule: det times the inverse has the rows B x N, N x T,
-    # T x B
-    inverse = np.stack([np.cross(b_, n_), np.cross(n_, t_), np.cross(t_, b_)], 1)  # rows
-    det = np.einsum("ti,ti->t", t_, inverse[:, 0])
+    # T x B; components along the first axis
+    rows = [_cross(b_, n_), _cross(n_, t_), _cross(t_, b_)]
+    det = _dot(t_, rows[0])
     ok = np.abs(det) > 1e-12  # a degenerate frame stores the fill value
-    m = np.einsum("tki,ti->tk", inverse, target) / np.where(ok, det, 1.0)[:, None]
+    m = np.stack([_dot(r, target) for r in rows], -1) / np.where(ok, det, 1.0)[:, None]
     m[~ok] = fill
     m[~(np.einsum("ti,ti->t", m, m) > 0)] = fill
     return m / np.sqrt(np.einsum("ti,ti->t", m, m))[:, None]
+
+
+def _unit_rows(a: np.ndarray) -> np.ndarray:
+    return a / np.linalg.norm(a, axis=-1, keepdims=True)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> list[np.ndarray]:
+    """``a x b`` of vectors given by their components ``a[0], a[1], a[2]`` (as np.cross
+    computes it)."""
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def _dot(a, b) -> np.ndarray:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
 def bake_normal_map(mesh: Mesh, normal_at_uv: Callable[[np.ndarray, np.ndarray], np.ndarray],

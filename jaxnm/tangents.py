@@ -90,7 +90,10 @@ def _neighbours(corner_w: np.ndarray, good: np.ndarray) -> np.ndarray:
     b = corner_w[f_idx, (e_idx + 1) % 3]
     lo, hi = np.minimum(a, b), np.maximum(a, b)
     order = np.lexsort((f_idx, hi, lo))
-    lo, hi, a, f_idx, e_idx = lo[order], hi[order], a[order], f_idx[order], e_idx[order]
+    lo, hi, a = lo[order].tolist(), hi[order].tolist(), a[order].tolist()
+    slot = (3 * f_idx + e_idx)[order].tolist()  # (triangle, edge) as a flat index
+    f_idx = f_idx[order].tolist()
+    flat = nbr.reshape(-1).tolist()
     start = 0
     n = len(lo)
     while start < n:
@@ -98,16 +101,16 @@ def _neighbours(corner_w: np.ndarray, good: np.ndarray) -> np.ndarray:
         while end < n and lo[end] == lo[start] and hi[end] == hi[start]:
             end += 1
         for i in range(start, end):
-            if nbr[f_idx[i], e_idx[i]] != -1:
+            if flat[slot[i]] != -1:
                 continue
             for j in range(i + 1, end):
                 # the other triangle runs through the edge the other way round
-                if a[j] != a[i] and nbr[f_idx[j], e_idx[j]] == -1:
-                    nbr[f_idx[i], e_idx[i]] = f_idx[j]
-                    nbr[f_idx[j], e_idx[j]] = f_idx[i]
+                if a[j] != a[i] and flat[slot[j]] == -1:
+                    flat[slot[i]] = f_idx[j]
+                    flat[slot[j]] = f_idx[i]
                     break
         start = end
-    return nbr
+    return np.array(flat, np.int64).reshape(nf, 3)
 
 
 def mikktspace_tangents(positions, normals, uv, faces) -> np.ndarray:
@@ -172,32 +175,32 @@ def _groups(corner_w: np.ndarray, nbr: np.ndarray, seeds: np.ndarray, any_group:
     of one orientation: ``(vertex, orientation, member triangles)``, grown depth first
     (left edge before right edge, as the reference recurses) from the ``seeds``. A triangle
     that joins any group takes the orientation of the first group that reaches it."""
-    nf = corner_w.shape[0]
-    assigned = np.full((nf, 3), -1, np.int64)
-    orient = orient.copy()
+    cw, nb, ag = corner_w.tolist(), nbr.tolist(), any_group.tolist()
+    orient = orient.tolist()
+    assigned = [[-1, -1, -1] for _ in cw]
     groups = []
-    for f in np.flatnonzero(seeds):
+    for f in np.flatnonzero(seeds).tolist():
         for i in range(3):
-            if assigned[f, i] != -1:
+            if assigned[f][i] != -1:
                 continue
-            g, rep, g_orient = len(groups), corner_w[f, i], bool(orient[f])
+            g, rep, g_orient = len(groups), cw[f][i], orient[f]
             members = [f]
-            assigned[f, i] = g
-            stack = [nbr[f, (i + 2) % 3], nbr[f, i]]  # popped: left (edge i) first
+            assigned[f][i] = g
+            stack = [nb[f][(i + 2) % 3], nb[f][i]]  # popped: left (edge i) first
             while stack:
                 t_ = stack.pop()
                 if t_ < 0:
                     continue
-                j = int(np.flatnonzero(corner_w[t_] == rep)[0])
-                if assigned[t_, j] != -1:
+                j = cw[t_].index(rep)
+                if assigned[t_][j] != -1:
                     continue
-                if any_group[t_] and np.all(assigned[t_] == -1):
+                if ag[t_] and assigned[t_] == [-1, -1, -1]:
                     orient[t_] = g_orient  # the first group to reach it decides
-                if bool(orient[t_]) != g_orient:
+                if orient[t_] != g_orient:
                     continue
                 members.append(t_)
-                assigned[t_, j] = g
-                stack += [nbr[t_, (j + 2) % 3], nbr[t_, j]]
+                assigned[t_][j] = g
+                stack += [nb[t_][(j + 2) % 3], nb[t_][j]]
             groups.append((rep, g_orient, members))
     return groups
 
@@ -215,24 +218,64 @@ def _group_tangents(groups, corner_w, n_c, p, v_os, v_ot, any_group):
     tangent = np.zeros((nf, 3, 3), np.float32)
     tangent[..., 0] = 1.0
     corner_sign = np.full((nf, 3), -1.0, np.float32)
-    thres_cos = np.float32(np.cos(np.float32(np.pi)))  # the default 180 degree threshold
-    for rep, g_orient, members in groups:
-        mem = np.asarray(members)
-        corner = np.argmax(corner_w[mem] == rep, axis=1)  # first matching corner
-        os_m, ot_m = os_c[mem, corner], ot_c[mem, corner]
-        gwa = any_group[mem]
-        weight = np.where(gwa, 0, angle_c[mem, corner])[:, None]  # only good ones contribute
-        cache = {}
-        for k in range(len(mem)):
-            keep = (gwa[k] | gwa | (np.arange(len(mem)) == k)
-                    | ((os_m @ os_m[k] > thres_cos) & (ot_m @ ot_m[k] > thres_cos)))
-            sub = tuple(np.sort(mem[keep]))
-            if sub not in cache:
-                cache[sub] = _normalize_rows(
-                    np.sum(weight[keep] * os_m[keep], axis=0, dtype=np.float32)[None])[0]
-            tangent[mem[k], corner[k]] = cache[sub]
-            corner_sign[mem[k], corner[k]] = 1.0 if g_orient else -1.0
+    if not groups:
+        return tangent, corner_sign
+    sizes = np.array([len(m) for _, _, m in groups])
+    gid = np.repeat(np.arange(len(groups)), sizes)
+    mem = np.concatenate([m for _, _, m in groups]).astype(np.int64)
+    rep = np.array([r for r, _, _ in groups])[gid]
+    corner = np.argmax(corner_w[mem] == rep[:, None], axis=1)  # first matching corner
+    os_m, ot_m = os_c[mem, corner], ot_c[mem, corner]
+    gwa = any_group[mem]
+    weight = np.where(gwa, 0, angle_c[mem, corner])[:, None]  # only good ones contribute
+    starts = np.cumsum(sizes) - sizes
+    whole = _whole_groups(gid, sizes, starts, os_m, ot_m, gwa)
+    tangent[mem, corner] = _normalize_rows(_sums_in_order(weight * os_m, starts, sizes))[gid]
+    corner_sign[mem, corner] = np.where([o for _, o, _ in groups], 1.0, -1.0)[gid]
+    for g in np.flatnonzero(~whole):  # groups whose members split into subgroups
+        k = slice(starts[g], starts[g] + sizes[g])
+        tangent[mem[k], corner[k]] = _subgroup_tangents(os_m[k], ot_m[k], gwa[k], weight[k])
     return tangent, corner_sign
+
+
+#: The default 180 degree threshold of the reference (members whose directions are further
+#: apart than this do not share a tangent).
+_THRES_COS = np.float32(np.cos(np.float32(np.pi)))
+
+
+def _sums_in_order(x, starts, sizes):
+    """Per group of consecutive rows of ``x``, their sum, added one row after the other
+    (in the order, and so with the rounding, of ``np.sum`` over a group's rows)."""
+    acc = x[starts].copy()
+    for k in range(1, int(sizes.max())):
+        more = np.flatnonzero(sizes > k)
+        acc[more] += x[starts[more] + k]
+    return acc
+
+
+def _whole_groups(gid, sizes, starts, os_m, ot_m, gwa):
+    """Per group (members in order, ``gid`` the group of each), whether every pair of its
+    members is within the angle threshold (or groups with anything): one tangent for all."""
+    n = sizes[gid]  # each member against every member of its group
+    a = np.repeat(np.arange(len(gid)), n)
+    b = starts[gid][a] + np.arange(a.size) - np.repeat(np.cumsum(n) - n, n)
+    ok = ((np.sum(os_m[a] * os_m[b], -1, dtype=np.float32) > _THRES_COS)
+          & (np.sum(ot_m[a] * ot_m[b], -1, dtype=np.float32) > _THRES_COS)
+          | gwa[a] | gwa[b] | (a == b))
+    whole = np.ones(len(sizes), bool)
+    whole[gid[a[~ok]]] = False
+    return whole
+
+
+def _subgroup_tangents(os_m, ot_m, gwa, weight):
+    """The tangents of a group's members where the threshold splits it: each member's
+    average over the members within the threshold of it."""
+    keep = (((os_m @ os_m.T > _THRES_COS) & (ot_m @ ot_m.T > _THRES_COS))
+            | gwa[:, None] | gwa[None, :] | np.eye(len(gwa), dtype=bool))
+    rows, which = np.unique(keep, axis=0, return_inverse=True)  # the distinct subgroups
+    sums = [_normalize_rows(np.sum(weight[r] * os_m[r], axis=0, dtype=np.float32)[None])[0]
+            for r in rows]
+    return np.asarray(sums)[which.reshape(-1)]
 
 
 def _copy_to_degenerate(tangent, corner_sign, corner_w, degenerate) -> None:

@@ -11,7 +11,7 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["TexelCover", "rasterize_uv", "extend_margin", "uv_box"]
+__all__ = ["TexelCover", "rasterize_uv", "extend_margin", "extend_margin_texels", "uv_box"]
 
 #: Candidate (texel, triangle) pairs tested at once: bounds the memory of `rasterize_uv`.
 _CANDIDATES = 1 << 18
@@ -91,15 +91,17 @@ def _candidates(faces_idx, q, coef, hw):
     in the triangle (closed, with `_EDGE_TOLERANCE`)."""
     h, w = hw
     f, j, c0, n = _row_spans(q, faces_idx, h, w)
+    k = coef[f]  # per span: each barycentric's ``a c + b j + c``, ``b j`` once per span
+    (a1, bj1, c1), (a2, bj2, c2) = ((k[:, i, 0], k[:, i, 1] * j, k[:, i, 2]) for i in (0, 1))
     f, j = np.repeat(f, n), np.repeat(j, n)
     c = np.repeat(c0, n) + np.arange(f.size) - np.repeat(np.cumsum(n) - n, n)
-    k = coef[f]
-    l1 = k[:, 0, 0] * c + k[:, 0, 1] * j + k[:, 0, 2]
-    l2 = k[:, 1, 0] * c + k[:, 1, 1] * j + k[:, 1, 2]
+    l1 = np.repeat(a1, n) * c + np.repeat(bj1, n) + np.repeat(c1, n)
+    l2 = np.repeat(a2, n) * c + np.repeat(bj2, n) + np.repeat(c2, n)
     l0 = 1.0 - l1 - l2
     ok = (l0 >= -_EDGE_TOLERANCE) & (l1 >= -_EDGE_TOLERANCE) & (l2 >= -_EDGE_TOLERANCE)
-    bary = np.clip(np.stack([l0[ok], l1[ok], l2[ok]], -1), 0.0, 1.0)
-    bary /= bary.sum(-1, keepdims=True)
+    l0, l1, l2 = (np.clip(x[ok], 0.0, 1.0) for x in (l0, l1, l2))
+    total = l0 + l1 + l2
+    bary = np.stack([l0 / total, l1 / total, l2 / total], -1)
     return (h - 1 - j[ok]) * w + c[ok], f[ok], bary  # image layout: row 0 on top
 
 
@@ -119,21 +121,18 @@ def rasterize_uv(uv: np.ndarray, faces: np.ndarray, hw: tuple[int, int]) -> Texe
     cum = np.cumsum(texels[order] + 2)  # about the texels (and rows) each triangle holds
     face = np.full(h * w, -1, np.int64)
     bary = np.zeros((h * w, 3))
-    strict = np.zeros(h * w, np.int64)
+    strict = np.zeros(h * w, np.int32)
     start = 0
     while start < len(order):  # groups of triangles in index order: the highest index wins
         base = cum[start - 1] if start else 0
         stop = max(start + 1, int(np.searchsorted(cum, base + _CANDIDATES, side="right")))
         texel, f, b = _candidates(order[start:stop], q, coef, hw)
         start = stop
-        once = np.bincount(texel, minlength=h * w)[texel] == 1
-        face[texel[once]], bary[texel[once]] = f[once], b[once]
-        if not once.all():  # texels of several triangles: the highest index
-            tt, ff, bb = texel[~once], f[~once], b[~once]
-            np.maximum.at(face, tt, ff)
-            win = ff == face[tt]
-            bary[tt[win]] = bb[win]
-        strict += np.bincount(texel[np.all(b > _STRICT, -1)], minlength=h * w)
+        np.maximum.at(face, texel, f)  # texels of several triangles: the highest index
+        win = f == face[texel]  # one per texel: a triangle holds a texel once
+        bary[texel[win]] = b[win]
+        inner = (b[:, 0] > _STRICT) & (b[:, 1] > _STRICT) & (b[:, 2] > _STRICT)
+        np.add.at(strict, texel[inner], np.int32(1))
     overlap_faces: tuple[int, ...] = ()
     if np.any(strict > 1):
         hold = _holders(int(np.argmax(strict > 1)), corners, hw)
@@ -170,15 +169,31 @@ def extend_margin(values: np.ndarray, mask: np.ndarray, margin: int) -> tuple[np
     **Returns:** the values ``(h, w, C)`` and the mask of assigned texels after the passes.
     """
     h, w = mask.shape
-    channels = values.shape[-1]
+    index = np.flatnonzero(mask)
+    out = np.array(values, np.float64).reshape(h * w, -1)  # unassigned texels keep theirs
+    filled, filled_vals = extend_margin_texels(index, out[index], (h, w), margin)
+    out[filled] = filled_vals
+    done = np.zeros(h * w, bool)
+    done[filled] = True
+    return out.reshape(h, w, -1), done.reshape(h, w)
+
+
+def extend_margin_texels(index: np.ndarray, values: np.ndarray, hw: tuple[int, int],
+                         margin: int) -> tuple[np.ndarray, np.ndarray]:
+    """`extend_margin` of the texels ``index`` (flat image indices) holding ``values``
+    ``(n, C)``, the others unassigned: the assigned texels after the passes (flat image
+    indices, ascending) and their values, without maps of the whole image's values."""
+    h, w = hw
     stride = w + 2  # a padded grid: the border's neighbours exist and are never assigned
-    grid = np.zeros((h + 2, stride), bool)
-    grid[1:-1, 1:-1] = True
-    in_map = grid.ravel()
+    in_map = np.zeros((h + 2, stride), bool)
+    in_map[1:-1, 1:-1] = True
+    in_map = in_map.ravel()
+    index = np.asarray(index, np.int64)
+    padded = index + 2 * (index // w) + stride + 1
     done = np.zeros((h + 2) * stride, bool)
-    done[in_map] = np.asarray(mask, bool).ravel()
-    vals = np.zeros(((h + 2) * stride, channels))
-    vals[in_map] = np.asarray(values, np.float64).reshape(-1, channels)
+    done[padded] = True
+    vals = np.zeros(((h + 2) * stride, values.shape[-1]))
+    vals[padded] = values
     edges = np.array([-1, 1, -stride, stride])
     corners = np.array([-stride - 1, -stride + 1, stride - 1, stride + 1])
     near = np.zeros_like(done)
@@ -188,7 +203,7 @@ def extend_margin(values: np.ndarray, mask: np.ndarray, margin: int) -> tuple[np
     for _ in range(int(margin)):
         if cand.size == 0:
             break
-        acc = np.zeros((cand.size, channels))
+        acc = np.zeros((cand.size, vals.shape[-1]))
         wsum = np.zeros(cand.size)
         for offsets, weight in ((edges, 2.0), (corners, 1.0)):
             for o in offsets:
@@ -199,7 +214,9 @@ def extend_margin(values: np.ndarray, mask: np.ndarray, margin: int) -> tuple[np
         done[cand] = True
         cand = np.unique((cand[:, None] + edges[None]).ravel())
         cand = cand[in_map[cand] & ~done[cand]]
-    return vals[in_map].reshape(h, w, channels), done[in_map].reshape(h, w)
+    padded = np.flatnonzero(done)
+    r, c = np.divmod(padded, stride)
+    return (r - 1) * w + (c - 1), vals[padded]
 
 
 def uv_box(mask: np.ndarray) -> tuple[float, float, float, float] | None:

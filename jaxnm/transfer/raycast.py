@@ -44,8 +44,10 @@ and the random numbers are a hash of the texel and the sample, not Cycles' seque
 
 The rays are cast with Embree (the ``bake`` extra's ``embreex``, robust mode: a ray through
 an edge or a vertex shared by triangles hits one of them), in
-chunks of texels on worker threads, so the memory is bounded whatever the map's size; the
-result depends neither on the chunks nor on the threads.
+chunks of texels on worker threads, so the rays' memory is bounded whatever the map's size
+(the map's own arrays grow with its texels); the result depends neither on the
+chunks nor on the threads. Embree builds HIGH's scene on a thread of its own while LOW's
+inputs and texels are prepared.
 """
 
 from __future__ import annotations
@@ -63,7 +65,7 @@ from ..geometry import Mesh
 from ._embree import EmbreeScene
 from ._meshes import BakeWarning as BakeWarning
 from ._meshes import check_mesh, prepare_low, warn_overlap, with_normals
-from ._texels import extend_margin, rasterize_uv, uv_box
+from ._texels import extend_margin_texels, rasterize_uv, uv_box
 
 __all__ = ["RAYCAST_FRAMES", "BakeWarning", "RaycastBake", "raycast_normal_map"]
 
@@ -98,7 +100,8 @@ class RaycastBake:
       ``"mesh"``.
     - `max_distance`: the ray length bound (0: unlimited); `samples`: per texel;
       `frame`: the tangent frame; `margin`: the margin's passes.
-    - `seconds`: the whole bake's wall time; `timings`: seconds per stage.
+    - `seconds`: the whole bake's wall time; `timings`: seconds per stage (``scene``: the
+      wait for Embree's scene of HIGH, built on a thread during ``inputs`` and ``texels``).
     """
 
     normals: np.ndarray
@@ -162,7 +165,8 @@ def _check_cage_mesh(cage_mesh: Mesh | None, low: Mesh, name: str) -> np.ndarray
 class _Low:
     """What the rays need of LOW: positions, ray normals, the cage's positions (or None),
     and per face the jitter steps ``dxco``, ``dyco`` (half a texel's step of the surface
-    point along +u and +v, on the cage mesh when there is one, as in Blender)."""
+    point along +u and +v, on the cage mesh when there is one, as in Blender); all
+    component-major, ``(3, V)`` and ``(3, F)``."""
 
     faces: np.ndarray
     positions: np.ndarray
@@ -185,44 +189,58 @@ class _Low:
         safe = np.where(ok[:, 0], det, 1.0)[:, None]
         dpdu = np.where(ok, (e1 * d2[:, 1:] - e2 * d1[:, 1:]) / safe, 0.0)
         dpdv = np.where(ok, (e2 * d1[:, :1] - e1 * d2[:, :1]) / safe, 0.0)
-        return _Low(faces, pos, np.asarray(low.normals, np.float64), cage_positions,
-                    0.5 * dpdu / hw[1], 0.5 * dpdv / hw[0])
+        return _Low(faces, *(None if x is None else np.ascontiguousarray(np.transpose(x))
+                             for x in (pos, np.asarray(low.normals, np.float64),
+                                       cage_positions, 0.5 * dpdu / hw[1],
+                                       0.5 * dpdv / hw[0])))
 
 
 def _rays(low: _Low, tri: np.ndarray, bary: np.ndarray, cage: float | None):
-    """Ray origins and unit directions of texels ``(tri, bary)`` (Blender's, see the module
-    docstring), and whether each is defined (a zero normal or cage offset gives none)."""
+    """Ray origins and unit directions ``(3, N)`` of texels ``(tri, bary)`` (Blender's, see
+    the module docstring), and whether each is defined (a zero normal or cage offset gives
+    none)."""
     fc = low.faces[tri]
-    p = np.einsum("tk,tkc->tc", bary, low.positions[fc])
+
+    def at(a):  # the interpolated attribute, components along the first axis
+        return bary[:, 0] * a[:, fc[:, 0]] + bary[:, 1] * a[:, fc[:, 1]] + bary[:, 2] * a[
+            :, fc[:, 2]]
+
+    p = at(low.positions)
     if low.cage_positions is None:
-        d = np.einsum("tk,tkc->tc", bary, low.normals[fc])
+        d = at(low.normals)
     else:
-        origin = np.einsum("tk,tkc->tc", bary, low.cage_positions[fc])
+        origin = at(low.cage_positions)
         d = p - origin
-    length = _norm(d)[:, None]
-    ok = length[:, 0] > 0
-    d = np.where(ok[:, None], d / np.where(ok[:, None], length, 1.0), [0.0, 0.0, 1.0])
+    length = _norm(d)
+    ok = length > 0
+    d = np.where(ok, d / np.where(ok, length, 1.0), np.array([[0.0], [0.0], [1.0]]))
     if low.cage_positions is None:
         return p + cage * d, -d, ok
     return origin, d, ok
 
 
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise dot products (einsum: NumPy's reductions over a last axis of 3 are slow)."""
-    return np.einsum("...i,...i->...", a, b)
+def _dot(a, b) -> np.ndarray:
+    """Dot products of vectors given by their components ``a[0], a[1], a[2]``."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-def _norm(a: np.ndarray) -> np.ndarray:
+def _norm(a) -> np.ndarray:
     return np.sqrt(_dot(a, a))
+
+
+def _cross(a, b) -> np.ndarray:
+    return np.stack([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                     a[0] * b[1] - a[1] * b[0]])
 
 
 def _hash(x: np.ndarray) -> np.ndarray:
     """A 32-bit integer hash (lowbias32) of each element of ``x`` (uint32)."""
-    x = x ^ (x >> np.uint32(16))
-    x = x * np.uint32(0x7FEB352D)
-    x = x ^ (x >> np.uint32(15))
-    x = x * np.uint32(0x846CA68B)
-    return x ^ (x >> np.uint32(16))
+    x = x ^ (x >> np.uint32(16))  # a new array; the rest in place
+    x *= np.uint32(0x7FEB352D)
+    x ^= x >> np.uint32(15)
+    x *= np.uint32(0x846CA68B)
+    x ^= x >> np.uint32(16)
+    return x
 
 
 def _salt(*values: int) -> np.uint32:
@@ -239,36 +257,36 @@ def _uniform(x: np.ndarray) -> np.ndarray:
 
 
 class _HighHits:
-    """HIGH's triangles at a chunk's hits, and the normal at barycentrics there."""
+    """HIGH's triangles at a chunk's hits, and the normal at barycentrics there (vectors
+    component-major, ``(3, N)``, from HIGH's ``(3, V)`` positions and normals)."""
 
     def __init__(self, positions, faces, normals, prim):
         f = faces[prim]
-        self.p = positions[f]  # (n, 3, 3)
-        self.n = normals[f]
-        ng = np.cross(self.p[:, 1] - self.p[:, 0], self.p[:, 2] - self.p[:, 0])
-        self.ng = ng / np.maximum(_norm(ng), 1e-300)[:, None]
+        self.p = [positions[:, f[:, k]] for k in range(3)]  # per corner, (3, n)
+        self.n = [normals[:, f[:, k]] for k in range(3)]
+        ng = _cross(self.p[1] - self.p[0], self.p[2] - self.p[0])
+        self.ng = ng / np.maximum(_norm(ng), 1e-300)
 
     def normal(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Cycles' smooth normal at Blender's barycentrics ``(a, b)`` (weights of corners 0
         and 1): the interpolated vertex normals, normalised, or the face normal."""
-        n = (a[:, None] * self.n[:, 0] + b[:, None] * self.n[:, 1]
-             + (1.0 - a - b)[:, None] * self.n[:, 2])
-        length = _norm(n)[:, None]
+        n = a * self.n[0] + b * self.n[1] + (1.0 - a - b) * self.n[2]
+        length = _norm(n)
         return np.where(length > 0, n / np.where(length > 0, length, 1.0), self.ng)
 
     def differentials(self, direction, dxco, dyco):
         """Blender's barycentric differentials on the hit triangles: the texel steps carried
         along the ray onto the triangle's plane, in the corner-2-based edge basis."""
-        cos = _dot(direction, self.ng)[:, None]
+        cos = _dot(direction, self.ng)
         cos = np.where(cos == 0, np.inf, cos)
-        e0 = self.p[:, 0] - self.p[:, 2]
-        e1 = self.p[:, 1] - self.p[:, 2]
+        e0 = self.p[0] - self.p[2]
+        e1 = self.p[1] - self.p[2]
         g00, g01, g11 = _dot(e0, e0), _dot(e0, e1), _dot(e1, e1)
         det = g00 * g11 - g01 * g01
         det = np.where(det == 0, np.inf, det)
         out = []
         for step in (dxco, dyco):
-            d = step - direction * (_dot(step, self.ng)[:, None] / cos)
+            d = step - direction * (_dot(step, self.ng) / cos)
             r0, r1 = _dot(e0, d), _dot(e1, d)
             out.append(((g11 * r0 - g01 * r1) / det, (g00 * r1 - g01 * r0) / det))
         (dudx, dvdx), (dudy, dvdy) = out
@@ -281,22 +299,30 @@ def _average_normal(hits: _HighHits, a, b, diffs, keys, samples: int) -> np.ndar
     acc = hits.normal(a, b)
     dudx, dudy, dvdx, dvdy = diffs
     for s in range(1, samples):
-        ja, jb = a.copy(), b.copy()
-        todo = np.arange(len(a))
         draw = _hash(keys ^ _salt(s))  # per texel and sample; each retry hashes it again
-        for attempt in range(_JITTER_TRIES):
-            hx = _hash(draw[todo] ^ _salt(attempt, 0))
-            rx = _uniform(hx) - 0.5
-            ry = _uniform(_hash(hx ^ _salt(attempt, 1))) - 0.5
-            ca = a[todo] + rx * dudx[todo] + ry * dudy[todo]
-            cb = b[todo] + rx * dvdx[todo] + ry * dvdy[todo]
-            ok = (ca > 0) & (cb > 0) & (ca + cb < 1)
-            ja[todo[ok]], jb[todo[ok]] = ca[ok], cb[ok]
-            todo = todo[~ok]
+        # the first draw for every texel, without gathers
+        ja, jb, ok = _jitter(draw, 0, a, b, dudx, dudy, dvdx, dvdy)
+        ja, jb, todo = np.where(ok, ja, a), np.where(ok, jb, b), np.flatnonzero(~ok)
+        for attempt in range(1, _JITTER_TRIES):
             if todo.size == 0:
                 break
+            ca, cb, ok = _jitter(draw[todo], attempt, a[todo], b[todo], dudx[todo],
+                                 dudy[todo], dvdx[todo], dvdy[todo])
+            ja[todo[ok]], jb[todo[ok]] = ca[ok], cb[ok]
+            todo = todo[~ok]
         acc = acc + hits.normal(ja, jb)
     return acc / samples
+
+
+def _jitter(draw, attempt, a, b, dudx, dudy, dvdx, dvdy):
+    """One draw of Cycles' jitter of the hits ``(a, b)``: the moved barycentrics and
+    whether they lie strictly inside the triangle."""
+    hx = _hash(draw ^ _salt(attempt, 0))
+    rx = _uniform(hx) - 0.5
+    ry = _uniform(_hash(hx ^ _salt(attempt, 1))) - 0.5
+    ca = a + rx * dudx + ry * dudy
+    cb = b + rx * dvdx + ry * dvdy
+    return ca, cb, (ca > 0) & (cb > 0) & (ca + cb < 1)
 
 
 # ----------------------------------------------------------------------------- the bake
@@ -319,27 +345,28 @@ def _automatic_cage(engine: EmbreeScene, low: _Low, tri, bary, chunks) -> float:
     need = 0.0
     for sl in chunks:
         origin, d, ok = _rays(low, tri[sl], bary[sl], 0.0)  # origin = p, d = -n
-        prim_out, _, _, t_out = engine.cast(origin, -d, 0.0)
-        prim_in, _, _, t_in = engine.cast(origin, d, 0.0)
+        prim_out, _, _, t_out = engine.cast(origin.T, -d.T, 0.0)
+        prim_in, _, _, t_in = engine.cast(origin.T, d.T, 0.0)
         outside = ok & (prim_out >= 0) & ((prim_in < 0) | (t_out < t_in))
         if outside.any():
             need = max(need, float(t_out[outside].max()))
-    size = float(np.linalg.norm(np.ptp(low.positions, axis=0)))
+    size = float(np.linalg.norm(np.ptp(low.positions, axis=1)))
     return 1.05 * need + 1e-4 * size
 
 
 def _bake_chunk(engine, high, low, tri, bary, keys, *, cage, max_distance, samples):
-    """World-space normals and hit flags of one chunk of texels."""
+    """World-space normals ``(3, N)`` and hit flags of one chunk of texels."""
     origin, direction, ok = _rays(low, tri, bary, cage)
-    prim, u, v, _ = engine.cast(origin, direction, max_distance)
+    prim, u, v, _ = engine.cast(origin.T, direction.T, max_distance)
     hit = ok & (prim >= 0)
-    world = np.zeros((len(tri), 3))
+    world = np.zeros((3, len(tri)))
     if hit.any():
         hits = _HighHits(*high, prim[hit])
         a, b = 1.0 - u[hit] - v[hit], u[hit]  # Blender's weights of corners 0 and 1
         diffs = ((None,) * 4 if samples == 1 else
-                 hits.differentials(direction[hit], low.dxco[tri[hit]], low.dyco[tri[hit]]))
-        world[hit] = _average_normal(hits, a, b, diffs, keys[hit], samples)
+                 hits.differentials(direction[:, hit], low.dxco[:, tri[hit]],
+                                    low.dyco[:, tri[hit]]))
+        world[:, hit] = _average_normal(hits, a, b, diffs, keys[hit], samples)
     return world, hit
 
 
@@ -405,14 +432,16 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
         lap[0] = now
 
     hw = _check_options(size, frame, cage, cage_mesh, max_distance, samples, margin)
-    low = prepare_low(low, frame, low_name)
     hp, hf = check_mesh(high, high_name)
-    hn = np.asarray(with_normals(high, high_name).normals, np.float64)
-    geo = _Low.build(low, _check_cage_mesh(cage_mesh, low, "cage mesh"), hw)
-    tick("inputs")
-    cover, texels, tri, bary = _texels(low, hw, low_name)
-    tick("texels")
-    engine = EmbreeScene(hp, hf, engine=engine)
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:  # Embree builds meanwhile
+        scene = pool.submit(EmbreeScene, hp, hf, engine=engine)
+        low = prepare_low(low, frame, low_name)
+        hn = np.asarray(with_normals(high, high_name).normals, np.float64)
+        geo = _Low.build(low, _check_cage_mesh(cage_mesh, low, "cage mesh"), hw)
+        tick("inputs")
+        cover, texels, tri, bary = _texels(low, hw, low_name)
+        tick("texels")
+        engine = scene.result()
     tick("scene")
     step = max(1, int(chunk_texels or _CHUNK // samples))
     chunks = [slice(i, i + step) for i in range(0, texels.size, step)]
@@ -456,12 +485,14 @@ def _bake_texels(engine, high, low, geo, tri, bary, keys, chunks, workers, rays,
     writes only its own rows, so the result does not depend on the threads)."""
     m = np.zeros((len(tri), 3))
     hit = np.zeros(len(tri), bool)
+    high = (np.ascontiguousarray(high[0].T), high[1], np.ascontiguousarray(high[2].T))  # (3, V)
 
     def bake(sl):
         world, hit[sl] = _bake_chunk(engine, high, geo, tri[sl], bary[sl], keys[sl], **rays)
         h = hit[sl]
         if h.any():
-            m[sl][h] = world_to_tangent(low, tri[sl][h], bary[sl][h], world[h], frame=frame)
+            m[sl][h] = world_to_tangent(low, tri[sl][h], bary[sl][h], world[:, h].T,
+                                        frame=frame)
 
     with concurrent.futures.ThreadPoolExecutor(workers) as pool:
         list(pool.map(bake, chunks))
@@ -471,15 +502,15 @@ def _bake_texels(engine, high, low, geo, tri, bary, keys, chunks, workers, rays,
 def _finish(cover, texels, hit, m, hw, margin, settings, names, tick, timings, t0):
     """The margin, the miss report and the `RaycastBake`."""
     h, w = hw
-    values = np.zeros((h * w, 3))
-    values[texels[hit]] = m[hit]
-    done = np.zeros(h * w, bool)
-    done[texels[hit]] = True
-    vals, filled = extend_margin(values.reshape(h, w, 3), done.reshape(h, w), margin)
-    length = _norm(vals)[..., None]
-    filled &= length[..., 0] > 0
-    normals = np.where(filled[..., None], vals / np.where(length > 0, length, 1.0),
-                       [0.0, 0.0, 1.0]).astype(np.float32)
+    idx, v = extend_margin_texels(texels[hit], m[hit], hw, margin)
+    length = _norm(v.T)
+    idx, v, length = idx[length > 0], v[length > 0], length[length > 0]
+    filled = np.zeros((h, w), bool)
+    filled.flat[idx] = True
+    normals = np.zeros((h * w, 3), np.float32)
+    normals[:, 2] = 1.0
+    normals[idx] = (v / length[:, None]).astype(np.float32)
+    normals = normals.reshape(h, w, 3)
     inside = cover.face >= 0
     missed = np.zeros(h * w, bool)
     missed[texels[~hit]] = True
