@@ -82,15 +82,20 @@ _LAUNCH = ("import runpy, signal; signal.signal(signal.SIGINT, signal.default_in
            "runpy.run_module('jaxnm_launcher', run_name='__main__', alter_sys=True)")
 
 
-def _interrupt(out: Path, *, after: str | None, delay: float, count: int = 1):
-    """Run ``jaxnm fit --quick -o out --no-progress`` through the ``jaxnm`` launcher with no
-    compilation cache (so that XLA compiles while it runs), send it ``count`` SIGINTs
-    ``delay`` seconds after the stderr line starting with ``after`` (after the start for
-    None); returns the exit code and stderr."""
+def _interrupt(out: Path, *, after: str | None, delay: float, count: int = 1,
+               compile: bool = True):
+    """Run ``jaxnm fit --quick -o out --no-progress`` through the ``jaxnm`` launcher, send it
+    ``count`` SIGINTs ``delay`` seconds after the stderr line starting with ``after`` (after
+    the start for None); returns the exit code and stderr. With ``compile`` the child has no
+    compilation cache, so that XLA compiles while it runs; without, it shares the suite's
+    persistent cache (conftest.py), for Ctrl-Cs that land after the compiles."""
+    env = dict(os.environ)
+    if compile:
+        env["JAXNM_COMPILATION_CACHE"] = "off"
     proc = subprocess.Popen(
         [sys.executable, "-c", _LAUNCH, "fit", "--quick", "-o", str(out),
          "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        cwd=ROOT, env={**os.environ, "JAXNM_COMPILATION_CACHE": "off"})
+        cwd=ROOT, env=env)
     lines, seen = [], threading.Event()
 
     def read():
@@ -134,7 +139,9 @@ def test_ctrl_c_at_any_moment_exits_130_and_loses_nothing(tmp_path, after, delay
     out = tmp_path / "out"
     out.mkdir()
     (out / "earlier.txt").write_text("kept")
-    rc, err = _interrupt(out, after=after, delay=delay)
+    # Ctrl-Cs once the fit runs need no compiling child: those share the suite's cache
+    rc, err = _interrupt(out, after=after, delay=delay,
+                         compile=after not in ("fit step 1/", "writing outputs"))
     assert rc == 130, err
     for bad in ("Traceback", "Exception ignored", "Fatal Python error", "Segmentation"):
         assert bad not in err, err

@@ -358,27 +358,29 @@ def test_value_checks_are_for_where_scenes_are_made():
 def test_triangles_with_nan_corners_or_bad_indices_cover_nothing(size):
     """`render` does not scan values on the host (`validate_scene` does, where scenes are
     made); a triangle with a NaN or infinite corner, or a face index out of range, covers
-    no pixel, as on a GPU: the image is the one of the mesh without those triangles."""
+    no pixel, as on a GPU: the image is the one of the mesh without those triangles. (Every
+    render asks for the same outputs: the meshes of the mesh's shape share one program.)"""
     sc = default_scene(width=size, height=size)
     m = sc.mesh
     faces = np.asarray(m.faces)
-    tid = np.asarray(render(sc, outputs=("triangle_id",))["triangle_id"])
+    outs = ("color", "mask", "triangle_id")
+    tid = np.asarray(render(sc, outputs=outs)["triangle_id"])
     rows, cols = np.nonzero(tid[..., 0] >= 0)
     k = len(rows) // 2
     victim = int(faces[int(tid[rows[k], cols[k], 0]), 0])  # a vertex in view
     uses = np.any(faces == victim, axis=1)
     without = render(sc.replace(mesh=dataclasses.replace(m, faces=jnp.asarray(faces[~uses]))),
-                     outputs=("color", "mask"))
+                     outputs=outs)
     for bad in (np.nan, np.inf):
         pos = jnp.asarray(m.positions).at[victim, 1].set(bad)
-        got = render(sc.replace(mesh=dataclasses.replace(m, positions=pos)),
-                     outputs=("color", "mask"))
+        got = render(sc.replace(mesh=dataclasses.replace(m, positions=pos)), outputs=outs)
         for name in ("color", "mask"):
             np.testing.assert_array_equal(got[name], without[name], err_msg=f"{bad} {name}")
     bad_faces = np.where(uses[:, None], np.array([[0, 1, 10**6]]), faces)
     got = render(sc.replace(mesh=dataclasses.replace(m, faces=jnp.asarray(bad_faces))),
-                 outputs=("color", "mask"))
-    assert not np.array_equal(without["color"], render(sc)["color"])  # they were in view
+                 outputs=outs)
+    # they were in view
+    assert not np.array_equal(without["color"], render(sc, outputs=outs)["color"])
     for name in ("color", "mask"):
         np.testing.assert_array_equal(got[name], without[name], err_msg=f"indices {name}")
 

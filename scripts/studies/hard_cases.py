@@ -191,7 +191,9 @@ def cases(size: int = 64) -> list[Case]:
     out.append(Case("silhouettes (sphere)", _scene(sphere, _look((0.0, -3.0, 0.5), (0, 0, 0),
                                                                    (0, 0, 1)), size),
                     None, None, "finite values and gradients"))
-    box = jaxnm.procedural.uv_sphere(3.0, 16, 8)
+    # the silhouettes' tessellation: the same program shapes, compiled once (a test runs
+    # every case)
+    box = jaxnm.procedural.uv_sphere(3.0, 24, 12)
     out.append(Case("camera inside a closed mesh", _scene(box, _look((0.2, 0.1, 0.0),
                                                                       (1.0, 0.5, 0.3)), size,
                                                           double_sided=True),
