@@ -182,7 +182,7 @@ def over_rounds(evaluate, update, carry, *, total: Array, size: int,
     def one(q, carry):  # (a loop index under the carry's x64 may be int64)
         return round_((jnp.asarray(q, jnp.int32), carry))[1]
 
-    with jax.enable_x64(x64 or any(x.dtype == np.uint64 for x in jax.tree.leaves(carry))):
+    with _carry_x64(x64, carry):
         if not resident():
             return jax.lax.while_loop(lambda c: c[0] * size < total, round_,
                                       (jnp.int32(0), carry))[1]
@@ -199,6 +199,12 @@ def over_rounds(evaluate, update, carry, *, total: Array, size: int,
             return jax.lax.fori_loop(first, most, more, carry)
 
         return jax.lax.cond(first * size < total, rest, lambda c: c, carry)
+
+
+def _carry_x64(x64: bool, carry):
+    """``jax.enable_x64`` for a loop over ``carry``: the caller's setting ``x64``, or on where
+    the carry holds 64-bit depth keys, so that they stay 64-bit whatever the caller's."""
+    return jax.enable_x64(x64 or any(x.dtype == np.uint64 for x in jax.tree.leaves(carry)))
 
 
 def slot_passes(counts: Array, pass_slots: int) -> tuple[Array, Array]:
@@ -247,8 +253,7 @@ def each_pass(fn, counts, carry, *, tiles: int, pass_slots: int):
         with jax.enable_x64(x64):
             return p + 1, fn(jnp.where(passes == p, counts, 0), carry)
 
-    # (a carry of 64-bit depth keys stays 64-bit whatever the caller's jax_enable_x64)
-    with jax.enable_x64(x64 or any(x.dtype == np.uint64 for x in jax.tree.leaves(carry))):
+    with _carry_x64(x64, carry):
         return jax.lax.while_loop(lambda c: c[0] < n_passes, one_pass,
                                   (jnp.int32(0), carry))[1]
 
@@ -266,8 +271,7 @@ def _resident_passes(fn, counts, carry, *, most: int, pass_slots: int):
         with jax.enable_x64(x64):
             return fn(jnp.where(passes == p, counts, 0), carry)
 
-    # (a carry of 64-bit depth keys stays 64-bit whatever the caller's jax_enable_x64)
-    with jax.enable_x64(x64 or any(x.dtype == np.uint64 for x in jax.tree.leaves(carry))):
+    with _carry_x64(x64, carry):
         carry = one_pass(0, carry)
 
         def rest(carry):
