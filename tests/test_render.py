@@ -326,9 +326,11 @@ def test_cli_uses_the_persistent_compilation_cache(tmp_path):
 
     hits, first_misses = run()
     assert hits == 0 and first_misses > 0 and any(cache.iterdir())
-    hits, misses = run()
-    # programs that compile in under `min_compile_seconds` are not stored: a few may miss
-    assert hits > 0 and misses <= first_misses
+    hits, _ = run()
+    # JAX's "miss" event is a write: every program the first run stored is read back. (A
+    # program compiled in under `min_compile_seconds` is not stored; one near that threshold
+    # may be stored by the second run only, so the second run's writes are not bounded.)
+    assert hits >= first_misses
     assert run("--no-compile-cache") == (0, 0)
     assert run(env=dict(env, JAXNM_COMPILATION_CACHE="off")) == (0, 0)
     run("--nondeterministic")
