@@ -13,6 +13,7 @@ import sys
 import time
 import warnings
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -26,6 +27,17 @@ from jaxnm.cli._fit import CHECKPOINT_NAME as _CHECKPOINT_NAME
 from jaxnm.fit.texel_lm import TexelLM
 from jaxnm.io import atomic_write, load_texture
 from jaxnm.procedural import default_problem
+
+_COMPILED: list = []
+_LISTENING = [False]
+
+
+def _on_compile(name, seconds, **kwargs):
+    if _LISTENING[0] and name == "/jax/core/compile/backend_compile_duration":
+        _COMPILED.append(kwargs.get("fun_name", "?"))
+
+
+jax.monitoring.register_event_duration_secs_listener(_on_compile)  # (0.8.0: cannot unregister)
 
 
 @pytest.fixture(scope="module")
@@ -156,7 +168,9 @@ def test_a_resumed_fit_is_the_uninterrupted_fit(small, solver, levels, tmp_path)
     """Stopped after step 3 of its last level (a checkpoint after every step), then resumed
     from the checkpoint: the same losses from the resumed step on and the same map, bitwise,
     as the fit that ran through; so is a checkpoint written part-way (every step), and a
-    resumed finished fit is the finished fit without a step."""
+    resumed finished fit is the finished fit without a step. The resumed fit runs the step
+    the first fit compiled: the saved solver state has the fresh state's types (weak-typed
+    scalars included)."""
     problem, gt, prep = small
     opts = F.FitOptions(solver=solver, max_steps=7, ftol=0.0, coarse_to_fine=levels,
                         init_noise=0.05, seed=3)  # (the other tests' compiled steps)
@@ -168,7 +182,13 @@ def test_a_resumed_fit_is_the_uninterrupted_fit(small, solver, levels, tmp_path)
                             **kw)
     assert part.stopped == "interrupted" and part.stop_test == "should_stop"
     assert len(part.history) < len(ref.history)
-    res = F.fit_normal_map(problem, opts, checkpoint=ck, resume=True, **kw)
+    _COMPILED.clear()
+    _LISTENING[0] = True
+    try:
+        res = F.fit_normal_map(problem, opts, checkpoint=ck, resume=True, **kw)
+    finally:
+        _LISTENING[0] = False
+    assert not [f for f in _COMPILED if "_step" in f], _COMPILED
     assert res.stopped == ref.stopped == "max_steps"
     keys = ("level", "step", "loss", "accepted", "damping", "predicted",
             "mean_angular_error_deg")

@@ -432,11 +432,21 @@ def _saved_state(path, fresh, leaves: list):
     if [(a.shape, a.dtype) for a in now] != [(a.shape, a.dtype) for a in leaves]:
         raise ValueError(f"{path}: cannot resume this fit: the checkpoint's solver state does "
                          "not fit this solver and problem")
-    # (an uncommitted fresh array stays uncommitted: jit places it beside the others, e.g.
-    # on every process's devices for a problem spread over processes)
-    arrays = [jax.device_put(a, b.sharding if b.committed else None)
-              for a, b in zip(leaves, now, strict=True)]
+    arrays = [_as_saved(a, b) for a, b in zip(leaves, now, strict=True)]
     return eqx.combine(treedef.unflatten(arrays), static)
+
+
+def _as_saved(saved, fresh: Array) -> Array:
+    """A checkpoint's array ``saved`` as the state's array ``fresh`` is: where it lives (an
+    uncommitted fresh array stays uncommitted: jit places it beside the others, e.g. on
+    every process's devices for a problem spread over processes), and weak-typed if it is
+    (optimistix's counters are weak-typed scalars; a strong one would not match the
+    compiled step, which would compile again)."""
+    if jax.typeof(fresh).weak_type and np.ndim(saved) == 0:
+        weak = jnp.asarray(np.asarray(saved).item())  # a Python scalar's type: weak
+        if weak.dtype == fresh.dtype:
+            saved = weak
+    return jax.device_put(saved, fresh.sharding if fresh.committed else None)
 
 
 class StepResult(NamedTuple):
