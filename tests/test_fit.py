@@ -139,6 +139,11 @@ def test_prepared_keeps_only_covered_pixels_and_needed_taps(small):
             assert np.all(img[~cover] == 0)
 
 
+#: The loss and its gradient, one program per problem layout (a test needing either takes
+#: both).
+_loss_and_grad = jax.jit(jax.value_and_grad(F.loss))
+
+
 @pytest.mark.slow
 def test_views_with_different_sizes_targets_and_light_kinds(small):
     """Views of different image sizes and target counts share one vmapped batch (padded);
@@ -181,9 +186,8 @@ def test_views_with_different_sizes_targets_and_light_kinds(small):
         np.testing.assert_allclose(np.asarray(imgs), prep.target_images(v), rtol=3e-3, atol=2e-3)
     args = F.ModelArgs.create(prep)
     slopes = F.normals_to_slopes(jnp.asarray(gt))
-    loss_and_grad = jax.jit(jax.value_and_grad(F.loss))  # (one program for both)
-    at_truth = float(loss_and_grad(slopes, args)[0])
-    flat, g = loss_and_grad(jnp.zeros_like(slopes), args)
+    at_truth = float(_loss_and_grad(slopes, args)[0])
+    flat, g = _loss_and_grad(jnp.zeros_like(slopes), args)
     assert at_truth < 1e-3 * float(flat)
     assert np.all(np.isfinite(np.asarray(g))) and np.any(np.asarray(g) != 0)
 
@@ -210,13 +214,13 @@ def test_gradient_wrt_slopes_matches_finite_differences(small):
     rng = np.random.default_rng(0)
     z = jnp.asarray(rng.normal(0, 0.3, (32, 32, 2)), jnp.float32)
     args = F.ModelArgs.create(prep)
-    loss = jax.jit(F.loss)
-    g = jax.jit(jax.grad(F.loss))(z, args)
+    loss = lambda x: _loss_and_grad(x, args)[0]  # noqa: E731
+    g = _loss_and_grad(z, args)[1]
     assert np.all(np.isfinite(np.asarray(g)))
     d = jnp.asarray(rng.normal(size=z.shape), jnp.float32)
     d = d / jnp.linalg.norm(d)
     eps = 1e-2
-    fd = (loss(z + eps * d, args) - loss(z - eps * d, args)) / (2 * eps)
+    fd = (loss(z + eps * d) - loss(z - eps * d)) / (2 * eps)
     np.testing.assert_allclose(float(jnp.vdot(g, d)), float(fd), rtol=2e-2)
 
 
