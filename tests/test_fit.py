@@ -139,6 +139,11 @@ def test_prepared_keeps_only_covered_pixels_and_needed_taps(small):
             assert np.all(img[~cover] == 0)
 
 
+#: The loss and its gradient, one program per problem layout (a test needing either takes
+#: both).
+_loss_and_grad = jax.jit(jax.value_and_grad(F.loss))
+
+
 @pytest.mark.slow
 def test_views_with_different_sizes_targets_and_light_kinds(small):
     """Views of different image sizes and target counts share one vmapped batch (padded);
@@ -181,11 +186,9 @@ def test_views_with_different_sizes_targets_and_light_kinds(small):
         np.testing.assert_allclose(np.asarray(imgs), prep.target_images(v), rtol=3e-3, atol=2e-3)
     args = F.ModelArgs.create(prep)
     slopes = F.normals_to_slopes(jnp.asarray(gt))
-    loss = jax.jit(F.loss)
-    at_truth = float(loss(slopes, args))
-    flat = float(loss(jnp.zeros_like(slopes), args))
-    assert at_truth < 1e-3 * flat
-    g = jax.jit(jax.grad(F.loss))(jnp.zeros_like(slopes), args)
+    at_truth = float(_loss_and_grad(slopes, args)[0])
+    flat, g = _loss_and_grad(jnp.zeros_like(slopes), args)
+    assert at_truth < 1e-3 * float(flat)
     assert np.all(np.isfinite(np.asarray(g))) and np.any(np.asarray(g) != 0)
 
 
@@ -211,13 +214,13 @@ def test_gradient_wrt_slopes_matches_finite_differences(small):
     rng = np.random.default_rng(0)
     z = jnp.asarray(rng.normal(0, 0.3, (32, 32, 2)), jnp.float32)
     args = F.ModelArgs.create(prep)
-    loss = jax.jit(F.loss)
-    g = jax.jit(jax.grad(F.loss))(z, args)
+    loss = lambda x: _loss_and_grad(x, args)[0]  # noqa: E731
+    g = _loss_and_grad(z, args)[1]
     assert np.all(np.isfinite(np.asarray(g)))
     d = jnp.asarray(rng.normal(size=z.shape), jnp.float32)
     d = d / jnp.linalg.norm(d)
     eps = 1e-2
-    fd = (loss(z + eps * d, args) - loss(z - eps * d, args)) / (2 * eps)
+    fd = (loss(z + eps * d) - loss(z - eps * d)) / (2 * eps)
     np.testing.assert_allclose(float(jnp.vdot(g, d)), float(fd), rtol=2e-2)
 
 
@@ -541,6 +544,15 @@ def test_sample_split_when_every_pixel_reads_one_level(small):
                                np.asarray(T.apply_plan(head, mips)), atol=1e-6)
 
 
+@jax.jit
+def _normal_products(z, v, args):
+    """J^T r and J^T J v of the residuals at ``z`` (one program per problem layout, shared by
+    the tests below)."""
+    r, lin = jax.linearize(lambda q: F.residuals(q, args), z)
+    transpose = jax.linear_transpose(lin, z)
+    return transpose(r)[0], transpose(lin(v))[0]
+
+
 def test_reduced_residuals_keep_the_loss_and_the_gauss_newton_model(small):
     """The reduced residuals (4 per pixel) have the loss of the full ones (3 per target and
     pixel), the same gradient J^T r and the same Gauss-Newton products J^T J v."""
@@ -553,14 +565,7 @@ def test_reduced_residuals_keep_the_loss_and_the_gauss_newton_model(small):
     assert sum(r.size for r in r_red) < 0.3 * sum(r.size for r in r_full)
     np.testing.assert_allclose(float(F.loss(z, red)), float(F.loss(z, full)), rtol=1e-5)
 
-    @jax.jit
-    def normal_products(args):
-        fn = lambda q: F.residuals(q, args)  # noqa: E731
-        r, lin = jax.linearize(fn, z)
-        transpose = jax.linear_transpose(lin, z)
-        return transpose(r)[0], transpose(lin(v))[0]  # J^T r, J^T J v
-
-    (g_full, h_full), (g_red, h_red) = normal_products(full), normal_products(red)
+    (g_full, h_full), (g_red, h_red) = _normal_products(z, v, full), _normal_products(z, v, red)
     scale = lambda x: float(jnp.max(jnp.abs(x)))  # noqa: E731
     np.testing.assert_allclose(np.asarray(g_red), np.asarray(g_full), atol=2e-4 * scale(g_full))
     np.testing.assert_allclose(np.asarray(h_red), np.asarray(h_full), atol=2e-4 * scale(h_full))
@@ -643,12 +648,7 @@ def test_chunked_steps_equal_the_whole_step(small):
         a_whole = F.ModelArgs.create(whole, reduce=reduce)
         np.testing.assert_allclose(float(F.loss(z, a_cut)), float(F.loss(z, a_whole)), rtol=1e-5)
 
-        def products(args):
-            r, lin = jax.linearize(lambda q: F.residuals(q, args), z)
-            transpose = jax.linear_transpose(lin, z)
-            return transpose(r)[0], transpose(lin(v))[0]  # J^T r, J^T J v
-
-        for got, want in zip(products(a_cut), products(a_whole)):
+        for got, want in zip(_normal_products(z, v, a_cut), _normal_products(z, v, a_whole)):
             scale = float(jnp.max(jnp.abs(want)))
             np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-5 * scale)
 

@@ -289,7 +289,8 @@ def test_where_the_rays_are_right_the_fit_adds_little_across_views(torus_bakes):
 def test_a_fit_starts_from_the_map_it_is_given():
     """Started from the true map, the first loss is the true map's (its rounding) and the
     fit stays there; a start of the wrong size is refused in one line."""
-    problem, truth, _ = jaxnm.default_problem(render_size=48, map_size=16, views=1)
+    # (test_fit's small problem and its 5-iteration step: programs the suite has compiled)
+    problem, truth, _ = jaxnm.default_problem(render_size=64, map_size=32, n_lights=6, views=2)
     opts = F.FitOptions(max_steps=2, lsmr_steps=5)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", F.FitWarning)
@@ -297,7 +298,7 @@ def test_a_fit_starts_from_the_map_it_is_given():
         flat = F.fit_normal_map(problem, opts, prepared=prep, progress=False)
         res = F.fit_normal_map(problem, opts, prepared=prep, progress=False, start=truth)
     assert res.history[0]["loss"] < 1e-3 * flat.history[0]["loss"]
-    seen = F.seen_texels(prep, (16, 16))
+    seen = F.seen_texels(prep, (32, 32))
     assert F.angular_error(res.normals, truth)[seen].mean() < 0.5
     with pytest.raises(ValueError, match=r"the start is \(8, 8, 3\), not the map's"):
         F.fit_normal_map(problem, opts, prepared=prep, progress=False, start=truth[:8, :8])
