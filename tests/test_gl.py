@@ -27,13 +27,14 @@ def _torus():
 
 
 SCENES = {
-    "soup": lambda: (*random_soup(11, 40, 50), None, None),
+    "soup": lambda: (*random_soup(11), None, None),
     "torus": _torus,
 }
 
 
+# (the soup's shape and the sizes of test_raster's float64 comparison: the same rasterizers)
 @pytest.mark.parametrize("scene", list(SCENES))
-@pytest.mark.parametrize("size", [(64, 48), (37, 21)])
+@pytest.mark.parametrize("size", [(64, 48), (33, 21)])
 def test_matches_llvmpipe_per_pixel(scene, size):
     w, h = size
     pos, faces, uv, nrm = SCENES[scene]()
@@ -80,6 +81,13 @@ def test_backface_culling_matches_llvmpipe():
     assert np.all(gl["front_facing"][gl["triangle_id"] >= 0])
 
 
+def _padded(faces, n):
+    """``faces``, then zero-area faces (one vertex three times: they cover no pixel and change
+    no other triangle's id) up to ``n``: every draw of a loop has one shape, one compiled
+    rasterizer."""
+    return np.concatenate([faces, np.zeros((n - len(faces), 3), faces.dtype)])
+
+
 def test_tie_rule_matches_llvmpipe_on_exact_edges():
     """Vertices on a half-pixel grid: many pixel centres lie exactly on edges."""
     rng = np.random.default_rng(2)
@@ -93,5 +101,5 @@ def test_tie_rule_matches_llvmpipe_on_exact_edges():
                       & (faces[:, 0] != faces[:, 2])]
         clip = clip.astype(np.float32)
         gl = render_gl(clip, faces, {"c": clip[:, :1]}, w, h)
-        fr = jaxnm.rasterize(clip, faces, width=w, height=h)
+        fr = jaxnm.rasterize(clip, _padded(faces, 12), width=w, height=h)
         assert np.array_equal(np.asarray(fr.triangle_id), gl["triangle_id"])

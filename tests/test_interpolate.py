@@ -221,7 +221,8 @@ def test_gradients_wrt_vertex_attributes_and_positions():
 def test_gradients_finite_at_silhouettes_and_background():
     pos, faces = icosphere(1)
     clip = jnp.asarray(clip_of(pos, perspective_mvp((0.0, 0.0, 2.0))), jnp.float32)
-    fr = jaxnm.rasterize(clip, faces, width=16, height=16)
+    # (the size of `test_fine_equals_analytic_times_w_ratio`'s sphere: one rasterizer)
+    fr = jaxnm.rasterize(clip, faces, width=24, height=24)
     for mode in ("analytic", "fine", "coarse", "gbuffer"):
         @jax.jit
         def f(c, a):
@@ -234,7 +235,7 @@ def test_gradients_finite_at_silhouettes_and_background():
 
 def test_unknown_mode_and_bad_attribute_shape():
     clip, faces, uv = _seam_scene()
-    fr = jaxnm.rasterize(clip, faces, width=8, height=8)
+    fr = jaxnm.rasterize(clip, faces, width=32, height=32)  # (the seam tests' rasterizer)
     with pytest.raises(ValueError, match="unknown derivatives mode"):
         jaxnm.interpolate(uv, fr, derivatives="medium")
     with pytest.raises(ValueError, match="vertices"):

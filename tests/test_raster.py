@@ -15,6 +15,11 @@ from jaxnm._exec import triangles
 from jaxnm._exec.slots import slot_passes
 from jaxnm.raster import RasterStrategy, overdraw
 
+#: `raster._window_corners` compiled, as the rasterizer runs it (run eagerly, each of its
+#: operations would be compiled on its own)
+_window_corners = jax.jit(jaxnm.raster._window_corners,
+                          static_argnames=("width", "height", "subpixel_bits"))
+
 
 def _unsnapped_depth(ref, clip, faces):
     """Window depth from the reference's (unsnapped) perspective-correct barycentrics."""
@@ -188,8 +193,6 @@ def test_snapped_setup_equals_the_general_one(cull):
     plane clipping, divisions, validity checks) gives, bit for bit, but for the sub-pixel
     triangles it drops: random triangles, degenerate ones, ones partly and wholly off
     screen, slivers between pixel centres."""
-    from jaxnm import raster
-
     w, h = 37, 29
     pos, faces = random_soup(4, n_vertices=60, n_faces=120)
     clip = clip_of(pos, perspective_mvp((0.3, 0.4, 2.5), aspect=w / h)).astype(np.float32)
@@ -202,8 +205,8 @@ def test_snapped_setup_equals_the_general_one(cull):
     ], np.float32)
     clip = np.concatenate([clip, extra])
     faces = np.concatenate([faces, len(clip) - len(extra) + np.arange(len(extra)).reshape(-1, 3)])
-    tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=w,
-                                    height=h, subpixel_bits=8)
+    tri, _ = _window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=w,
+                             height=h, subpixel_bits=8)
     hv = np.asarray(tri.vertices)
     assert np.all(hv[:, 3] == 1) and np.all((hv[:, 2] >= 0) & (hv[:, 2] <= 1))
     kw = dict(width=w, height=h, block=4, cull_back=cull)
@@ -250,12 +253,10 @@ def test_triangles_dropped_before_their_slots_cover_nothing(cull, monkeypatch):
     missed (`triangles._misses_centre`). Against the general set-up, which drops none: the
     same winners and depths, and the same count of fragments per pixel (`overdraw`), on
     sub-pixel triangles whose edges run through or within a grid step of pixel centres."""
-    from jaxnm import raster
-
     w, h = 24, 20
     clip, faces = _tiny_triangles_on_centres(5, w, h)
-    tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=w,
-                                    height=h, subpixel_bits=8)
+    tri, _ = _window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=w,
+                             height=h, subpixel_bits=8)
     kw = dict(width=w, height=h, block=4, cull_back=cull)
     short = jax.jit(functools.partial(triangles._snapped_setup, **kw))(tri.vertices, tri.faces,
                                                                        True)
@@ -284,13 +285,11 @@ def test_corners_off_the_snapping_grid_drop_no_triangle():
     """Unsnapped corners with w = 1 (`subpixel_bits=None`, an orthographic camera) take the
     short set-up, but are not on the 1/256 grid that `triangles._misses_centre`'s bound needs:
     no triangle is dropped, and the slots are the general set-up's."""
-    from jaxnm import raster
-
     w, h = 24, 20
     clip, faces = _tiny_triangles_on_centres(6, w, h, n=600)
     clip[:, :2] += np.float32(1e-4)  # off the grid
-    tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=w,
-                                    height=h, subpixel_bits=None)
+    tri, _ = _window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=w,
+                             height=h, subpixel_bits=None)
     q = np.asarray(tri.vertices)[:, :2] * 256
     assert np.all(np.asarray(tri.vertices)[:, 3] == 1) and not np.all(q == np.round(q))
     kw = dict(width=w, height=h, block=4, cull_back=False)
@@ -311,10 +310,9 @@ def test_a_vertex_outside_the_snapping_range_changes_no_other_pixel():
                         [-6e4, 2.0, 0.0, 2.0]], np.float32)  # ~7e5 px left of the image
     more = np.concatenate([clip, far_out])
     more_faces = np.concatenate([faces, len(clip) + np.arange(3)[None]])
-    from jaxnm import raster
 
-    tri, _ = raster._window_corners(jnp.asarray(more), jnp.asarray(more_faces, jnp.int32),
-                                    width=w, height=h, subpixel_bits=8)
+    tri, _ = _window_corners(jnp.asarray(more), jnp.asarray(more_faces, jnp.int32),
+                             width=w, height=h, subpixel_bits=8)
     assert not np.all(np.asarray(tri.vertices)[:, 3] == 1)
     a = jaxnm.rasterize(clip, faces, width=w, height=h)
     b = jaxnm.rasterize(more, more_faces, width=w, height=h)
@@ -418,7 +416,11 @@ def test_triangle_ids_and_orientation_give_rasterize_and_compact():
     pos, faces = random_soup(5)
     clip = clip_of(pos, perspective_mvp((0.3, 0.4, 2.5))).astype(np.float32)
     fr = jaxnm.rasterize(clip, faces, width=40, height=32)
-    tid, orientation = triangle_ids(clip, faces, width=40, height=32)
+    # `triangle_ids` and `compact` compiled, as `render` runs them (run eagerly, each of
+    # their operations would be compiled on its own)
+    tid, orientation = jax.jit(functools.partial(triangle_ids, width=40, height=32))(clip,
+                                                                                      faces)
+    pack = jax.jit(compact, static_argnums=3)
     assert np.array_equal(np.asarray(tid), np.asarray(fr.triangle_id))
     covered = np.asarray(fr.mask)
     front = np.asarray(orientation)[np.maximum(np.asarray(tid), 0)] > 0
@@ -428,8 +430,8 @@ def test_triangle_ids_and_orientation_give_rasterize_and_compact():
     # fewer slots than triangles (the facing from each fragment's corners: some covered
     # pixels dropped, the same in both), and more (from each triangle's)
     for capacity in (len(faces) - 1, n + 3, 40 * 32):
-        a, ia = compact(fr.triangle_id, fr.clip, fr.faces, capacity)
-        b, ib = compact(fr.triangle_id, fr.clip, fr.faces, capacity, orientation=orientation)
+        a, ia = pack(fr.triangle_id, fr.clip, fr.faces, capacity)
+        b, ib = pack(fr.triangle_id, fr.clip, fr.faces, capacity, orientation=orientation)
         assert np.array_equal(np.asarray(ia), np.asarray(ib))
         for field in ("triangle_id", "front_facing", "depth", "pixels"):
             assert np.array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)))
@@ -460,9 +462,10 @@ def test_many_rounds_and_passes_give_the_same_image():
                               strategy=passes, **kw)
     assert np.array_equal(np.asarray(counts), reference)
     # that was many passes
-    tri, _ = raster._window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=40,
-                                    height=40, subpixel_bits=8)
-    count = triangles.triangle_setup(tri, 40, 40, 4, False)[4]
+    tri, _ = _window_corners(jnp.asarray(clip), jnp.asarray(faces, jnp.int32), width=40,
+                             height=40, subpixel_bits=8)
+    count = jax.jit(triangles.triangle_setup, static_argnums=(1, 2, 3, 4))(tri, 40, 40, 4,
+                                                                           False)[4]
     assert int(slot_passes(count, 32)[1]) > 5
     # a pass size the faces x tiles bound exceeds but the frame's slots fit: one pass,
     # found by the float32 sum (not the exact running sums), the same image again

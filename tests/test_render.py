@@ -8,6 +8,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _scenes import OUTPUTS, PACKED, WHOLE, builtin_scene
 
 import jaxnm
 from jaxnm import procedural
@@ -31,8 +32,19 @@ def plane_scene():
                  source="<plane>").replace()
 
 
+#: What the renders of the plane with the built-in map ask for (each test reads its own
+#: outputs): one program for those tests.
+PLANE_OUTPUTS = ("color", "mask", "uv", "duvdx", "duvdy", "position", "dpdy", "normal",
+                 "tangent", "bitangent", "perturbed_normal")
+
+
+def _mapped(plane_scene):
+    """The plane with the built-in normal map."""
+    return plane_scene.replace(normal_map=procedural.default_normal_map_texels(64))
+
+
 def test_image_layout_uv_origin_and_dfdy_direction(plane_scene):
-    out = render(plane_scene, outputs=("uv", "duvdx", "duvdy", "mask", "position", "dpdy"))
+    out = render(_mapped(plane_scene), outputs=PLANE_OUTPUTS)
     m = out["mask"][..., 0] > 0
     assert m.all()
     uv = out["uv"]
@@ -60,13 +72,12 @@ def test_only_requested_stages_run():
 
 
 def test_default_scene_is_lit_and_mapped():
-    sc = default_scene(width=96, height=96)
-    out = render(sc, outputs=("color", "normal", "perturbed_normal", "tangent", "bitangent",
-                              "mask"))
+    sc = builtin_scene(WHOLE)
+    out = render(sc, outputs=OUTPUTS)
     m = out["mask"][..., 0] > 0
     assert 0.3 < m.mean() < 0.9
-    for k, v in out.items():
-        assert np.isfinite(v).all(), k
+    for k in ("color", "normal", "perturbed_normal", "tangent", "bitangent", "mask"):
+        assert np.isfinite(out[k]).all(), k
     ang = np.degrees(np.arccos(np.clip((out["normal"] * out["perturbed_normal"]).sum(-1), -1, 1)))
     assert np.percentile(ang[m], 90) > 10  # the map visibly perturbs the normal
     assert out["color"][m].mean() > 0.1
@@ -173,9 +184,8 @@ def test_cli_normal_map_override_must_be_rgb(tmp_path, capsys):
 
 
 def test_lights_and_material_change_the_image(plane_scene):
-    nm = procedural.default_normal_map_texels(64)
-    base = plane_scene.replace(normal_map=nm)
-    a = render(base)["color"]
+    base = _mapped(plane_scene)
+    a = render(base, outputs=PLANE_OUTPUTS)["color"]
     left = Lights(directional=stack_lights([DirectionalLight(jnp.array([-1.0, 0, 0.5]),
                                                              jnp.ones(3), jnp.asarray(1.0))]))
     b = render(base.replace(lights=left, material=Material(
@@ -221,9 +231,8 @@ def test_height_map_bumps_toward_the_light(tmp_path):
 def test_hlsl_ddy_turns_bumps_into_dents(plane_scene):
     """HLSL's ddy points down: fed to the GLSL cotangent frame it negates T and B (not the
     handedness), i.e. the map's tangential part is rotated by 180 degrees about N."""
-    nm = procedural.default_normal_map_texels(64)
-    sc = plane_scene.replace(normal_map=nm)
-    up = render(sc, outputs=("tangent", "bitangent", "perturbed_normal", "normal", "mask"))
+    sc = _mapped(plane_scene)
+    up = render(sc, outputs=PLANE_OUTPUTS)
     down = render(sc.replace(ddy="down"), outputs=("tangent", "bitangent", "perturbed_normal"))
     m = up["mask"][..., 0] > 0
     np.testing.assert_allclose(down["tangent"][m], -up["tangent"][m], atol=1e-5)
@@ -282,7 +291,7 @@ def test_cli_normal_map_is_decoded_as_its_help_says(tmp_path, plane_scene):
                  "--aov-list", "perturbed_normal"]) == 0
     ref = render(load_scene(scene_file).replace(
         normal_map=texels, normal_map_options=jaxnm.NormalMapOptions()),
-        outputs=("perturbed_normal",))["perturbed_normal"]
+        outputs=("color", "perturbed_normal"))["perturbed_normal"]  # the command's outputs
     np.testing.assert_allclose(np.load(out_cli)["perturbed_normal"], ref, atol=1e-6)
 
 
@@ -331,10 +340,10 @@ def test_cli_uses_the_persistent_compilation_cache(tmp_path):
     # program compiled in under `min_compile_seconds` is not stored; one near that threshold
     # may be stored by the second run only, so the second run's writes are not bounded.)
     assert hits >= first_misses
-    assert run("--no-compile-cache") == (0, 0)
+    # (the two flags are independent: one run checks both)
+    assert run("--no-compile-cache", "--nondeterministic") == (0, 0)
     assert run(env=dict(env, JAXNM_COMPILATION_CACHE="off")) == (0, 0)
-    run("--nondeterministic")
-    assert deterministic == [True, True, True, True, False]
+    assert deterministic == [True, True, False, True]
 
 
 def test_value_checks_are_for_where_scenes_are_made():
@@ -356,16 +365,16 @@ def test_value_checks_are_for_where_scenes_are_made():
         geometry.check_mesh_arrays(host[:, :2], mesh.faces, values=False, source="m")
 
 
-@pytest.mark.parametrize("size", [32, 256])  # the whole image; packed pixels
+@pytest.mark.parametrize("size", [WHOLE, PACKED])  # the whole image; packed pixels
 def test_triangles_with_nan_corners_or_bad_indices_cover_nothing(size):
     """`render` does not scan values on the host (`validate_scene` does, where scenes are
     made); a triangle with a NaN or infinite corner, or a face index out of range, covers
     no pixel, as on a GPU: the image is the one of the mesh without those triangles. (Every
     render asks for the same outputs: the meshes of the mesh's shape share one program.)"""
-    sc = default_scene(width=size, height=size)
+    sc = builtin_scene(size)
     m = sc.mesh
     faces = np.asarray(m.faces)
-    outs = ("color", "mask", "triangle_id")
+    outs = OUTPUTS  # (those of the other tests' renders of this scene)
     tid = np.asarray(render(sc, outputs=outs)["triangle_id"])
     rows, cols = np.nonzero(tid[..., 0] >= 0)
     k = len(rows) // 2
@@ -472,7 +481,8 @@ def test_chunked_pixels_give_the_image_layouts_gradient(strategy):
 
     sc = default_scene(width=48, height=32)
     texels = jnp.asarray(sc.normal_map)
-    target = render(sc)["color"] * 0.9
+    first = render(sc, outputs=("color", "mask"))
+    target = first["color"] * 0.9
 
     def loss(t, albedo):
         s = sc.replace(normal_map=t, albedo=albedo)
@@ -482,7 +492,7 @@ def test_chunked_pixels_give_the_image_layouts_gradient(strategy):
     grad = jax.value_and_grad(loss, argnums=(0, 1))
     ref = strategy(False, 256, lambda: jax.jit(grad)(*args))
     assert float(jnp.abs(ref[1][0]).max()) > 0 and float(jnp.abs(ref[1][1]).max()) > 0
-    covered = int(jnp.count_nonzero(render(sc, outputs=("mask",))["mask"]))
+    covered = int(jnp.count_nonzero(first["mask"]))
     # over a quarter: all 1536 slots, 6 chunks of 256, the last 2 skipped (the quarter's
     # branch: `test_render_under_a_callers_jit_and_grad`)
     assert 48 * 32 // 4 < covered <= 48 * 32 - 2 * 256
@@ -682,11 +692,11 @@ def test_back_faces_are_culled_only_where_none_can_be_seen():
     where the near plane cuts the mesh, where the model mirrors it, or for an open mesh."""
     from jaxnm.scene import back_faces_hidden as hidden
 
-    scene = default_scene(width=64, height=48)
+    scene = builtin_scene(WHOLE)
     assert scene.cull_back and hidden(scene.mesh, scene.camera, scene.model)
     outputs = ("color", "triangle_id", "front_facing", "perturbed_normal", "depth")
-    culled = render(scene, outputs=outputs)
-    plain = render(scene.replace(cull_back=False), outputs=outputs)
+    culled = render(scene, outputs=OUTPUTS)
+    plain = render(scene.replace(cull_back=False), outputs=OUTPUTS)
     for name in outputs:
         np.testing.assert_array_equal(np.asarray(culled[name]), np.asarray(plain[name]), name)
     inside = jaxnm.Camera.look_at((0.0, 0.0, 0.2), (1.0, 0.0, 0.0), up=(0, 0, 1))
@@ -780,8 +790,8 @@ def test_render_and_a_fits_prepare_share_one_visibility_program():
             compiles.append(kwargs.get("fun_name", "?"))
 
     jax.monitoring.register_event_duration_secs_listener(listen)  # (0.8.0: cannot unregister)
-    scene = default_scene(width=256, height=256)  # packed: visibility a program of its own
-    jax.block_until_ready(render(scene)["color"])
+    scene = builtin_scene(PACKED)  # packed: visibility a program of its own
+    jax.block_until_ready(render(scene, outputs=OUTPUTS)["color"])
     counting[0] = True
     try:
         gb, index, count = covered_gbuffer(scene.mesh, scene.camera, jnp.asarray(scene.albedo),

@@ -11,6 +11,7 @@ renders, where the function is smooth.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -33,18 +34,19 @@ def scene() -> Scene:
     rng = np.random.default_rng(0)
     cam = jaxnm.Camera.look_at((0.0, -2.35, 1.75), (0.0, 0.0, -0.1), (0.0, 0.0, 1.0),
                                fov_y_deg=40.0)
+    # (every array strongly typed float32, as the finite differences' arrays are, which
+    # `ravel_pytree` gives back: a weakly typed scalar would compile each render again)
+    f32 = functools.partial(jnp.asarray, dtype=jnp.float32)
     lights = Lights(
-        directional=stack_lights([DirectionalLight(jnp.array([-0.6, -0.5, 0.8]),
-                                                   jnp.array([1.0, 0.9, 0.8]),
-                                                   jnp.asarray(0.9))]),
-        point=stack_lights([PointLight(jnp.array([1.8, -1.6, 1.4]), jnp.array([0.5, 0.7, 1.0]),
-                                       jnp.asarray(4.0))]))
+        directional=stack_lights([DirectionalLight(f32([-0.6, -0.5, 0.8]), f32([1.0, 0.9, 0.8]),
+                                                   f32(0.9))]),
+        point=stack_lights([PointLight(f32([1.8, -1.6, 1.4]), f32([0.5, 0.7, 1.0]),
+                                       f32(4.0))]))
     albedo = rng.uniform(0.3, 0.9, (16, 16, 3)).astype(np.float32)
     return Scene(mesh=procedural.torus(1.0, 0.42, 24, 12, uv_scale=(3.0, 1.0)), camera=cam,
                  width=SIZE, height=SIZE, normal_map=procedural.default_normal_map_texels(32),
                  albedo=albedo, lights=lights,
-                 material=Material(jnp.ones(3), jnp.full(3, 0.3), jnp.asarray(16.0),
-                                   jnp.full(3, 0.02)),
+                 material=Material(f32([1.0] * 3), f32([0.3] * 3), f32(16.0), f32([0.02] * 3)),
                  source="<grad test>").replace()
 
 
@@ -81,6 +83,9 @@ def _grad_of_every_field(scene, keep, w):
     return jax.grad(loss)({name: _field(name)[0](scene) for name in FIELDS})
 
 
+_OUTPUTS = ("color", "triangle_id")
+
+
 def _directional_check(scene, field: str, *, eps: float, moves_edges: bool, rtol: float,
                        seed: int = 0, scale=None):
     """Compare ``grad(L) . d`` with central differences of ``L`` along a random ``d``, where
@@ -98,8 +103,9 @@ def _directional_check(scene, field: str, *, eps: float, moves_edges: bool, rtol
     def with_flat(flat):
         return put(scene, unravel(flat))
 
+    # (the ids and the colours from one program)
     def tri(flat):
-        return np.asarray(render(with_flat(flat), outputs=("triangle_id",))["triangle_id"])
+        return np.asarray(render(with_flat(flat), outputs=_OUTPUTS)["triangle_id"])
 
     keep = np.ones((SIZE, SIZE, 1), bool)
     if moves_edges:
@@ -109,7 +115,7 @@ def _directional_check(scene, field: str, *, eps: float, moves_edges: bool, rtol
     keep = jnp.asarray(keep)
 
     def loss64(flat):  # the same sum in float64 on the host: no float32 cancellation in the FD
-        color = np.asarray(render(with_flat(flat), outputs=("color",))["color"], np.float64)
+        color = np.asarray(render(with_flat(flat), outputs=_OUTPUTS)["color"], np.float64)
         return float(np.sum(np.where(np.asarray(keep), np.asarray(w, np.float64) * color, 0.0)))
 
     g = ravel_pytree(_grad_of_every_field(scene, keep, w)[field])[0]

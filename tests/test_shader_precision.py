@@ -35,22 +35,26 @@ def _plane_scene(distance: float, size: int = 64):
     return H._scene(mesh, cam, size), H.plane_reference(a)
 
 
+#: What every render of the plane asks for (each test reads its own outputs): the renders
+#: with the same options share one program.
+OUTPUTS = ("perturbed_normal", "mask", "view", "dpdx", "dpdy", "triangle_id")
+
+
 def _errors(scene, ref, **kw):
     """Per covered pixel, the angle to ``ref``: a (3,) normal, or a (H, W, 3) image."""
-    out = jaxnm.render(scene, outputs=("perturbed_normal", "mask"), **kw)
+    out = jaxnm.render(scene, outputs=OUTPUTS, **kw)
     m = np.asarray(out["mask"])[..., 0] > 0
     ref = np.asarray(ref)
     return _angle(np.asarray(out["perturbed_normal"])[m], ref[m] if ref.ndim == 3 else ref)
 
 
 def _render_normal(scene, **kw):
-    return np.asarray(jaxnm.render(scene, outputs=("perturbed_normal",), **kw)[
-        "perturbed_normal"])
+    return np.asarray(jaxnm.render(scene, outputs=OUTPUTS, **kw)["perturbed_normal"])
 
 
 def test_fine_differences_are_those_of_the_rounded_quad_values():
     scene, _ = _plane_scene(2.0)
-    out = jaxnm.render(scene, outputs=("view", "dpdx", "dpdy", "mask", "triangle_id"))
+    out = jaxnm.render(scene, outputs=OUTPUTS)
     v, mask = np.asarray(out["view"]), np.asarray(out["mask"])[..., 0] > 0
     tri = np.asarray(out["triangle_id"])[..., 0]
     attr = Attribute(jnp.asarray(v), jnp.asarray(out["dpdx"]), jnp.asarray(out["dpdy"]))
@@ -75,8 +79,8 @@ def test_fine_differences_are_those_of_the_rounded_quad_values():
 
 def test_float32_is_unchanged_and_the_default():
     scene, _ = _plane_scene(2.0)
-    a = jaxnm.render(scene, outputs=("perturbed_normal",))["perturbed_normal"]
-    b = jaxnm.render(scene, outputs=("perturbed_normal",), precision="float32")
+    a = jaxnm.render(scene, outputs=OUTPUTS)["perturbed_normal"]
+    b = jaxnm.render(scene, outputs=OUTPUTS, precision="float32")
     assert scene.precision == "float32"
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b["perturbed_normal"]))
 
