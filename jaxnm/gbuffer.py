@@ -109,7 +109,7 @@ class RenderOptions:
             normal_map=None if nm is None else scene.normal_map_options,
             normal_map_shape=None if nm is None else tuple(jnp.shape(nm)[:2]),
             albedo_shape=tuple(alb[:2]) if len(alb) == 3 else None,
-            outputs=tuple(dict.fromkeys(outputs)))
+            outputs=_in_order(outputs))
 
     def check_mesh(self, mesh: Mesh, source: str = "render") -> None:
         """Raise a `ValueError` naming ``source`` if ``mesh`` lacks an attribute the
@@ -162,6 +162,14 @@ class GBuffer:
     plan: _tex.SamplePlan | None = None
     albedo: Array | None = None
     eye: Array | None = None
+
+
+def _in_order(outputs) -> tuple:
+    """``outputs`` in the order of `OUTPUTS`, each once (unknown names after them, for
+    `RenderOptions` to refuse): the same set of outputs, asked for in any order, is one set
+    of options and one compiled program."""
+    asked = list(dict.fromkeys(outputs))
+    return tuple([o for o in OUTPUTS if o in asked] + [o for o in asked if o not in OUTPUTS])
 
 
 def _needs(opts: RenderOptions):

@@ -71,7 +71,8 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     (visibility is piecewise constant: silhouettes and occlusion boundaries
     contribute no gradient).
     """
-    opts = RenderOptions.of(scene, outputs=outputs, derivatives=derivatives, frame=frame,
+    asked = tuple(dict.fromkeys(outputs))
+    opts = RenderOptions.of(scene, outputs=asked, derivatives=derivatives, frame=frame,
                             precision=precision)
     opts.check_mesh(scene.mesh, scene.source)
     if opts.precision == "float64":
@@ -83,10 +84,12 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     args = (scene.mesh, camera, scene.normal_map, scene.albedo, lights, scene.material, origin,
             placement)
     if not pixels.packs(opts.width * opts.height, neighbours=opts.derivatives == "gbuffer"):
-        return _frame(*args, opts=opts, affine=affine)
-    seen = _visible_placed(scene.mesh, camera, placement, width=opts.width, height=opts.height,
-                           cull_back=opts.cull_back, affine=affine)
-    return _packed_frame(*args, *seen, opts=opts, affine=affine)
+        out = _frame(*args, opts=opts, affine=affine)
+    else:
+        seen = _visible_placed(scene.mesh, camera, placement, width=opts.width,
+                               height=opts.height, cull_back=opts.cull_back, affine=affine)
+        out = _packed_frame(*args, *seen, opts=opts, affine=affine)
+    return {name: out[name] for name in asked}  # in the caller's order
 
 
 @functools.partial(jax.jit, static_argnames=("opts",))

@@ -800,3 +800,33 @@ def test_render_and_a_fits_prepare_share_one_visibility_program():
         assert not any("visible" in c for c in compiles), compiles
     finally:
         counting[0] = False
+
+
+def test_outputs_asked_in_another_order_run_the_same_program():
+    """The same outputs in another order (or repeated) are the same options and the same
+    compiled program; the result lists them in the order asked."""
+    import jax
+
+    from jaxnm.gbuffer import RenderOptions
+
+    compiles, counting = [], [False]
+
+    def listen(name, seconds, **kwargs):
+        if counting[0] and name == "/jax/core/compile/backend_compile_duration":
+            compiles.append(kwargs.get("fun_name", "?"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)  # (0.8.0: cannot unregister)
+    scene = builtin_scene(WHOLE)
+    first = render(scene, outputs=OUTPUTS)
+    counting[0] = True
+    try:
+        again = render(scene, outputs=OUTPUTS[::-1] + OUTPUTS[:1])
+    finally:
+        counting[0] = False
+    assert not any("frame" in c for c in compiles), compiles
+    assert list(first) == list(OUTPUTS) and list(again) == list(OUTPUTS[::-1])
+    for name in first:
+        np.testing.assert_array_equal(np.asarray(again[name]), np.asarray(first[name]))
+    assert RenderOptions.of(scene, outputs=OUTPUTS) == RenderOptions.of(scene,
+                                                                          outputs=OUTPUTS[::-1])
+
