@@ -17,8 +17,8 @@ WHOLE = 96
 #: ... and the smallest where it runs on the packed covered pixels (256 x 256 pixels).
 PACKED = 256
 
-#: The outputs the shared renders ask for, in this order (the order is part of the
-#: program's static options).
+#: The outputs the shared renders ask for (in any order, one set of options: `render`
+#: lists them in `jaxnm.gbuffer.OUTPUTS`' order).
 OUTPUTS = ("color", "mask", "triangle_id", "front_facing", "depth", "position", "normal",
            "perturbed_normal", "tangent", "bitangent")
 
