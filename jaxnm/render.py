@@ -81,8 +81,9 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
         except ValueError as e:
             raise ValueError(f"{scene.source}: {e}") from None
     camera, lights, origin, placement, affine = relative_inputs(scene)
-    args = (scene.mesh, camera, scene.normal_map, scene.albedo, lights, scene.material, origin,
-            placement)
+    normal_map, albedo, lights, material = _strongly_typed(
+        (scene.normal_map, scene.albedo, lights, scene.material))
+    args = (scene.mesh, camera, normal_map, albedo, lights, material, origin, placement)
     if not pixels.packs(opts.width * opts.height, neighbours=opts.derivatives == "gbuffer"):
         out = _frame(*args, opts=opts, affine=affine)
     else:
@@ -90,6 +91,17 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
                                height=opts.height, cull_back=opts.cull_back, affine=affine)
         out = _packed_frame(*args, *seen, opts=opts, affine=affine)
     return {name: out[name] for name in asked}  # in the caller's order
+
+
+def _strongly_typed(tree):
+    """``tree`` with its weakly typed leaves (Python scalars, ``jnp.asarray(48.0)``) as arrays
+    of their own dtype. A weak type is part of a compiled program's signature: without this,
+    the same scene after an optimiser step (whose updates are strongly typed) would compile
+    its frame again."""
+    def strong(x):
+        t = jax.typeof(x)
+        return jax.lax.convert_element_type(x, t.dtype) if t.weak_type else x
+    return jax.tree_util.tree_map(strong, tree)
 
 
 @functools.partial(jax.jit, static_argnames=("opts",))

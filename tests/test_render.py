@@ -830,3 +830,39 @@ def test_outputs_asked_in_another_order_run_the_same_program():
     assert RenderOptions.of(scene, outputs=OUTPUTS) == RenderOptions.of(scene,
                                                                           outputs=OUTPUTS[::-1])
 
+
+
+def test_weakly_and_strongly_typed_scalars_run_the_same_program():
+    """A scene whose material and lights hold weakly typed scalars (Python floats,
+    ``jnp.asarray(48.0)``, as the built-in scenes do) and the same scene after an optimiser
+    step, whose updates are strongly typed arrays, run one compiled frame and give the same
+    image."""
+    import jax
+
+    compiles, counting = [], [False]
+
+    def listen(name, seconds, **kwargs):
+        if counting[0] and name == "/jax/core/compile/backend_compile_duration":
+            compiles.append(kwargs.get("fun_name", "?"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)  # (0.8.0: cannot unregister)
+    scene = builtin_scene(WHOLE)
+    scene = scene.replace(material=dataclasses.replace(scene.material, shininess=48.0))
+
+    def weak(tree):
+        return [jax.typeof(x).weak_type for x in jax.tree_util.tree_leaves(tree)]
+
+    assert any(weak((scene.material, scene.lights)))  # else this test would test nothing
+    stepped = scene.replace(**{k: jax.tree_util.tree_map(
+        lambda x: jnp.zeros(jnp.shape(x), jnp.float32) + x, getattr(scene, k))
+        for k in ("material", "lights")})
+    assert not any(weak((stepped.material, stepped.lights)))
+    first = render(scene, outputs=OUTPUTS)
+    counting[0] = True
+    try:
+        again = render(stepped, outputs=OUTPUTS)
+    finally:
+        counting[0] = False
+    assert not any("frame" in c for c in compiles), compiles
+    for name in first:
+        np.testing.assert_array_equal(np.asarray(again[name]), np.asarray(first[name]))
