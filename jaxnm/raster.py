@@ -190,6 +190,12 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
     facing as `rasterize` computes them) and the (capacity,) flat image index of each
     slot (``H * W`` for unused slots).
     """
+    return _compact(jnp.asarray(triangle_id), jnp.asarray(clip), jnp.asarray(faces),
+                    orientation, index, capacity=capacity, subpixel_bits=subpixel_bits)
+
+
+@functools.partial(jax.jit, static_argnames=("capacity", "subpixel_bits"))
+def _compact(triangle_id, clip, faces, orientation, index, *, capacity, subpixel_bits):
     height, width = triangle_id.shape
     n = height * width
     ids = triangle_id.reshape(-1)
@@ -225,6 +231,11 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
 def expand(values: Array, index: Array, height: int, width: int, fill=0) -> Array:
     """Per-slot ``values`` (capacity, ...) of `compact`'s fragments as an image
     (H, W, ...), ``fill`` where no slot writes."""
+    return _expand(jnp.asarray(values), jnp.asarray(index), fill, height=height, width=width)
+
+
+@functools.partial(jax.jit, static_argnames=("height", "width"))
+def _expand(values, index, fill, *, height, width):
     n = height * width
     out = jnp.full((n,) + values.shape[1:], fill, values.dtype)
     # Every slot writes its own pixel (unused slots: distinct indices past the end, dropped),
@@ -453,7 +464,14 @@ def triangle_ids(clip: Float[ArrayLike, "V 4"], faces: Integer[ArrayLike, "F 3"]
                                     strategy)
     if faces.shape[0] == 0:
         return jnp.full((height, width), -1, jnp.int32), jnp.zeros((0,), clip.dtype)
-    tid, sigma, _ = _visible_triangles(clip, faces, **kw)
+    return _triangle_ids(clip, faces, **kw)
+
+
+@functools.partial(jax.jit, static_argnames=_STATIC)
+def _triangle_ids(clip, faces, *, width, height, cull_back, subpixel_bits, strategy):
+    tid, sigma, _ = _visible_triangles(clip, faces, width=width, height=height,
+                                       cull_back=cull_back, subpixel_bits=subpixel_bits,
+                                       strategy=strategy)
     return tid, sigma
 
 

@@ -416,11 +416,8 @@ def test_triangle_ids_and_orientation_give_rasterize_and_compact():
     pos, faces = random_soup(5)
     clip = clip_of(pos, perspective_mvp((0.3, 0.4, 2.5))).astype(np.float32)
     fr = jaxnm.rasterize(clip, faces, width=40, height=32)
-    # `triangle_ids` and `compact` compiled, as `render` runs them (run eagerly, each of
-    # their operations would be compiled on its own)
-    tid, orientation = jax.jit(functools.partial(triangle_ids, width=40, height=32))(clip,
-                                                                                      faces)
-    pack = jax.jit(compact, static_argnums=3)
+    tid, orientation = triangle_ids(clip, faces, width=40, height=32)
+    pack = compact
     assert np.array_equal(np.asarray(tid), np.asarray(fr.triangle_id))
     covered = np.asarray(fr.mask)
     front = np.asarray(orientation)[np.maximum(np.asarray(tid), 0)] > 0
@@ -435,6 +432,42 @@ def test_triangle_ids_and_orientation_give_rasterize_and_compact():
         assert np.array_equal(np.asarray(ia), np.asarray(ib))
         for field in ("triangle_id", "front_facing", "depth", "pixels"):
             assert np.array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)))
+
+
+def test_visibility_helpers_called_eagerly_compile_once():
+    """`triangle_ids`, `compact` and `expand` called outside any jit each run one compiled
+    program (not their operations one by one), and a second call compiles nothing; the
+    round trip puts each pixel's triangle back where `rasterize` has it."""
+    from jaxnm.raster import compact, expand, triangle_ids
+
+    compiles, counting = [], [True]
+
+    def listen(name, seconds, **kwargs):
+        if counting[0] and name == "/jax/core/compile/backend_compile_duration":
+            compiles.append(kwargs.get("fun_name", "?"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)  # (0.8.0: cannot unregister)
+    pos, faces = random_soup(7)
+    clip = jnp.asarray(clip_of(pos, perspective_mvp((0.3, 0.4, 2.5))).astype(np.float32))
+    faces = jnp.asarray(faces, jnp.int32)
+
+    def round_trip():
+        tid, orientation = triangle_ids(clip, faces, width=40, height=32)
+        frags, index = compact(tid, clip, faces, 40 * 32, orientation=orientation)
+        return jax.block_until_ready(expand(frags.triangle_id, index, 32, 40, fill=-1))
+
+    try:
+        first = round_trip()
+        n_first = len(compiles)
+        again = round_trip()
+    finally:
+        counting[0] = False
+    assert n_first <= 6, compiles  # the three programs and a few small ones, not hundreds
+    assert len(compiles) == n_first, compiles[n_first:]
+    ref = jaxnm.rasterize(clip, faces, width=40, height=32)
+    assert np.asarray(ref.mask).mean() > 0.2
+    np.testing.assert_array_equal(np.asarray(first), np.asarray(ref.triangle_id))
+    np.testing.assert_array_equal(np.asarray(again), np.asarray(first))
 
 
 def test_many_rounds_and_passes_give_the_same_image():
