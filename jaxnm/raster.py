@@ -52,7 +52,7 @@ from jax import Array
 from jaxtyping import ArrayLike, Float, Int, Integer
 
 from ._exec import depth as tiled
-from ._exec.arrays import div, roll_last, xyw
+from ._exec.arrays import div, xyw
 from ._exec.compaction import flat_nonzero
 from ._exec.fusion import materialize
 from ._exec.slots import (
@@ -68,7 +68,6 @@ from ._exec.slots import (
 from ._exec.triangles import Corners, TriangleSetup, triangle_setup
 from ._exec.triangles import orientation as triangle_orientation
 from .camera import to_window
-from .numerics import dot
 
 __all__ = [
     "Fragments", "RasterStrategy", "default_strategy", "rasterize", "triangle_ids", "overdraw",
@@ -491,13 +490,17 @@ def _depth_and_facing(tri_depth: Corners, sigma: Array, tid: Array, x: Array, y:
 def _pixel_depth(tri_depth: Corners, tid: Array, x: Array, y: Array) -> Array:
     """Window depth of each pixel's triangle at the pixel centre (x, y), from its unsnapped
     corners ``tri_depth`` (`Corners`)."""
-    hv = tri_depth[tid]  # (..., 3, 4)
-    x, y = x[..., None], y[..., None]
-    hx = hv[..., 0] - x * hv[..., 3]
-    hy = hv[..., 1] - y * hv[..., 3]
-    e = roll_last(hx, 1) * roll_last(hy, 2) - roll_last(hy, 1) * roll_last(hx, 2)
-    num = dot(e, hv[..., 2])
-    den = dot(e, hv[..., 3])
+    # corner by corner on image-shaped arrays: one loop with the corners' gathers in it, where
+    # (..., 3, 4) corners and their rolled copies were image-sized buffers (96 MiB at
+    # 1024x1024), allocated on every call
+    v, faces = tri_depth.vertices, tri_depth.faces
+    h = [[v[:, c][faces[:, k][tid]] for c in range(4)] for k in range(3)]
+    hx = [h[k][0] - x * h[k][3] for k in range(3)]
+    hy = [h[k][1] - y * h[k][3] for k in range(3)]
+    e = [hx[(k + 1) % 3] * hy[(k + 2) % 3] - hy[(k + 1) % 3] * hx[(k + 2) % 3]
+         for k in range(3)]
+    num = e[0] * h[0][2] + e[1] * h[1][2] + e[2] * h[2][2]
+    den = e[0] * h[0][3] + e[1] * h[1][3] + e[2] * h[2][3]
     return num / jnp.where(den == 0, 1.0, den)
 
 
