@@ -33,9 +33,10 @@ separately *and* included:
 - ``views``: peak RSS and LM step time of fits from 4, 16 and 64 cameras (two lights
   each, 128 x 128 renders), each in a fresh process: memory against the number of views.
 - ``raster``: the rasterizer alone on the forward frames' meshes, sizes and camera:
-  `jaxnm.rasterize`'s triangle ids (visibility), with back-face culling, and the G-buffer
-  a user composes from it (`jaxnm.interpolate` of position, uv and normal with fine
-  derivatives, over the whole image); first call and steady median each.
+  `jaxnm.rasterize`'s triangle ids (visibility), with back-face culling, its fragments
+  (ids, depth and facing), and the G-buffer a user composes from it (`jaxnm.interpolate`
+  of position, uv and normal with fine derivatives, over the whole image); first call and
+  steady median each.
 - ``compiles``: in a fresh process with no persistent cache, every program the first
   `jaxnm.render` of the fit problem's scene and the cold fit (3 steps) compile, in order,
   with JAX's tracing, lowering and XLA compile times: where a first call's time goes.
@@ -269,8 +270,8 @@ def _forward_rows(cells, timed, echo: bool = True) -> list[dict]:
 
 def bench_raster(p: B.BenchProblem, sizes, repeats: int, quick: bool) -> list[dict]:
     """Per mesh and size of the forward frames (the problem's camera): `jaxnm.rasterize`'s
-    triangle ids (visibility), the same with back-face culling, and the G-buffer a user
-    composes from them (`jaxnm.interpolate` of position, uv and normal with fine
+    triangle ids (visibility), the same with back-face culling, its whole `Fragments`
+    (ids, depth and facing), and the G-buffer a user composes from them (`jaxnm.interpolate` of position, uv and normal with fine
     derivatives, over the whole image); each under one jit, the mesh an argument, its first
     call (compilation included) and the median of ``repeats`` steady calls."""
     rows = []
@@ -287,6 +288,10 @@ def bench_raster(p: B.BenchProblem, sizes, repeats: int, quick: bool) -> list[di
                                        cull_back=cull_back).triangle_id
 
             @jax.jit
+            def fragments(clip, faces, size=size):
+                return jaxnm.rasterize(clip, faces, width=size, height=size)
+
+            @jax.jit
             def gbuffer(clip, faces, attrs, size=size):
                 frags = jaxnm.rasterize(clip, faces, width=size, height=size)
                 return jaxnm.interpolate(attrs, frags, derivatives="fine")
@@ -295,6 +300,8 @@ def bench_raster(p: B.BenchProblem, sizes, repeats: int, quick: bool) -> list[di
                                                 repeats=repeats),
                  "visibility_cull_back": timing.time_call(
                      lambda: visibility(clip, m.faces, cull_back=True), repeats=repeats),
+                 "fragments": timing.time_call(lambda: fragments(clip, m.faces),
+                                               repeats=repeats),
                  "gbuffer": timing.time_call(lambda: gbuffer(clip, m.faces, attrs),
                                              repeats=repeats)}
             covered = jnp.mean(jaxnm.rasterize(clip, m.faces, width=size, height=size).mask)
@@ -721,13 +728,15 @@ def markdown(res: dict) -> str:
     ra = res.get("raster")
     if ra:
         lines += ["", "| rasterizer | size | covered | visibility ms | with back-face culling ms | "
+                  "fragments ms (ids, depth, facing) | "
                   "G-buffer ms (p, uv, N + fine derivatives) | visibility Mpix/s | "
                   "first call s (compile): visibility, G-buffer |",
-                  "|---|---|---|---|---|---|---|---|"]
+                  "|---|---|---|---|---|---|---|---|---|"]
         for r in ra:
             lines.append(f"| {r['mesh']} ({r['triangles']} tris) | {r['size']} | "
                          f"{r['covered_fraction']} | {r['visibility_ms']} | "
-                         f"{r['visibility_cull_back_ms']} | {r['gbuffer_ms']} | "
+                         f"{r['visibility_cull_back_ms']} | {r['fragments_ms']} | "
+                         f"{r['gbuffer_ms']} | "
                          f"{r['visibility_mpix_per_s']} | {r['visibility_first_s']}, "
                          f"{r['gbuffer_first_s']} |")
     co = res.get("compiles")
