@@ -184,3 +184,36 @@ def test_validation_never_converts_a_tracer(scene):
     with pytest.raises(ValueError, match="NaN"):
         validate_scene(scene.replace(mesh=dataclasses.replace(scene.mesh,
                                                               positions=jnp.asarray(bad))))
+
+
+def test_a_packed_frames_gradient_keeps_one_copy_of_the_inputs():
+    """Differentiated, a packed frame's loop over passes of covered pixels (`render` on the
+    CPU from 256x256 up) keeps the normal map and the mesh once: no loop of the traced
+    gradient stacks a copy of them per pass (writing a map-sized buffer every pass, and
+    more memory than the threshold where the C library reuses freed memory)."""
+    from jax._src import core
+
+    scene = procedural.default_scene(width=256, height=256)
+    texels = jnp.asarray(scene.normal_map)
+    positions = jnp.asarray(scene.mesh.positions)
+
+    def loss(t, p):
+        sc = scene.replace(normal_map=t, mesh=dataclasses.replace(scene.mesh, positions=p))
+        return jnp.mean(render(sc)["color"] ** 2)
+
+    jaxpr = jax.make_jaxpr(jax.grad(loss, argnums=(0, 1)))(texels, positions)
+    loops = []
+
+    def walk(j):
+        for e in j.eqns:
+            if e.primitive.name == "scan":
+                loops.append((e.params["length"], [v.aval.shape for v in e.outvars]))
+            for sub in core.jaxprs_in_params(e.params):
+                walk(sub)
+
+    walk(jaxpr.jaxpr)
+    assert any(n > 1 for n, _ in loops)  # the passes' loop is there (else this tests nothing)
+    inputs = {tuple(jnp.shape(x)) for x in (texels, positions, scene.mesh.uv,
+                                            scene.mesh.normals)}
+    stacked = [(n, s) for n, shapes in loops for s in shapes if len(s) > 1 and s[1:] in inputs]
+    assert not stacked, stacked

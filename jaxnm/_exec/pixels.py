@@ -122,7 +122,12 @@ def over_covered_pixels(per_pixel: Callable, tid: Array, pack: Callable, *,
         s = shapes[n]
         return jnp.zeros((pixels,) + s.shape[1:], s.dtype)
 
-    images = jax.lax.fori_loop(0, -(-pixels // slots), step, {n: blank(n) for n in names})
+    # (`jax.checkpoint`: differentiated, a pass is evaluated again in the backward pass. Else
+    # the conditional's residuals, which its skipping branch fills with zeros, are stacked
+    # pass by pass: a copy of the mesh's arrays and of the normal map per pass, written on
+    # every call, and per-pixel intermediates where a pass is one chunk)
+    images = jax.lax.fori_loop(0, -(-pixels // slots), jax.checkpoint(step),
+                               {n: blank(n) for n in names})
     out = {"mask": tid >= 0, "triangle_id": tid}
     out.update({n: v.reshape((height, width) + v.shape[1:]) for n, v in images.items()})
     return {n: out[n] for n in outputs}
