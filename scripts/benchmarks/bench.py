@@ -271,9 +271,10 @@ def _forward_rows(cells, timed, echo: bool = True) -> list[dict]:
 def bench_raster(p: B.BenchProblem, sizes, repeats: int, quick: bool) -> list[dict]:
     """Per mesh and size of the forward frames (the problem's camera): `jaxnm.rasterize`'s
     triangle ids (visibility), the same with back-face culling, its whole `Fragments`
-    (ids, depth and facing), and the G-buffer a user composes from them (`jaxnm.interpolate` of position, uv and normal with fine
-    derivatives, over the whole image); each under one jit, the mesh an argument, its first
-    call (compilation included) and the median of ``repeats`` steady calls."""
+    (ids, depth and facing), and the G-buffer a user composes from them
+    (`jaxnm.interpolate` of position, uv and normal with fine derivatives, over the whole
+    image); each under one jit, the mesh an argument, its first call (compilation included)
+    and the median of ``repeats`` steady calls."""
     rows = []
     for name, mesh in _meshes(quick).items():
         for size in sizes:
