@@ -16,7 +16,7 @@ do:
 - `compaction`: a mask's true entries as indices (`flat_nonzero`, `ranked_nonzero`).
 - `sums`: fixed-order sparse sums (`SumTables`).
 - `fusion`, `arrays`: a fusion barrier XLA keeps (`materialize`); small array operations in
-  the forms XLA runs well (`cumsum`, `div`, `roll_last`, `xyw`).
+  the forms XLA runs well (`cumsum`, `div`, `xyw`).
 
 Each module's docstring says why; docs/guides/design.md gives the measurements behind each
 choice, with their commands. Nothing here imports a stage: the stages call in, never the

@@ -12,14 +12,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-__all__ = ["cumsum", "div", "roll_last", "xyw"]
-
-
-def roll_last(x: ArrayLike, shift: int) -> Array:
-    """``x[..., (i + shift) % n]`` for a short last axis, as slices (tuple indexing is a gather)."""
-    x = jnp.asarray(x)
-    k = shift % x.shape[-1]
-    return x if k == 0 else jnp.concatenate([x[..., k:], x[..., :k]], -1)
+__all__ = ["cumsum", "div", "xyw"]
 
 
 def xyw(h: ArrayLike) -> Array:
