@@ -1,10 +1,12 @@
 """The composed pipeline: conventions of the outputs, scenes from JSON, the CLI, bad input."""
 
+import contextlib
 import dataclasses
 import importlib
 import json
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -770,11 +772,35 @@ def jax_copy(scene):
                                   scene)
 
 
+#: The lists `_compiles` is filling (the innermost last), and its listener once registered
+#: (one for the module: JAX 0.8.0 cannot unregister one).
+_COUNTING: list[list[str]] = []
+_LISTENERS: list = []
+
+
+def _listen(name, seconds, **kwargs):
+    if _COUNTING and name == "/jax/core/compile/backend_compile_duration":
+        _COUNTING[-1].append(kwargs.get("fun_name", "?"))
+
+
+@contextlib.contextmanager
+def _compiles():
+    """The names of the programs XLA compiles inside the block (a list filled as it runs)."""
+    if _listen not in _LISTENERS:
+        jax.monitoring.register_event_duration_secs_listener(_listen)
+        _LISTENERS.append(_listen)
+    names: list[str] = []
+    _COUNTING.append(names)
+    try:
+        yield names
+    finally:
+        _COUNTING.remove(names)
+
+
 def test_render_and_a_fits_prepare_share_one_visibility_program():
     """`render` (a fit's targets) and `covered_gbuffer` (its `prepare`) run one compiled
     visibility program per image size and culling: after a render, `covered_gbuffer`
     compiles its per-pixel program only (a second rasterizer was a second of `jaxnm fit`)."""
-    import jax
 
     from jaxnm.gbuffer import RenderOptions
     from jaxnm.render import covered_gbuffer
@@ -782,47 +808,25 @@ def test_render_and_a_fits_prepare_share_one_visibility_program():
     if jax.default_backend() != "cpu":
         pytest.skip("on a GPU `render` runs the whole image in one program: no visibility "
                     "program of its own to share")
-    compiles = []
-    counting = [False]
-
-    def listen(name, seconds, **kwargs):
-        if counting[0] and name == "/jax/core/compile/backend_compile_duration":
-            compiles.append(kwargs.get("fun_name", "?"))
-
-    jax.monitoring.register_event_duration_secs_listener(listen)  # (0.8.0: cannot unregister)
     scene = builtin_scene(PACKED)  # packed: visibility a program of its own
     jax.block_until_ready(render(scene, outputs=OUTPUTS)["color"])
-    counting[0] = True
-    try:
+    with _compiles() as compiles:
         gb, index, count = covered_gbuffer(scene.mesh, scene.camera, jnp.asarray(scene.albedo),
                                            opts=RenderOptions.of(scene))
         assert count > 0 and "jit(_covered)" in compiles
         assert not any("visible" in c for c in compiles), compiles
-    finally:
-        counting[0] = False
 
 
 def test_outputs_asked_in_another_order_run_the_same_program():
     """The same outputs in another order (or repeated) are the same options and the same
     compiled program; the result lists them in the order asked."""
-    import jax
 
     from jaxnm.gbuffer import RenderOptions
 
-    compiles, counting = [], [False]
-
-    def listen(name, seconds, **kwargs):
-        if counting[0] and name == "/jax/core/compile/backend_compile_duration":
-            compiles.append(kwargs.get("fun_name", "?"))
-
-    jax.monitoring.register_event_duration_secs_listener(listen)  # (0.8.0: cannot unregister)
     scene = builtin_scene(WHOLE)
     first = render(scene, outputs=OUTPUTS)
-    counting[0] = True
-    try:
+    with _compiles() as compiles:
         again = render(scene, outputs=OUTPUTS[::-1] + OUTPUTS[:1])
-    finally:
-        counting[0] = False
     assert not any("frame" in c for c in compiles), compiles
     assert list(first) == list(OUTPUTS) and list(again) == list(OUTPUTS[::-1])
     for name in first:
@@ -831,21 +835,12 @@ def test_outputs_asked_in_another_order_run_the_same_program():
                                                                           outputs=OUTPUTS[::-1])
 
 
-
 def test_weakly_and_strongly_typed_scalars_run_the_same_program():
     """A scene whose material and lights hold weakly typed scalars (Python floats,
     ``jnp.asarray(48.0)``, as the built-in scenes do) and the same scene after an optimiser
     step, whose updates are strongly typed arrays, run one compiled frame and give the same
     image."""
-    import jax
 
-    compiles, counting = [], [False]
-
-    def listen(name, seconds, **kwargs):
-        if counting[0] and name == "/jax/core/compile/backend_compile_duration":
-            compiles.append(kwargs.get("fun_name", "?"))
-
-    jax.monitoring.register_event_duration_secs_listener(listen)  # (0.8.0: cannot unregister)
     scene = builtin_scene(WHOLE)
     scene = scene.replace(material=dataclasses.replace(scene.material, shininess=48.0))
 
@@ -858,11 +853,8 @@ def test_weakly_and_strongly_typed_scalars_run_the_same_program():
         for k in ("material", "lights")})
     assert not any(weak((stepped.material, stepped.lights)))
     first = render(scene, outputs=OUTPUTS)
-    counting[0] = True
-    try:
+    with _compiles() as compiles:
         again = render(stepped, outputs=OUTPUTS)
-    finally:
-        counting[0] = False
     assert not any("frame" in c for c in compiles), compiles
     for name in first:
         np.testing.assert_array_equal(np.asarray(again[name]), np.asarray(first[name]))
