@@ -85,12 +85,12 @@ TIE_RULE = "left_bottom_yup"
 SUBPIXEL_BITS = 8
 
 
-def _pixel_centers(height: int, width: int, dtype=jnp.float32) -> tuple[Array, Array]:
-    """Window coordinates (x, y), each (H, W), of the pixel centres in image layout."""
-    x = jnp.arange(width, dtype=dtype) + 0.5
-    y = (height - 1 - jnp.arange(height, dtype=dtype)) + 0.5
-    return jnp.broadcast_to(x[None, :], (height, width)), jnp.broadcast_to(y[:, None],
-                                                                           (height, width))
+def _image_pixels(height: int, width: int) -> tuple[Array, Array]:
+    """Window pixel indices (i, j), each (H, W) int32, of an image in image layout."""
+    i = jnp.arange(width, dtype=jnp.int32)
+    j = height - 1 - jnp.arange(height, dtype=jnp.int32)
+    return (jnp.broadcast_to(i[None, :], (height, width)),
+            jnp.broadcast_to(j[:, None], (height, width)))
 
 
 @jax.tree_util.register_dataclass
@@ -149,20 +149,15 @@ class Fragments:
         """Window pixel indices (i, j) of each fragment (int32, of `shape`; j counts up)."""
         if self.pixels is not None:
             return self.pixels[..., 0], self.pixels[..., 1]
-        height, width = self.shape
-        i = jnp.arange(width, dtype=jnp.int32)
-        j = height - 1 - jnp.arange(height, dtype=jnp.int32)
-        return (jnp.broadcast_to(i[None, :], (height, width)),
-                jnp.broadcast_to(j[:, None], (height, width)))
+        return _image_pixels(*self.shape)
 
     def window_centers(self, dtype=jnp.float32) -> tuple[Array, Array]:
         """Window coordinates (x, y) of each fragment's pixel centre, of `shape`."""
-        if self.pixels is None:
-            return _pixel_centers(*self.shape, dtype)
         i, j = self.window_pixels()
         return i.astype(dtype) + 0.5, j.astype(dtype) + 0.5
 
 
+@functools.partial(jax.jit, static_argnames=("capacity", "subpixel_bits"))
 def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
             subpixel_bits: int | None = SUBPIXEL_BITS,
             orientation: Array | None = None, index: Array | None = None
@@ -189,12 +184,6 @@ def compact(triangle_id: Array, clip: Array, faces: Array, capacity: int, *,
     facing as `rasterize` computes them) and the (capacity,) flat image index of each
     slot (``H * W`` for unused slots).
     """
-    return _compact(jnp.asarray(triangle_id), jnp.asarray(clip), jnp.asarray(faces),
-                    orientation, index, capacity=capacity, subpixel_bits=subpixel_bits)
-
-
-@functools.partial(jax.jit, static_argnames=("capacity", "subpixel_bits"))
-def _compact(triangle_id, clip, faces, orientation, index, *, capacity, subpixel_bits):
     height, width = triangle_id.shape
     n = height * width
     ids = triangle_id.reshape(-1)
@@ -227,14 +216,10 @@ def _compact(triangle_id, clip, faces, orientation, index, *, capacity, subpixel
     return dataclasses.replace(placed, depth=depth, front_facing=covered & (sigma > 0)), index
 
 
+@functools.partial(jax.jit, static_argnames=("height", "width"))
 def expand(values: Array, index: Array, height: int, width: int, fill=0) -> Array:
     """Per-slot ``values`` (capacity, ...) of `compact`'s fragments as an image
     (H, W, ...), ``fill`` where no slot writes."""
-    return _expand(jnp.asarray(values), jnp.asarray(index), fill, height=height, width=width)
-
-
-@functools.partial(jax.jit, static_argnames=("height", "width"))
-def _expand(values, index, fill, *, height, width):
     n = height * width
     out = jnp.full((n,) + values.shape[1:], fill, values.dtype)
     # Every slot writes its own pixel (unused slots: distinct indices past the end, dropped),
@@ -398,27 +383,34 @@ def _window_corners(clip, faces, *, width, height, subpixel_bits):
     return Corners(materialize(h), faces), Corners(h_unsnapped, faces)
 
 
-def _fragment_source(tri, tri_depth, setup, counts, *, width, height, block, slots):
-    """Returns ``(fragments(slot0), total_slots)`` for triangles with corners ``tri``
-    (coverage), ``tri_depth`` (depth) and `triangle_setup` result ``setup``, taking
-    ``counts`` (F,) slots of each triangle, ``slots`` a round (`_slot_fragments`)."""
-    listed = slot_list(counts, slots)
-    fragments = functools.partial(_slot_fragments, listed=listed, tri_h=tri,
-                                  tri_depth=tri_depth, setup=setup, width=width, height=height,
-                                  block=block)
-    return fragments, listed.total
-
-
 _STATIC = ("width", "height", "cull_back", "subpixel_bits", "strategy")
 
 
-def _depth_test(tri, tri_depth, setup, counts, buf, *, width, height, block, slots, limits):
-    """Depth-test triangles into the tiled buffer ``buf`` (`jaxnm._exec.depth`), a round of
-    slots at a time. ``counts`` (F,): each triangle's slots (`each_pass`); ``limits``:
-    `round_limits`."""
-    fragments, total = _fragment_source(tri, tri_depth, setup, counts, width=width,
-                                        height=height, block=block, slots=slots)
-    return over_rounds(fragments, tiled.write, buf, total=total, size=slots, limits=limits)
+def _each_fragment(clip, faces, write, init, *, width, height, cull_back, subpixel_bits,
+                   strategy: RasterStrategy):
+    """Fold ``write(buf, tile, depth, triangle)`` (`over_rounds`) over every fragment of the
+    triangles, a pass and a round of slots at a time, into a tiled buffer that starts as
+    ``init(tiles)`` (`jaxnm._exec.depth`). Returns the buffer, each triangle's orientation sign
+    (F,) in the window (the snapped corners' ``sign(det M)``: +1 counter-clockwise, i.e.
+    front-facing) and the unsnapped corners (`Corners`)."""
+    block, slots = strategy.block, strategy.slots
+    tiles = (-(-width // block)) * (-(-height // block))
+    limits = round_limits(faces.shape[0], tiles, slots, strategy.pass_slots)
+    tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
+                                     subpixel_bits=subpixel_bits)
+    setup = triangle_setup(tri, width, height, block, cull_back)
+
+    def one_pass(counts, buf):  # ``counts`` (F,): each triangle's slots in this pass
+        listed = slot_list(counts, slots)
+        fragments = functools.partial(_slot_fragments, listed=listed, tri_h=tri,
+                                      tri_depth=tri_depth, setup=setup, width=width,
+                                      height=height, block=block)
+        return over_rounds(fragments, write, buf, total=listed.total, size=slots,
+                           limits=limits)
+
+    buf = each_pass(one_pass, setup.count, init(tiles), tiles=tiles,
+                    pass_slots=strategy.pass_slots)
+    return buf, setup.sigma, tri_depth
 
 
 @functools.partial(jax.jit, static_argnames=_STATIC)
@@ -427,28 +419,22 @@ def _rasterize(clip, faces, *, width, height, cull_back, subpixel_bits, strategy
         clip, faces, width=width, height=height, cull_back=cull_back,
         subpixel_bits=subpixel_bits, strategy=strategy)
     # facing from the coverage (snapped) orientation, as the rasterizer saw the triangle
-    depth, front = _depth_and_facing(tri_depth, sigma, tid,
-                                     *_pixel_centers(height, width, tri_depth.dtype))
+    i, j = _image_pixels(height, width)
+    dtype = tri_depth.dtype
+    depth, front = _depth_and_facing(tri_depth, sigma, tid, i.astype(dtype) + 0.5,
+                                     j.astype(dtype) + 0.5)
     return tid, depth, front
 
 
-def _visible_triangles(clip, faces, *, width, height, cull_back, subpixel_bits,
-                       strategy: RasterStrategy):
-    """Each pixel's triangle (H, W) (-1: background), each triangle's orientation sign
-    (F,) in the window (the snapped corners' ``sign(det M)``: +1 counter-clockwise, i.e.
-    front-facing) and the unsnapped corners (`Corners`)."""
-    block = strategy.block
-    tiles = (-(-width // block)) * (-(-height // block))
-    kw = dict(width=width, height=height, block=block, slots=strategy.slots,
-              limits=round_limits(faces.shape[0], tiles, strategy.slots, strategy.pass_slots))
-    tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
-                                     subpixel_bits=subpixel_bits)
-    setup = triangle_setup(tri, width, height, block, cull_back)
-    buf = each_pass(lambda n, buf: _depth_test(tri, tri_depth, setup, n, buf, **kw),
-                    setup.count, tiled.empty_buffer(tiles, block, clip.dtype), tiles=tiles,
-                    pass_slots=strategy.pass_slots)
-    ids = tiled.tiles_to_image(tiled.winners(buf), width, height)
-    return jnp.where(ids != tiled.NO_TRIANGLE, ids, -1), setup.sigma, tri_depth
+def _visible_triangles(clip, faces, *, strategy: RasterStrategy, **kw):
+    """Each pixel's triangle (H, W) (-1: background), each triangle's orientation sign and
+    its unsnapped corners (`_each_fragment`)."""
+    buf, sigma, tri_depth = _each_fragment(
+        clip, faces, tiled.write, lambda tiles: tiled.empty_buffer(tiles, strategy.block,
+                                                                   clip.dtype),
+        strategy=strategy, **kw)
+    ids = tiled.tiles_to_image(tiled.winners(buf), kw["width"], kw["height"])
+    return jnp.where(ids != tiled.NO_TRIANGLE, ids, -1), sigma, tri_depth
 
 
 def triangle_ids(clip: Float[ArrayLike, "V 4"], faces: Integer[ArrayLike, "F 3"], *,
@@ -506,25 +492,15 @@ def _pixel_depth(tri_depth: Corners, tid: Array, x: Array, y: Array) -> Array:
 
 @functools.partial(jax.jit, static_argnames=_STATIC)
 def _overdraw(clip, faces, *, width, height, cull_back, subpixel_bits, strategy):
-    block, slots = strategy.block, strategy.slots
-    tri, tri_depth = _window_corners(clip, faces, width=width, height=height,
-                                     subpixel_bits=subpixel_bits)
-    tiles = (-(-width // block)) * (-(-height // block))
-    setup = triangle_setup(tri, width, height, block, cull_back)
+    block = strategy.block
 
-    def one_pass(counts, count):
-        fragments, total = _fragment_source(tri, tri_depth, setup, counts, width=width,
-                                            height=height, block=block, slots=slots)
+    def add(count, tile, depth, _):
+        return count.at[tile].add((depth < jnp.inf).astype(jnp.int32), mode="drop")
 
-        def add(count, tile, depth, _):
-            return count.at[tile].add((depth < jnp.inf).astype(jnp.int32), mode="drop")
-
-        return over_rounds(fragments, add, count, total=total, size=slots,
-                           limits=round_limits(faces.shape[0], tiles, slots,
-                                               strategy.pass_slots))
-
-    count = each_pass(one_pass, setup.count, jnp.zeros((tiles, block, block), jnp.int32),
-                      tiles=tiles, pass_slots=strategy.pass_slots)
+    count, _, _ = _each_fragment(
+        clip, faces, add, lambda tiles: jnp.zeros((tiles, block, block), jnp.int32),
+        width=width, height=height, cull_back=cull_back, subpixel_bits=subpixel_bits,
+        strategy=strategy)
     return tiled.tiles_to_image(count, width, height)
 
 
