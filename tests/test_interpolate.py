@@ -37,11 +37,12 @@ def test_matches_float64_reference_all_modes(size):
 
 
 def _plane_scene(ortho: bool, size=(32, 32)):
-    """A tilted plane z = 0 (uv = affine in x, y), camera looking down at it obliquely."""
+    """A tilted plane z = 0 (uv = affine in x, y), camera looking down at it obliquely: two
+    triangles with their own corners (six vertices, the shape of `_seam_scene`)."""
     w, h = size
     s = 12.0
-    pos = np.array([[-s, -s, 0], [s, -s, 0], [s, s, 0], [-s, s, 0]], np.float64)
-    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    pos = np.array([[-s, -s, 0], [s, -s, 0], [s, s, 0], [-s, s, 0]], np.float64)[[0, 1, 2, 0, 2, 3]]
+    faces = np.array([[0, 1, 2], [3, 4, 5]])
     a_uv = np.array([[0.30, 0.05], [-0.07, 0.22]])  # sheared affine uv map
     uv = pos[:, :2] @ a_uv.T + [0.5, 0.4]
     eye, target = np.array([0.4, -1.6, 1.3]), np.array([0.1, 0.2, 0.0])

@@ -19,7 +19,7 @@ from jaxnm.config import load_scene, scene_from_dict
 from jaxnm.maps import height_to_normal_map
 from jaxnm.procedural import default_scene
 from jaxnm.render import render
-from jaxnm.scene import Scene, validate_scene
+from jaxnm.scene import Scene, default_lights, default_material, validate_scene
 from jaxnm.shading import DirectionalLight, Lights, Material, PointLight, stack_lights
 
 EXAMPLE = (Path(__file__).resolve().parents[1] / "scripts" / "examples" / "scenes" / "torus"
@@ -41,8 +41,11 @@ PLANE_OUTPUTS = ("color", "mask", "uv", "duvdx", "duvdy", "position", "dpdy", "n
 
 
 def _mapped(plane_scene):
-    """The plane with the built-in normal map."""
-    return plane_scene.replace(normal_map=procedural.default_normal_map_texels(64))
+    """The plane with the built-in normal map, lit by the default light and material (given
+    explicitly: a scene with other lights and material renders with the same program)."""
+    return plane_scene.replace(normal_map=procedural.default_normal_map_texels(64),
+                               lights=default_lights(plane_scene.camera),
+                               material=default_material())
 
 
 def test_image_layout_uv_origin_and_dfdy_direction(plane_scene):
@@ -190,8 +193,9 @@ def test_lights_and_material_change_the_image(plane_scene):
     a = render(base, outputs=PLANE_OUTPUTS)["color"]
     left = Lights(directional=stack_lights([DirectionalLight(jnp.array([-1.0, 0, 0.5]),
                                                              jnp.ones(3), jnp.asarray(1.0))]))
-    b = render(base.replace(lights=left, material=Material(
-        jnp.ones(3), jnp.zeros(3), jnp.asarray(1.0), jnp.zeros(3))))["color"]
+    lit_left = base.replace(lights=left, material=Material(
+        jnp.ones(3), jnp.zeros(3), jnp.asarray(1.0), jnp.zeros(3)))
+    b = render(lit_left, outputs=PLANE_OUTPUTS)["color"]
     assert np.abs(a - b).mean() > 0.05
 
 

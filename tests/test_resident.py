@@ -19,6 +19,7 @@ import jaxnm
 from jaxnm import fit as F
 from jaxnm import procedural
 from jaxnm._exec.device import forced, resident
+from jaxnm.fit.solve import _step
 from jaxnm.raster import RasterStrategy
 
 GEOMETRY = ("mask", "triangle_id", "depth", "front_facing")
@@ -181,9 +182,9 @@ def test_a_resident_fit_step_stays_on_the_device_and_equals_the_cpu_step(fit_arg
     with forced():
         got = run()
         z = jax.device_put(z0)
-        # the solver's step, as `fit_step` compiles it (less its bookkeeping)
-        hlo = jax.jit(lambda z, state, args: solver.step(z, state, args)).lower(
-            z, F.start_state(args, solver, z), args).compile().as_text()
+        # the program `fit_step` runs: the solver's step and its bookkeeping
+        lowered = _step.lower((args, solver), z, F.start_state(args, solver, z))
+        hlo = lowered.compile().compiled.as_text()  # (equinox's wrapper of JAX's Compiled)
     assert_resident(hlo, conditionals=0)
     assert float(cpu[1]) > 0
     np.testing.assert_allclose(np.asarray(got[0]), np.asarray(cpu[0]), rtol=1e-5, atol=1e-6)
