@@ -664,7 +664,7 @@ def test_the_fit_follows_optimistix_own_steps(small):
     from jaxnm.fit.solve import _start_slopes
 
     problem, _, _, prep, _ = small
-    opts = F.FitOptions(solver="lm", max_steps=4, ftol=0.0, init_noise=0.05)
+    opts = F.FitOptions(solver="lm", max_steps=4, lsmr_steps=5, ftol=0.0, init_noise=0.05)
     res = F.fit_normal_map(problem, opts, prepared=prep, progress=False)
     scale = F.preconditioner(prep)
     args = F.ModelArgs.create(prep, scale=scale, reduce=True)
