@@ -398,6 +398,25 @@ def test_every_key_of_the_report_is_documented(tmp_path):
     assert not [k for k in documented if f'"{k}"' not in code]
 
 
+def test_help_names_every_command_and_explains_every_option(capsys):
+    """``jaxnm --help`` names the three commands in plain words, and every option of every
+    command says what it does."""
+    from jaxnm.cli import _parser
+
+    parser = _parser()
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    top = " ".join(capsys.readouterr().out.split())
+    assert "``" not in top
+    assert all(w in top for w in ("Render a scene", "fit a tangent-space normal map", "bake"))
+    commands = next(a for a in parser._actions if a.dest == "command").choices
+    assert set(commands) == {"render", "fit", "bake"}
+    silent = [f"{name} {'/'.join(a.option_strings) or a.dest}"
+              for name, sub in commands.items() for a in sub._actions
+              if not a.help and a.dest != "help"]
+    assert not silent, silent
+
+
 def test_the_command_line_page_names_every_frame_and_alias():
     from jaxnm.frames import FRAME_ALIASES, FRAMES
 

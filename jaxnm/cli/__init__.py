@@ -1,10 +1,11 @@
-"""Command line: ``jaxnm render`` and ``jaxnm fit``.
+"""Command line: ``jaxnm render``, ``jaxnm fit`` and ``jaxnm bake``.
 
     jaxnm render [SCENE.json] [-o out.png] [--aovs out.npz] [--derivatives MODE]
                  [--frame FRAME] [--light X,Y,Z ...] [--normal-map PATH] [--width W --height H]
     jaxnm fit [FIT.json] [-o OUTDIR] [--checkpoint-every SECONDS] [--resume] ...
     jaxnm fit FIT.json --distributed [--coordinator HOST:PORT --num-processes N
                                       --process-id I] [--timeout SECONDS] ...
+    jaxnm bake HIGH [LOW | --decimate N] -o OUTDIR [--method raycast|fit|both] ...
 
 Options override the scene (or fit) file; with no file the built-in scene or
 problem (a rivet-mapped torus, generated in code) is used. Errors in the
@@ -92,6 +93,12 @@ def _use_compilation_cache() -> Path | None:
 
 
 
+#: What ``jaxnm --help`` says the command is.
+DESCRIPTION = ("Render a scene, fit a tangent-space normal map to target shading, or bake a "
+               "high-poly mesh's detail into a low-poly mesh's normal map. 'jaxnm COMMAND "
+               "--help' lists each command's options.")
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with one-line errors: ``jaxnm render: error: ...`` and where to look,
     instead of the usage block."""
@@ -105,7 +112,7 @@ class _Parser(argparse.ArgumentParser):
 def _parser() -> argparse.ArgumentParser:
     from . import _bake, _fit, _render
 
-    parser = _Parser(prog="jaxnm", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="jaxnm", description=DESCRIPTION)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _render.add_parser(sub)
     _fit.add_parser(sub)
@@ -121,12 +128,13 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None, *, sigint=None) -> int:
-    """Run ``jaxnm render`` or ``jaxnm fit`` with ``argv`` (default: ``sys.argv[1:]``);
-    returns the exit code (2 for bad input, with a one-line error on stderr; 130 after
-    Ctrl-C). ``sigint``: the ``jaxnm`` launcher's `jaxnm_launcher.SigintThread`, which
-    receives SIGINT on a thread of its own. The command handles SIGINT while it runs
-    (`CtrlC`; not where SIGINT is ignored, nor outside the main thread), shows warnings as
-    one line each, and puts the previous handler and warning display back."""
+    """Run ``jaxnm render``, ``jaxnm fit`` or ``jaxnm bake`` with ``argv`` (default:
+    ``sys.argv[1:]``); returns the exit code (2 for bad input, with a one-line error on
+    stderr; 130 after Ctrl-C). ``sigint``: the ``jaxnm`` launcher's
+    `jaxnm_launcher.SigintThread`, which receives SIGINT on a thread of its own. The command
+    handles SIGINT while it runs (`CtrlC`; not where SIGINT is ignored, nor outside the main
+    thread), shows warnings as one line each, and puts the previous handler and warning
+    display back."""
     ctrl_c = CtrlC().install(sigint)
     try:
         args = _parser().parse_args(argv)

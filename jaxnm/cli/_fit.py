@@ -50,8 +50,11 @@ def add_parser(sub) -> None:
     p.add_argument("--texel-sums", dest="texel_sums", choices=TEXEL_SUMS,
                    help="lm-texel's sums into the texels: scatter-adds, or fixed-order tables "
                    "(deterministic without sorting; default auto: tables on a GPU)")
-    p.add_argument("--seed", type=int)
-    p.add_argument("--time-limit", type=float, dest="time_limit", metavar="SECONDS")
+    p.add_argument("--seed", type=int,
+                   help="seed of the random start where the fit file's solver has an "
+                   "init_noise (default 0)")
+    p.add_argument("--time-limit", type=float, dest="time_limit", metavar="SECONDS",
+                   help="stop after SECONDS of fitting, keeping the best map so far")
     p.add_argument("--quick", action="store_true",
                    help="built-in problem at 128x128 renders and a 64x64 map (a smoke test)")
     p.add_argument("--no-progress", action="store_true", dest="no_progress",
@@ -71,8 +74,10 @@ def add_parser(sub) -> None:
                    "--coordinator, --num-processes, --process-id); process 0 writes OUTDIR")
     p.add_argument("--coordinator", metavar="HOST:PORT",
                    help="with --distributed: the address of process 0's coordinator")
-    p.add_argument("--num-processes", type=int, dest="num_processes", metavar="N")
-    p.add_argument("--process-id", type=int, dest="process_id", metavar="I")
+    p.add_argument("--num-processes", type=int, dest="num_processes", metavar="N",
+                   help="with --distributed: how many processes take part")
+    p.add_argument("--process-id", type=int, dest="process_id", metavar="I",
+                   help="with --distributed: this process's number, 0 to N-1")
     p.add_argument("--timeout", type=float, default=300.0, metavar="SECONDS",
                    help="with --distributed: how long to wait for the other processes to "
                    "join, and after how long without a heartbeat a process counts as lost "

@@ -72,8 +72,10 @@ def add_parser(sub) -> None:
                    help="bump the surface with this height map instead (grayscale image)")
     p.add_argument("--height-scale", type=float, default=0.02, dest="height_scale",
                    help="world units per unit of the height map (default: %(default)s)")
-    p.add_argument("--width", type=int)
-    p.add_argument("--height", type=int)
+    p.add_argument("--width", type=int,
+                   help="image width in pixels (default: the scene's; the built-in scene's "
+                   "is 512); the camera keeps its vertical field of view")
+    p.add_argument("--height", type=int, help="image height in pixels (as --width)")
     p.add_argument("--exposure", type=float, default=1.0, help="linear scale before sRGB")
     p.add_argument("--bits", type=int, choices=(8, 16), default=8, help="PNG bit depth")
 
