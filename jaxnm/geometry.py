@@ -180,8 +180,10 @@ def _check_values(positions, faces, uv, normals, num_vertices: int, source: str)
     if _is_concrete(positions):
         bad = ~np.all(np.isfinite(np.asarray(positions)), axis=1)
         if bad.any():
-            raise ValueError(f"{source}: {int(bad.sum())} vertex positions are NaN or infinite "
-                             f"(first: vertex {int(np.argmax(bad))})")
+            n = int(bad.sum())
+            what = "1 vertex position is" if n == 1 else f"{n} vertex positions are"
+            raise ValueError(f"{source}: {what} NaN or infinite (the first: vertex "
+                             f"{int(np.argmax(bad))}, counting from 0)")
     if _is_concrete(faces):
         faces = np.asarray(faces)
         lo, hi = int(faces.min()), int(faces.max())

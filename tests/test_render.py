@@ -363,10 +363,15 @@ def test_value_checks_are_for_where_scenes_are_made():
     geometry.check_mesh_arrays(host, mesh.faces, mesh.uv, mesh.normals, source="m")
     host[1, 0] = np.nan
     for pos in (host, jnp.asarray(host)):
-        with pytest.raises(ValueError, match="m: 1 vertex positions are NaN"):
+        with pytest.raises(ValueError, match=r"m: 1 vertex position is NaN or infinite \(the "
+                           r"first: vertex 1, counting from 0\)"):
             geometry.check_mesh_arrays(pos, mesh.faces, mesh.uv, mesh.normals, source="m")
         geometry.check_mesh_arrays(pos, mesh.faces, mesh.uv, mesh.normals, source="m",
                                  values=False)
+    host[3, 2] = np.inf
+    with pytest.raises(ValueError, match=r"m: 2 vertex positions are NaN or infinite \(the "
+                       r"first: vertex 1, counting from 0\)"):
+        geometry.check_mesh_arrays(host, mesh.faces, mesh.uv, mesh.normals, source="m")
     with pytest.raises(ValueError, match=r"m: positions must have shape \(V, 3\)"):
         geometry.check_mesh_arrays(host[:, :2], mesh.faces, values=False, source="m")
 
