@@ -193,6 +193,11 @@ def test_decimate_and_unwrap_write_the_low_poly_mesh(files, tmp_path, capsys):
      "jaxnm bake: error: --lights: a fit needs at least 3 lights per view"),
     (["{d}/hi.obj", "{d}/lo.obj", "--store", "bc5", "--size", "30"],
      "jaxnm bake: error: --store bc5: a BC5 map's side must be a multiple of 4, got --size 30"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--size", "8"],
+     "jaxnm bake: error: --size 8: without a --render-size, each view's image takes the map's "
+     "larger side, which must then be 16 to 8192 pixels"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--size", "8", "--render-size", "12"],
+     "jaxnm bake: error: --render-size must be an integer in [16, 8192] or None, got 12"),
     (["{d}/hi.obj", "{d}/nope.obj"], "jaxnm bake: error: {d}/nope.obj: no such file"),
     (["{d}/hi.obj", "{d}/lo_nouv.obj", "--method", "raycast"],
      "jaxnm bake: error: {d}/lo_nouv.obj: the mesh has no texture coordinates (uv); a normal "
@@ -315,6 +320,20 @@ def test_the_help_states_the_library_defaults(capsys):
                          o.eval_views), ("--size N the map's side", o.size)):
         assert f"{flag} (default: {value}" in text, flag
     assert o.eval_lights == 2 and o.frame == "vertex" and o.method == "both"
+
+
+def test_a_small_map_needs_a_render_size_where_anything_is_rendered():
+    """Without ``render_size`` the views' images take the map's side; a map under 16 texels
+    a side is refused up front, unless nothing is rendered (ray casting, no scores) or a
+    render size is given."""
+    from jaxnm.transfer import PairBakeOptions
+
+    with pytest.raises(ValueError, match=r"^PairBakeOptions: size 8: without a render_size"):
+        PairBakeOptions(size=8)
+    with pytest.raises(ValueError, match=r"size \(8, 20000\): without a render_size"):
+        PairBakeOptions(size=(8, 20000))
+    for ok in (dict(method="raycast", eval_views=0), dict(render_size=16)):
+        assert PairBakeOptions(size=8, **ok).map_size == (8, 8)
 
 
 def test_store_bc5_writes_a_dds_beside_the_png(files, tmp_path):

@@ -137,7 +137,7 @@ def _options(args):
         for name, flag in _FLAGS.items():
             if text.startswith(name + " "):
                 text = f"{flag} {text[len(name) + 1:]}"
-        raise ValueError(text) from None
+        raise ValueError(text.replace("render_size", "--render-size")) from None
 
 
 def _meshes(args, say):

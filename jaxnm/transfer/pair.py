@@ -142,6 +142,11 @@ class PairBakeOptions:
                                or not 16 <= rs <= 8192):
             raise ValueError(f"PairBakeOptions: render_size must be an integer in [16, 8192] "
                              f"or None, got {rs!r}")
+        renders = self.eval_views or (self.method != "raycast" and self.views)
+        if rs is None and renders and not 16 <= max(hw) <= 8192:
+            raise ValueError(f"PairBakeOptions: size {self.size!r}: without a render_size, "
+                             f"each view's image takes the map's larger side, which must then "
+                             f"be 16 to 8192 pixels")
         if not 0 < self.max_angle_deg < 90:
             raise ValueError(f"PairBakeOptions: max_angle_deg must be in (0, 90), got "
                              f"{self.max_angle_deg!r}")
