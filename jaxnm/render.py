@@ -26,7 +26,7 @@ from .gbuffer import GBuffer, RenderOptions, gbuffer_from_fragments, shade_gbuff
 from .geometry import Mesh
 from .interpolate import require_x64
 from .raster import compact, rasterize, triangle_ids
-from .scene import Scene, default_lights, default_material
+from .scene import Scene, check_scene_shapes, default_lights, default_material
 
 __all__ = ["render", "build_gbuffer", "covered_gbuffer"]
 
@@ -40,7 +40,8 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
 
     **Arguments:**
     - `scene`: a `Scene` (`jaxnm.config.load_scene`, `jaxnm.procedural.default_scene`).
-    - `outputs`: any of `jaxnm.gbuffer.OUTPUTS`; only the stages they need are run.
+    - `outputs`: names among `jaxnm.gbuffer.OUTPUTS` (a tuple, or one name); only the
+      stages they need are run.
     - `derivatives`, `frame`, `precision`: override the scene's choices.
 
     Row 0 is the top of the image. ``color`` is linear RGB (see
@@ -58,11 +59,12 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     ids and facing exactly, the rest to float32 rounding. Nothing is remembered between
     calls but the compiled programs.
 
-    **Checks.** The call's options are checked here (a `ValueError` naming
-    ``scene.source``); a scene's arrays where scenes are made (`jaxnm.scene.validate_scene`,
-    which `jaxnm.config.load_scene` and the built-in scenes run: shapes, NaN or infinite
-    values, face indices out of range, a camera that sees nothing). Pass a scene assembled
-    by hand through `jaxnm.scene.validate_scene` once. Rendered unchecked, a triangle with a
+    **Checks.** The call's options and the shapes of the scene's arrays are checked here
+    (`jaxnm.scene.check_scene_shapes`; a `ValueError` naming ``scene.source`` and the
+    field); a scene's values where scenes are made (`jaxnm.scene.validate_scene`, which
+    `jaxnm.config.load_scene` and the built-in scenes run: NaN or infinite values, face
+    indices out of range, a camera that sees nothing). Pass a scene assembled by hand
+    through `jaxnm.scene.validate_scene` once. Rendered unchecked, a triangle with a
     non-finite corner or a face index out of range covers nothing, as on a GPU.
 
     Differentiable: the scene's arrays (normal map, albedo, vertex positions,
@@ -71,6 +73,9 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     (visibility is piecewise constant: silhouettes and occlusion boundaries
     contribute no gradient).
     """
+    if isinstance(outputs, str):
+        outputs = (outputs,)
+    check_scene_shapes(scene)
     asked = tuple(dict.fromkeys(outputs))
     opts = RenderOptions.of(scene, outputs=asked, derivatives=derivatives, frame=frame,
                             precision=precision)

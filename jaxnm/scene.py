@@ -27,8 +27,8 @@ from .shading import DirectionalLight, Lights, Material, check_shading_model, st
 from .textures import NormalMapOptions
 
 __all__ = [
-    "Scene", "validate_scene", "default_lights", "default_material", "back_faces_hidden",
-    "MAX_IMAGE_SIZE", "DDY_CONVENTIONS", "check_scene_options"
+    "Scene", "validate_scene", "check_scene_shapes", "default_lights", "default_material",
+    "back_faces_hidden", "MAX_IMAGE_SIZE", "DDY_CONVENTIONS", "check_scene_options"
 ]
 
 #: The largest image width or height a scene may ask for.
@@ -151,11 +151,12 @@ def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
-def _check_scene_shapes(scene: Scene) -> None:
+def check_scene_shapes(scene: Scene) -> None:
     """Raise a `ValueError` naming ``scene.source`` unless the scene's arrays have usable
     shapes and dtypes: the mesh's, a normal map (H, W, C) of floats with enough channels, an
     albedo (3,) or (H, W, 3), a 4x4 model, and uvs where a map or texture needs them.
-    Shapes only: known for traced arrays too."""
+    Shapes only (known for traced arrays too, and no pass over the values): what
+    `jaxnm.render.render` checks on every call, and the first step of `validate_scene`."""
     src = scene.source
     m = scene.mesh
     check_mesh_arrays(m.positions, m.faces, m.uv, m.normals, source=src, values=False)
@@ -196,9 +197,10 @@ def validate_scene(scene: Scene) -> Scene:
     its near plane. Value checks run only on concrete arrays (never on tracers, so this is
     safe under ``jax.grad``/``jax.jit``); shape checks always run. Scene files
     (`jaxnm.config.load_scene`) and the built-in scenes are checked so when they are made;
-    `jaxnm.render.render` checks only its own options.
+    `jaxnm.render.render` checks its options and the arrays' shapes (`check_scene_shapes`)
+    on every call, not their values.
     """
-    _check_scene_shapes(scene)
+    check_scene_shapes(scene)
     src = scene.source
     m = scene.mesh
     check_mesh_arrays(m.positions, m.faces, m.uv, m.normals, source=src)

@@ -352,6 +352,31 @@ def test_cli_uses_the_persistent_compilation_cache(tmp_path):
     assert deterministic == [True, True, False, True]
 
 
+@pytest.mark.parametrize("field,value,message", [
+    ("normal_map", np.zeros((8, 8), np.float32), r"the normal map must have shape \(H, W, C\)"),
+    ("normal_map", np.zeros((8, 8, 3), np.uint8), "the normal map must hold floating-point"),
+    ("albedo", np.zeros(5, np.float32), r"the albedo must be .* got shape \(5,\)"),
+    ("model", np.eye(3, dtype=np.float32), r"the model matrix must be 4x4, got \(3, 3\)"),
+])
+def test_render_names_the_scene_and_the_field_of_an_array_of_the_wrong_shape(field, value,
+                                                                             message):
+    """A scene changed by hand after it was made (`Scene.replace` checks no arrays) is
+    refused by `render` in one line naming the scene and what is wrong, before anything is
+    traced, under the caller's `jax.jit` too."""
+    sc = default_scene(width=16, height=16).replace(source="my scene", **{field: value})
+    with pytest.raises(ValueError, match=f"^my scene: {message}"):
+        render(sc)
+    with pytest.raises(ValueError, match=f"^my scene: {message}"):
+        jax.jit(lambda s: render(s)["color"])(sc)
+
+
+def test_one_output_may_be_named_alone():
+    sc = default_scene(width=16, height=16)
+    alone, listed = render(sc, outputs="mask"), render(sc, outputs=("mask",))
+    assert list(alone) == ["mask"]
+    np.testing.assert_array_equal(alone["mask"], listed["mask"])
+
+
 def test_value_checks_are_for_where_scenes_are_made():
     """`check_mesh_arrays` scans the values of concrete arrays, JAX's and NumPy's alike, every
     time it is asked (``values=False``: shapes and dtypes only, what `render` checks on every
