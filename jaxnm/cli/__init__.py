@@ -94,7 +94,7 @@ def _use_compilation_cache() -> Path | None:
 
 
 #: What ``jaxnm --help`` says the command is.
-DESCRIPTION = ("Render a scene, fit a tangent-space normal map to target shading, or bake a "
+_DESCRIPTION = ("Render a scene, fit a tangent-space normal map to target shading, or bake a "
                "high-poly mesh's detail into a low-poly mesh's normal map. 'jaxnm COMMAND "
                "--help' lists each command's options.")
 
@@ -112,7 +112,7 @@ class _Parser(argparse.ArgumentParser):
 def _parser() -> argparse.ArgumentParser:
     from . import _bake, _fit, _render
 
-    parser = _Parser(prog="jaxnm", description=DESCRIPTION)
+    parser = _Parser(prog="jaxnm", description=_DESCRIPTION)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _render.add_parser(sub)
     _fit.add_parser(sub)
