@@ -178,6 +178,27 @@ def test_cli_errors_are_one_line_and_exit_2(tmp_path, capsys):
     assert "frame" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("argv,message", [
+    (["--width", "-5"], "--width must be positive, got -5"),
+    (["--exposure", "-1"], "--exposure must be a positive finite scale, got -1.0"),
+    (["--exposure", "nan"], "--exposure must be a positive finite scale, got nan"),
+    (["-o", "{d}/x.jpg"], "-o {d}/x.jpg: jaxnm render writes PNG images; the name must end "
+                          "in .png"),
+])
+def test_cli_options_are_checked_before_anything_is_loaded(tmp_path, capsys, monkeypatch,
+                                                          argv, message):
+    import jaxnm.cli._render as R
+
+    def no_scene(args):
+        raise AssertionError("the scene was made before the options were checked")
+
+    monkeypatch.setattr(R, "_scene", no_scene)
+    assert main(["render", *[a.format(d=tmp_path) for a in argv]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"jaxnm render: error: {message.format(d=tmp_path)}", err
+    assert not list(tmp_path.iterdir())
+
+
 def test_cli_normal_map_override_must_be_rgb(tmp_path, capsys):
     from jaxnm.io import save_png
 

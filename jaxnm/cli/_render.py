@@ -185,6 +185,11 @@ def run(args, ctrl_c: CtrlC) -> int:
     for flag, v in (("--width", args.width), ("--height", args.height)):
         if v is not None and v <= 0:
             raise ValueError(f"{flag} must be positive, got {v}")
+    if not 0 < args.exposure < float("inf"):
+        raise ValueError(f"--exposure must be a positive finite scale, got {args.exposure}")
+    if Path(args.output).suffix.lower() != ".png":
+        raise ValueError(f"-o {args.output}: jaxnm render writes PNG images; the name must end "
+                         "in .png")
     scene, frame = _scene(args)
     ctrl_c.check()
     lights = ([directional_light(d) for d in args.light] if args.light
