@@ -137,7 +137,11 @@ def _options(args):
         for name, flag in _FLAGS.items():
             if text.startswith(name + " "):
                 text = f"{flag} {text[len(name) + 1:]}"
-        raise ValueError(text.replace("render_size", "--render-size")) from None
+        # then names with an underscore (no plain word has one) wherever the message has them
+        for name, flag in _FLAGS.items():
+            if "_" in name:
+                text = text.replace(name, flag)
+        raise ValueError(text) from None
 
 
 def _meshes(args, say):
