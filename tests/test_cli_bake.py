@@ -163,9 +163,12 @@ def _angle(a, b):
     return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, -1)))
 
 
-def test_decimate_and_unwrap_write_the_low_poly_mesh(files, tmp_path, capsys):
+@pytest.mark.parametrize("unwrap", [(), ("--unwrap",)], ids=["decimate", "decimate-unwrap"])
+def test_decimate_writes_the_low_poly_mesh_with_uvs(files, tmp_path, capsys, unwrap):
+    """``--decimate N`` makes LOW and unwraps it (it has no uvs otherwise); ``--unwrap``
+    beside it changes nothing."""
     out = tmp_path / "o"
-    assert _bake(files / "torus.obj", "--decimate", "300", "--unwrap", "--method", "raycast",
+    assert _bake(files / "torus.obj", "--decimate", "300", *unwrap, "--method", "raycast",
                  "--eval-views", "0", "--size", "32", "-o", out) == 0
     low = io.load_mesh(out / "low.obj")
     assert 280 <= low.num_faces <= 300 and low.uv is not None and low.normals is not None
@@ -180,12 +183,10 @@ def test_decimate_and_unwrap_write_the_low_poly_mesh(files, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv,message", [
-    (["{d}/hi.obj"], "jaxnm bake: error: no LOW: give the low-poly mesh, or --decimate N "
-                     "--unwrap to make one from HIGH"),
+    (["{d}/hi.obj"], "jaxnm bake: error: no LOW: give the low-poly mesh, or --decimate N to "
+                     "make one from HIGH"),
     (["{d}/hi.obj", "{d}/lo.obj", "--decimate", "10", "--unwrap"],
      "jaxnm bake: error: give LOW or --decimate N (LOW made from HIGH), not both"),
-    (["{d}/hi.obj", "--decimate", "10"],
-     "jaxnm bake: error: --decimate makes a LOW without uvs: add --unwrap to give it some"),
     (["{d}/hi.obj", "{d}/lo.obj", "--frame", "nonperspective"],
      "jaxnm bake: error: --frame 'nonperspective': ray casting bakes for the frames vertex, "
      "cotangent only (method 'fit' fits a map for any frame)"),

@@ -3,9 +3,10 @@ normal map by casting rays, by fitting the map to the high-poly mesh's shading, 
 (`jaxnm.transfer.bake_mesh_pair`), scored under held-out views and lights.
 
 LOW is the mesh to bake onto; with ``--decimate N`` it is made from HIGH instead
-(``fast-simplification``, N triangles) and must then not be given, and ``--unwrap`` gives it
-uvs (xatlas): ``jaxnm bake sculpt.obj --decimate 2000 --unwrap`` turns a sculpt into a
-low-poly mesh and its map. Writes (each file atomically, the maps first):
+(``fast-simplification``, N triangles) and given uvs by xatlas, and must then not be given:
+``jaxnm bake sculpt.obj --decimate 2000`` turns a sculpt into a low-poly mesh and its map.
+``--unwrap`` gives a LOW that was read new uvs the same way. Writes (each file atomically,
+the maps first):
 
 - ``OUT/raycast/`` and ``OUT/fit/``, per method run: ``normal_map.png`` (unsigned, green
   up, 8 or 16 bits), ``normal_map.npz`` (``normals``: unit tangent-space vectors, row 0 on
@@ -83,7 +84,8 @@ def add_parser(sub) -> None:
     p.add_argument("--unwrap", action="store_true",
                    help="give LOW new uvs with xatlas (replacing any it has)")
     p.add_argument("--decimate", type=int, metavar="N",
-                   help="make LOW from HIGH with N triangles (then give no LOW; add --unwrap)")
+                   help="make LOW from HIGH with N triangles, unwrapped with xatlas (then give "
+                        "no LOW)")
     p.add_argument("--no-progress", action="store_true", dest="no_progress",
                    help="a line per fit step on stderr instead of a progress bar")
 
@@ -105,10 +107,8 @@ def _check_shape(args) -> None:
     if args.low is not None and args.decimate is not None:
         raise ValueError("give LOW or --decimate N (LOW made from HIGH), not both")
     if args.low is None and args.decimate is None:
-        raise ValueError("no LOW: give the low-poly mesh, or --decimate N --unwrap to make "
-                         "one from HIGH")
-    if args.decimate is not None and not args.unwrap:
-        raise ValueError("--decimate makes a LOW without uvs: add --unwrap to give it some")
+        raise ValueError("no LOW: give the low-poly mesh, or --decimate N to make one from "
+                         "HIGH")
     for flag, v in (("--cage", args.cage), ("--max-distance", args.max_distance)):
         if v is not None and not (v >= 0 and v < float("inf")):
             raise ValueError(f"{flag} must be a finite distance >= 0, got {v}")
@@ -158,7 +158,7 @@ def _meshes(args, say):
     else:
         say(f"reading {args.low} ...")
         low, low_name = io.load_mesh(args.low), args.low
-    if args.unwrap:
+    if args.unwrap or args.decimate is not None:
         say(f"unwrapping {low_name} with xatlas ...")
         low = unwrap(low, size=args.size, name=low_name)
     elif low.uv is None:
@@ -388,7 +388,8 @@ def _report(bake, args, files: list, low_written: bool) -> dict:
            "low": args.low if args.low else f"{args.high} decimated to {args.decimate} "
                                            "triangles",
            "low_file": "low.obj" if low_written else args.low,
-           "low_triangles": int(bake.low.faces.shape[0]), "unwrapped": bool(args.unwrap),
+           "low_triangles": int(bake.low.faces.shape[0]),
+           "unwrapped": bool(args.unwrap or args.decimate is not None),
            "method": o.method, "map_size": list(o.map_size), "frame": bake.frame,
            "tangents": (bake.low.tangent_source or "mikktspace") if bake.frame == "vertex"
            else None,
