@@ -184,6 +184,16 @@ def test_cli_errors_are_one_line_and_exit_2(tmp_path, capsys):
     (["--exposure", "nan"], "--exposure must be a positive finite scale, got nan"),
     (["-o", "{d}/x.jpg"], "-o {d}/x.jpg: jaxnm render writes PNG images; the name must end "
                           "in .png"),
+    (["--aovs", "{d}/a.txt"], "--aovs {d}/a.txt: the arrays are written as NumPy .npz; the "
+                              "name must end in .npz"),
+    (["--aov-list", "uv"], "--aov-list names the arrays that --aovs writes: give --aovs "
+                           "OUT.npz too"),
+    (["--height-scale", "0.1"], "--height-scale scales the map --height-map reads: give "
+                                "--height-map PATH too"),
+    (["--height-map", "{d}/h.png", "--height-scale", "inf"],
+     "--height-scale must be finite, got inf"),
+    (["--height-map", "{d}/h.png"], "--height-map: {d}/h.png: no such file"),
+    (["--normal-map", "{d}"], "--normal-map: {d}: not a regular file"),
 ])
 def test_cli_options_are_checked_before_anything_is_loaded(tmp_path, capsys, monkeypatch,
                                                           argv, message):
@@ -197,6 +207,32 @@ def test_cli_options_are_checked_before_anything_is_loaded(tmp_path, capsys, mon
     err = capsys.readouterr().err.strip()
     assert err == f"jaxnm render: error: {message.format(d=tmp_path)}", err
     assert not list(tmp_path.iterdir())
+
+
+def test_cli_height_map_scale_defaults_to_the_documented_value(tmp_path):
+    import imageio.v3 as iio
+
+    y, x = np.mgrid[0:16, 0:16]
+    iio.imwrite(tmp_path / "h.png", (127.5 + 127.5 * np.sin(x / 2.0) * np.cos(y / 3.0))
+                .astype(np.uint8))
+    images = {}
+    for name, scale in (("default", ()), ("explicit", ("--height-scale", "0.02")),
+                        ("steeper", ("--height-scale", "0.2"))):
+        out = tmp_path / f"{name}.png"
+        assert main(["render", "--height-map", str(tmp_path / "h.png"), *scale, "--width", "24",
+                     "--height", "24", "-o", str(out)]) == 0
+        images[name] = iio.imread(out)
+    assert np.array_equal(images["default"], images["explicit"])  # the help's 0.02
+    assert not np.array_equal(images["default"], images["steeper"])
+
+
+def test_cli_takes_a_normal_map_or_a_height_map_not_both(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["render", "--normal-map", "n.png", "--height-map", "h.png"])
+    assert e.value.code == 2
+    assert capsys.readouterr().err.strip() == ("jaxnm render: error: argument --height-map: not "
+                                               "allowed with argument --normal-map (see jaxnm "
+                                               "render --help)")
 
 
 def test_cli_normal_map_override_must_be_rgb(tmp_path, capsys):

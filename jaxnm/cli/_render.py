@@ -15,6 +15,8 @@ __all__ = ["add_parser", "run", "frame_name", "TARGETS_SUFFIX"]
 
 #: With ``--light``, the fit file written beside the images: ``OUT_STEM`` + this.
 TARGETS_SUFFIX = "_targets.json"
+# world units per unit of a --height-map image, without --height-scale
+_HEIGHT_SCALE = 0.02
 
 
 def frame_name(text: str) -> str:
@@ -53,7 +55,7 @@ def add_parser(sub) -> None:
     p.add_argument("--aovs", metavar="OUT.npz",
                    help="also write per-pixel arrays to an .npz: " + ", ".join(OUTPUTS)
                    + " (linear); see --aov-list")
-    p.add_argument("--aov-list", default=",".join(OUTPUTS), metavar="NAMES",
+    p.add_argument("--aov-list", metavar="NAMES",
                    help="comma-separated names of the arrays --aovs writes (default: all)")
     p.add_argument("--derivatives", choices=DERIVATIVE_MODES, help="screen-space derivative mode")
     p.add_argument("--frame", type=frame_name, metavar="FRAME",
@@ -65,13 +67,15 @@ def add_parser(sub) -> None:
                    help="render under a white directional light from this world direction "
                    "instead of the scene's lights; repeat it for one image per light "
                    f"(OUT_00.png, ...), with a fit file naming them (OUT{TARGETS_SUFFIX})")
-    p.add_argument("--normal-map", metavar="PATH",
-                   help="use this tangent-space normal map (an 8/16-bit PNG, or a BC5 or DXT5nm "
-                   "DDS; unsigned, green up; the scene's uv origin, wrap, filter and strength)")
-    p.add_argument("--height-map", metavar="PATH", dest="height_map",
-                   help="bump the surface with this height map instead (grayscale image)")
-    p.add_argument("--height-scale", type=float, default=0.02, dest="height_scale",
-                   help="world units per unit of the height map (default: %(default)s)")
+    maps = p.add_mutually_exclusive_group()
+    maps.add_argument("--normal-map", metavar="PATH",
+                      help="use this tangent-space normal map (an 8/16-bit PNG, or a BC5 or "
+                      "DXT5nm DDS; unsigned, green up; the scene's uv origin, wrap, filter and "
+                      "strength)")
+    maps.add_argument("--height-map", metavar="PATH", dest="height_map",
+                      help="bump the surface with this height map instead (grayscale image)")
+    p.add_argument("--height-scale", type=float, dest="height_scale",
+                   help=f"world units per unit of the height map (default: {_HEIGHT_SCALE})")
     p.add_argument("--width", type=int,
                    help="image width in pixels (default: the scene's; the built-in scene's "
                    "is 512); the camera keeps its vertical field of view")
@@ -96,12 +100,36 @@ def _aov_names(args) -> tuple[str, ...]:
     from ..render import OUTPUTS
 
     if not args.aovs:
+        if args.aov_list is not None:
+            raise ValueError("--aov-list names the arrays that --aovs writes: give --aovs "
+                             "OUT.npz too")
         return ()
+    if Path(args.aovs).suffix.lower() != ".npz":
+        raise ValueError(f"--aovs {args.aovs}: the arrays are written as NumPy .npz; the name "
+                         "must end in .npz")
+    if args.aov_list is None:
+        return tuple(OUTPUTS)
     asked = tuple(dict.fromkeys(n.strip() for n in args.aov_list.split(",") if n.strip()))
     bad = [n for n in asked if n not in OUTPUTS]
     if bad or not asked:
         raise ValueError(f"--aov-list: unknown AOV names {bad}; known: {', '.join(OUTPUTS)}")
     return asked
+
+
+def _check_map_options(args) -> None:
+    """The map files exist and ``--height-scale`` comes with a height map, checked before
+    anything is loaded."""
+    if args.height_scale is not None:
+        if not args.height_map:
+            raise ValueError("--height-scale scales the map --height-map reads: give "
+                             "--height-map PATH too")
+        if not abs(args.height_scale) < float("inf"):
+            raise ValueError(f"--height-scale must be finite, got {args.height_scale}")
+    for flag, path in (("--normal-map", args.normal_map), ("--height-map", args.height_map)):
+        if path and not Path(path).exists():
+            raise FileNotFoundError(f"{flag}: {path}: no such file")
+        if path and not Path(path).is_file():
+            raise ValueError(f"{flag}: {path}: not a regular file")
 
 
 def _scene(args):
@@ -131,8 +159,8 @@ def _scene(args):
             scene.normal_map_options, encoding="unsigned", channels=3, green="up",
             space="tangent", bits=bits if bits in (8, 16) else 8))
     if args.height_map:
-        d, opts = load_height_map({"path": args.height_map, "scale": args.height_scale},
-                                   where="--height-map: ")
+        scale = _HEIGHT_SCALE if args.height_scale is None else args.height_scale
+        d, opts = load_height_map({"path": args.height_map, "scale": scale})
         changes.update(normal_map=d, normal_map_options=opts)
     if changes:
         scene = scene.replace(**changes)
@@ -190,6 +218,7 @@ def run(args, ctrl_c: CtrlC) -> int:
     if Path(args.output).suffix.lower() != ".png":
         raise ValueError(f"-o {args.output}: jaxnm render writes PNG images; the name must end "
                          "in .png")
+    _check_map_options(args)
     scene, frame = _scene(args)
     ctrl_c.check()
     lights = ([directional_light(d) for d in args.light] if args.light
