@@ -499,12 +499,21 @@ def test_fit_file_fields_are_checked_before_any_file_is_read(tmp_path):
         load_fit(path)
 
 
-def test_fit_cli_option_errors_exit_2(tmp_path, capsys):
+def test_fit_cli_option_errors_exit_2_naming_the_flag(tmp_path, capsys):
     path = _fit_folder(tmp_path)
-    for args, match in ((["--max-steps", "0"], "max_steps"), (["--time-limit", "-1"], "time")):
+    for args, message in (
+            (["--max-steps", "0"], "--max-steps must be an integer >= 1, got 0"),
+            (["--coarse-to-fine", "-1"], "--coarse-to-fine must be an integer >= 0, got -1"),
+            (["--smoothness", "nan"], "--smoothness must be a finite number >= 0.0, got nan"),
+            (["--time-limit", "-1"], "--time-limit must be a positive number of seconds, got "
+                                     "-1.0"),
+            # a value that is wrong only with the fit file's options, once that is read
+            (["--texel-sums", "tables"], f"{path} with the command line's options: "
+                                         "--texel-sums 'tables' is for the 'lm-texel' solver, "
+                                         "not 'lm'")):
         assert main(["fit", str(path), "--no-progress", *args]) == 2
-        err = capsys.readouterr().err
-        assert match in err and len(err.strip().splitlines()) == 1
+        # (after the stage lines: "reading fit.json ...")
+        assert capsys.readouterr().err.strip().splitlines()[-1] == f"jaxnm fit: error: {message}"
     job = load_fit(path)  # the valid file loads
     assert job.problem.map_size == (8, 8) and job.options.max_steps == 2
 

@@ -25,6 +25,7 @@ import sys
 import time
 from pathlib import Path
 
+from ._flags import as_flags
 from ._interrupt import CtrlC
 
 __all__ = ["add_parser", "run", "STORES"]
@@ -95,11 +96,10 @@ def _say(msg: str) -> None:
 
 
 #: The options ``jaxnm bake`` passes on to `jaxnm.transfer.PairBakeOptions` where given
-#: (their defaults are the dataclass's), with their flags.
-_FLAGS = {"method": "--method", "size": "--size", "frame": "--frame", "cage": "--cage",
-          "max_distance": "--max-distance", "samples": "--samples", "margin": "--margin",
-          "views": "--views", "lights": "--lights", "render_size": "--render-size",
-          "eval_views": "--eval-views"}
+#: (their defaults are the dataclass's); each is set by its flag (``max_distance``:
+#: ``--max-distance``).
+_OPTIONS = ("method", "size", "frame", "cage", "max_distance", "samples", "margin", "views",
+            "lights", "render_size", "eval_views")
 
 
 def _check_shape(args) -> None:
@@ -127,21 +127,13 @@ def _options(args):
     from ..transfer import PairBakeOptions
 
     _check_shape(args)
-    given = {k: getattr(args, k) for k in _FLAGS if getattr(args, k) is not None}
+    given = {k: getattr(args, k) for k in _OPTIONS if getattr(args, k) is not None}
     if args.max_steps is not None:
         given["fit"] = dataclasses.replace(PairBakeOptions.fit, max_steps=args.max_steps)
     try:
         return PairBakeOptions(**given)
     except ValueError as e:
-        text = str(e).removeprefix("PairBakeOptions: ")
-        for name, flag in _FLAGS.items():
-            if text.startswith(name + " "):
-                text = f"{flag} {text[len(name) + 1:]}"
-        # then names with an underscore (no plain word has one) wherever the message has them
-        for name, flag in _FLAGS.items():
-            if "_" in name:
-                text = text.replace(name, flag)
-        raise ValueError(text) from None
+        raise ValueError(as_flags(str(e).removeprefix("PairBakeOptions: "), _OPTIONS)) from None
 
 
 def _meshes(args, say):

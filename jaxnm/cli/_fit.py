@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+from ._flags import as_flags
 from ._interrupt import CtrlC
 
 __all__ = ["add_parser", "run", "check_arguments", "read_job", "write_outputs",
@@ -132,7 +133,7 @@ def check_arguments(args) -> dict:
     try:  # each value on its own now; with the fit file's, once it is read
         FitOptions(**overrides)
     except ValueError as e:
-        raise ValueError(f"command line: {str(e).removeprefix('FitOptions: ')}") from None
+        raise ValueError(as_flags(str(e).removeprefix("FitOptions: "), OVERRIDES)) from None
     return overrides
 
 
@@ -153,7 +154,10 @@ def read_job(args, overrides: dict, say, images=None):
         try:
             job = dataclasses.replace(job, options=dataclasses.replace(job.options, **overrides))
         except ValueError as e:
-            raise ValueError(f"command line: {str(e).removeprefix('FitOptions: ')}") from None
+            problem = args.config or "the built-in problem"
+            raise ValueError(f"{problem} with the command line's options: "
+                             f"{as_flags(str(e).removeprefix('FitOptions: '), OVERRIDES)}"
+                             ) from None
     if args.time_limit is not None:
         job = dataclasses.replace(job, time_limit=args.time_limit)
     if args.store:
