@@ -507,6 +507,11 @@ def test_fit_cli_option_errors_exit_2_naming_the_flag(tmp_path, capsys):
             (["--smoothness", "nan"], "--smoothness must be a finite number >= 0.0, got nan"),
             (["--time-limit", "-1"], "--time-limit must be a positive number of seconds, got "
                                      "-1.0"),
+            (["--timeout", "10"], "--timeout is how long the processes of a fit across "
+                                  "processes wait for each other: give it with --distributed"),
+            (["--keep-checkpoint", "--checkpoint-every", "0"],
+             "--keep-checkpoint keeps the checkpoint that --checkpoint-every 0 turns off: give "
+             "one of them"),
             # a value that is wrong only with the fit file's options, once that is read
             (["--texel-sums", "tables"], f"{path} with the command line's options: "
                                          "--texel-sums 'tables' is for the 'lm-texel' solver, "

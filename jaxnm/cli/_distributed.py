@@ -8,7 +8,7 @@ import os
 import sys
 from pathlib import Path
 
-from ._fit import CHECKPOINT_NAME, check_arguments
+from ._fit import CHECKPOINT_NAME, DEFAULT_TIMEOUT, check_arguments
 from ._fit import run as run_fit
 from ._interrupt import CtrlC
 
@@ -27,8 +27,9 @@ def _join(args) -> None:
     if args.num_processes is not None and not 0 <= args.process_id < args.num_processes:
         raise ValueError(f"--process-id must be 0 to {args.num_processes - 1}, got "
                          f"{args.process_id}")
-    if not (math.isfinite(args.timeout) and args.timeout >= 1):
-        raise ValueError(f"--timeout must be a number of seconds >= 1, got {args.timeout}")
+    timeout = DEFAULT_TIMEOUT if args.timeout is None else args.timeout
+    if not (math.isfinite(timeout) and timeout >= 1):
+        raise ValueError(f"--timeout must be a number of seconds >= 1, got {timeout}")
     if args.store:
         raise ValueError("--store is not available with --distributed (it fits the map through "
                          "its storage on one process: run it without --distributed)")
@@ -36,7 +37,7 @@ def _join(args) -> None:
 
     if "jax_cpu_collectives_implementation" in jax.config.values:
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    t = max(1, int(args.timeout))
+    t = max(1, int(timeout))
     timeouts = {"initialization_timeout": t, "heartbeat_timeout_seconds": t}
     if "shutdown_timeout_seconds" in inspect.signature(jax.distributed.initialize).parameters:
         timeouts["shutdown_timeout_seconds"] = t  # (not in the oldest JAX jaxnm supports)

@@ -13,7 +13,7 @@ from ._flags import as_flags
 from ._interrupt import CtrlC
 
 __all__ = ["add_parser", "run", "check_arguments", "read_job", "write_outputs",
-           "CHECKPOINT_NAME", "OVERRIDES", "release_freed_memory"]
+           "CHECKPOINT_NAME", "DEFAULT_TIMEOUT", "OVERRIDES", "release_freed_memory"]
 
 #: The checkpoint ``jaxnm fit`` keeps in its output folder (`jaxnm.fit.checkpoint`).
 CHECKPOINT_NAME = "checkpoint.npz"
@@ -21,6 +21,10 @@ CHECKPOINT_NAME = "checkpoint.npz"
 #: The solver options the command line can override (``--max-steps`` and so on).
 OVERRIDES = ("solver", "max_steps", "smoothness", "seed", "lsmr_steps", "coarse_to_fine",
              "ftol", "patience", "texel_sums")
+
+#: ``--timeout`` when not given: seconds the processes of a fit across processes wait to
+#: join, and without a heartbeat before one counts as lost.
+DEFAULT_TIMEOUT = 300.0
 
 #: The checkpoint interval when ``--checkpoint-every`` is not given (the checkpoint is then
 #: removed when the fit ends normally).
@@ -79,10 +83,10 @@ def add_parser(sub) -> None:
                    help="with --distributed: how many processes take part")
     p.add_argument("--process-id", type=int, dest="process_id", metavar="I",
                    help="with --distributed: this process's number, 0 to N-1")
-    p.add_argument("--timeout", type=float, default=300.0, metavar="SECONDS",
+    p.add_argument("--timeout", type=float, metavar="SECONDS",
                    help="with --distributed: how long to wait for the other processes to "
                    "join, and after how long without a heartbeat a process counts as lost "
-                   "(default: %(default)s)")
+                   f"(default: {DEFAULT_TIMEOUT:g})")
     p.add_argument("--store", choices=("bc5",),
                    help="then fit the map through BC5 blocks to the same targets and write it "
                    "as normal_map.dds (needs the storage extra; the map's size a multiple of "
@@ -127,6 +131,12 @@ def check_arguments(args) -> dict:
     every = args.checkpoint_every
     if every is not None and not (math.isfinite(every) and every >= 0):
         raise ValueError(f"--checkpoint-every must be a number of seconds >= 0, got {every}")
+    if args.keep_checkpoint and every == 0:
+        raise ValueError("--keep-checkpoint keeps the checkpoint that --checkpoint-every 0 "
+                         "turns off: give one of them")
+    if args.timeout is not None and not args.distributed:
+        raise ValueError("--timeout is how long the processes of a fit across processes wait "
+                         "for each other: give it with --distributed")
     overrides = {k: getattr(args, k) for k in OVERRIDES if getattr(args, k) is not None}
     from ..fit import FitOptions
 
