@@ -198,7 +198,14 @@ def test_decimate_writes_the_low_poly_mesh_with_uvs(files, tmp_path, capsys, unw
      "jaxnm bake: error: --size 8: without a --render-size, each view's image takes the map's "
      "larger side, which must then be 16 to 8192 pixels"),
     (["{d}/hi.obj", "{d}/lo.obj", "--size", "8", "--render-size", "12"],
-     "jaxnm bake: error: --render-size must be an integer in [16, 8192] or None, got 12"),
+     "jaxnm bake: error: --render-size must be 16 to 8192 pixels, got 12"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--method", "fit", "--cage", "0.1"],
+     "jaxnm bake: error: --cage: an option of ray casting, and --method fit casts no rays"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--method", "fit", "--samples", "2", "--max-distance", "1"],
+     "jaxnm bake: error: --max-distance, --samples: options of ray casting, and --method fit "
+     "casts no rays"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--method", "raycast", "--views", "3"],
+     "jaxnm bake: error: --views: an option of the fit, and --method raycast fits nothing"),
     (["{d}/hi.obj", "{d}/nope.obj"], "jaxnm bake: error: {d}/nope.obj: no such file"),
     (["{d}/hi.obj", "{d}/lo_nouv.obj", "--method", "raycast"],
      "jaxnm bake: error: {d}/lo_nouv.obj: the mesh has no texture coordinates (uv); a normal "

@@ -62,7 +62,7 @@ def add_parser(sub) -> None:
                       "start outside HIGH)")
     cage.add_argument("--cage-mesh", dest="cage_mesh", metavar="FILE",
                       help="rays start on this mesh (LOW's triangles, moved) towards LOW")
-    p.add_argument("--max-distance", dest="max_distance", type=float, default=0.0,
+    p.add_argument("--max-distance", dest="max_distance", type=float,
                    metavar="D", help="rays longer than D miss (default: 0, no limit)")
     p.add_argument("--margin", type=int, metavar="PX",
                    help="texels filled around the uv islands (default: 16)")
@@ -103,7 +103,10 @@ _OPTIONS = ("method", "size", "frame", "cage", "max_distance", "samples", "margi
 
 
 def _check_shape(args) -> None:
-    """One-line errors for the arguments' shape (which meshes) and plain ranges."""
+    """One-line errors for the arguments' shape (which meshes, options the method uses) and
+    plain ranges."""
+    from ..transfer.pair import RENDER_SIZES
+
     if args.low is not None and args.decimate is not None:
         raise ValueError("give LOW or --decimate N (LOW made from HIGH), not both")
     if args.low is None and args.decimate is None:
@@ -117,6 +120,21 @@ def _check_shape(args) -> None:
     if args.store == "bc5" and args.size % 4:
         raise ValueError(f"--store bc5: a BC5 map's side must be a multiple of 4, got "
                          f"--size {args.size}")
+    leaves_out = {"fit": ("ray casting", "casts no rays", (
+                      ("--cage", args.cage), ("--cage-mesh", args.cage_mesh),
+                      ("--max-distance", args.max_distance), ("--samples", args.samples))),
+                  "raycast": ("the fit", "fits nothing", (
+                      ("--views", args.views), ("--lights", args.lights),
+                      ("--max-steps", args.max_steps)))}
+    if args.method in leaves_out:
+        what, why, flags = leaves_out[args.method]
+        given = [flag for flag, v in flags if v is not None]
+        if given:
+            raise ValueError(f"{', '.join(given)}: {'options' if len(given) > 1 else 'an option'}"
+                             f" of {what}, and --method {args.method} {why}")
+    lo, hi = RENDER_SIZES
+    if args.render_size is not None and not lo <= args.render_size <= hi:
+        raise ValueError(f"--render-size must be {lo} to {hi} pixels, got {args.render_size}")
     if args.method != "raycast" and args.lights is not None and args.lights < 3:
         raise ValueError(f"--lights: a fit needs at least 3 lights per view (three "
                          f"non-coplanar directions determine a normal), got {args.lights}")

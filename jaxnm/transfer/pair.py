@@ -61,10 +61,15 @@ from .raycast import RAYCAST_FRAMES, RaycastBake, raycast_normal_map
 from .views import ViewPlan, bounding_sphere, held_out_views, plan_views
 
 __all__ = ["METHODS", "PairBakeOptions", "PairBake", "bake_mesh_pair", "bake_material",
-           "pair_fit_problem", "fit_pair_map", "fit_start", "START_MAX_TILT_DEG"]
+           "pair_fit_problem", "fit_pair_map", "fit_start", "START_MAX_TILT_DEG",
+           "RENDER_SIZES"]
 
 #: What `bake_mesh_pair` can run: ray casting, fitting, or a fit that starts from the rays.
 METHODS = ("raycast", "fit", "both")
+
+#: The sides a view's image may have, in pixels (`PairBakeOptions.render_size`, or the map's
+#: larger side when that is None), smallest and largest.
+RENDER_SIZES = (16, 8192)
 
 
 def bake_material() -> Material:
@@ -137,16 +142,16 @@ class PairBakeOptions:
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
                 raise ValueError(f"PairBakeOptions: {name} must be an integer >= {lo}, got "
                                  f"{v!r}")
-        rs = self.render_size
+        rs, (lo, hi) = self.render_size, RENDER_SIZES
         if rs is not None and (isinstance(rs, bool) or not isinstance(rs, (int, np.integer))
-                               or not 16 <= rs <= 8192):
-            raise ValueError(f"PairBakeOptions: render_size must be an integer in [16, 8192] "
+                               or not lo <= rs <= hi):
+            raise ValueError(f"PairBakeOptions: render_size must be an integer in [{lo}, {hi}] "
                              f"or None, got {rs!r}")
         renders = self.eval_views or (self.method != "raycast" and self.views)
-        if rs is None and renders and not 16 <= max(hw) <= 8192:
+        if rs is None and renders and not lo <= max(hw) <= hi:
             raise ValueError(f"PairBakeOptions: size {self.size!r}: without a render_size, "
                              f"each view's image takes the map's larger side, which must then "
-                             f"be 16 to 8192 pixels")
+                             f"be {lo} to {hi} pixels")
         if not 0 < self.max_angle_deg < 90:
             raise ValueError(f"PairBakeOptions: max_angle_deg must be in (0, 90), got "
                              f"{self.max_angle_deg!r}")
