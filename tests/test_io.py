@@ -196,6 +196,16 @@ def test_obj_out_of_range_face_index(tmp_path, face, what):
         load_mesh(path)
 
 
+@pytest.mark.parametrize("line", ["v 1 0 zz", "v 1 0", "vt 0.5 x"])
+def test_obj_malformed_line_is_named(tmp_path, line):
+    text = "v 0 0 0\nvt 0 0\n" + line + "\nv 0 1 0\nv 1 1 0\nvt 1 1\nf 1/1 2/2 3/1\n"
+    path = _write(tmp_path / "malformed.obj", text)
+    kind, form = ("v", "x y z") if line.startswith("v ") else ("vt", "u [v [w]]")
+    with pytest.raises(ValueError, match="^" + re.escape(
+            f"{path}: line 3: {line!r}: a '{kind}' line holds {form} (numbers)") + "$"):
+        load_mesh(path)
+
+
 @pytest.mark.parametrize("value", ["nan", "inf"])
 def test_obj_non_finite_positions(tmp_path, value):
     path = _write(tmp_path / "nanpos.obj", f"v {value} 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
