@@ -73,10 +73,11 @@ def render(scene: Scene, *, outputs=("color",), derivatives: str | None = None,
     (visibility is piecewise constant: silhouettes and occlusion boundaries
     contribute no gradient).
     """
-    if isinstance(outputs, str):
-        outputs = (outputs,)
+    asked = (outputs,) if isinstance(outputs, str) else tuple(dict.fromkeys(outputs or ()))
+    if not asked:
+        raise ValueError(f"render: outputs names nothing; name one or more of "
+                         f"{', '.join(OUTPUTS)}")
     check_scene_shapes(scene)
-    asked = tuple(dict.fromkeys(outputs))
     opts = RenderOptions.of(scene, outputs=asked, derivatives=derivatives, frame=frame,
                             precision=precision)
     opts.check_mesh(scene.mesh, scene.source)

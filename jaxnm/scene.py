@@ -156,7 +156,11 @@ def check_scene_shapes(scene: Scene) -> None:
     shapes and dtypes: the mesh's, a normal map (H, W, C) of floats with enough channels, an
     albedo (3,) or (H, W, 3), a 4x4 model, and uvs where a map or texture needs them.
     Shapes only (known for traced arrays too, and no pass over the values): what
-    `jaxnm.render.render` checks on every call, and the first step of `validate_scene`."""
+    `jaxnm.render.render` checks on every call, and the first step of `validate_scene`.
+    Anything but a `Scene` raises a `TypeError`."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"expected a jaxnm Scene (jaxnm.config.load_scene, "
+                        f"jaxnm.procedural.default_scene), got {type(scene).__name__}")
     src = scene.source
     m = scene.mesh
     check_mesh_arrays(m.positions, m.faces, m.uv, m.normals, source=src, values=False)

@@ -409,6 +409,19 @@ def test_cli_uses_the_persistent_compilation_cache(tmp_path):
     assert deterministic == [True, True, False, True]
 
 
+@pytest.mark.parametrize("outputs", [None, (), []])
+def test_render_refuses_outputs_that_name_nothing(outputs):
+    with pytest.raises(ValueError, match="^render: outputs names nothing; name one or more of "
+                                         "mask, triangle_id, "):
+        render(default_scene(width=16, height=16), outputs=outputs)
+
+
+def test_render_refuses_what_is_not_a_scene():
+    with pytest.raises(TypeError, match=r"^expected a jaxnm Scene \(jaxnm.config.load_scene, "
+                                        r"jaxnm.procedural.default_scene\), got dict$"):
+        render({"mesh": "builtin:plane"})
+
+
 @pytest.mark.parametrize("field,value,message", [
     ("normal_map", np.zeros((8, 8), np.float32), r"the normal map must have shape \(H, W, C\)"),
     ("normal_map", np.zeros((8, 8, 3), np.uint8), "the normal map must hold floating-point"),
