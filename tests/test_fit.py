@@ -3,6 +3,7 @@
 import contextlib
 import dataclasses
 import json
+import re
 import warnings
 
 import jax
@@ -743,3 +744,41 @@ def test_texel_influence_is_the_sampling_operators_column_sums(small, map_size, 
     assert b.pixels.size > 2 * max(7, texels // b.gbuffer.plan.index.shape[-1])
     monkeypatch.setattr(D, "_INFLUENCE_ROWS", 7)  # pieces as short as the levels allow
     np.testing.assert_allclose(F.texel_influence(prep), got, rtol=1e-6, atol=1e-7 * got.max())
+
+
+@pytest.fixture(scope="module")
+def tiny_problem():
+    return default_problem(render_size=16, map_size=8, n_lights=3, views=1)[0]
+
+
+@pytest.mark.parametrize("call,error,message", [
+    (dict(options={"max_steps": 2}), TypeError,
+     "fit_normal_map: options must be a FitOptions, got dict"),
+    (dict(problem="fit.json"), TypeError, "fit_normal_map: problem must be a FitProblem, got str"),
+    (dict(strength=0.0), ValueError, "strength must be a finite number other than 0 (the map's "
+                                     "x/y scale), got 0.0"),
+    (dict(strength=float("nan")), ValueError, "strength must be a finite number other than 0"),
+    (dict(time_limit=-1), ValueError, "time_limit must be a number of seconds >= 0 (0: the "
+                                      "start alone) or None, got -1"),
+    (dict(time_limit=float("nan")), ValueError, "time_limit must be a number of seconds >= 0"),
+    (dict(progress="bars"), ValueError, "fit_normal_map: progress must be True, False or "
+                                        "'lines', got 'bars'"),
+])
+def test_fit_arguments_of_the_wrong_kind_or_range_are_refused_before_anything_runs(
+        monkeypatch, tiny_problem, call, error, message):
+    import jaxnm.fit.solve as S
+
+    def no_setup(*a, **k):
+        raise AssertionError("the fit was set up before its arguments were checked")
+
+    monkeypatch.setattr(S, "_setup", no_setup)
+    args = {"problem": tiny_problem, "options": F.FitOptions(max_steps=1), **call}
+    with pytest.raises(error, match=re.escape(message)):
+        F.fit_normal_map(args.pop("problem"), args.pop("options"), **args)
+
+
+def test_prepare_refuses_what_is_not_a_problem():
+    with pytest.raises(TypeError, match=r"^prepare: problem must be a FitProblem "
+                                        r"\(jaxnm.config.load_fit, jaxnm.fit.FitProblem\), got "
+                                        r"str$"):
+        F.prepare("fit.json")

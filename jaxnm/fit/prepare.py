@@ -206,6 +206,9 @@ def prepare(problem: FitProblem, *, chunk: int | None = CHUNK) -> Prepared:
     memory for its prepared G-buffers and targets (~0.2 KB per pixel-target) plus a bounded
     working set. None evaluates every pixel at once (fewer, larger kernels: on a GPU with
     memory to spare)."""
+    if not isinstance(problem, FitProblem):
+        raise TypeError(f"prepare: problem must be a FitProblem (jaxnm.config.load_fit, "
+                        f"jaxnm.fit.FitProblem), got {type(problem).__name__}")
     check_chunk(chunk)
     views, opts_all, problem = rasterize_views(problem)
     return assemble(views, tuple(opts_all), problem.material, chunk)

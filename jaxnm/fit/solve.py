@@ -570,6 +570,28 @@ def _layout(prep: Prepared) -> list:
             for x in jax.tree_util.tree_leaves(prep) if isinstance(x, jax.Array)]
 
 
+def _check_call(problem, options, *, strength, time_limit, progress) -> None:
+    """One-line errors for `fit_normal_map`'s arguments of the wrong kind or range."""
+    for name, value, kind in (("problem", problem, FitProblem),
+                              ("options", options, FitOptions)):
+        if not isinstance(value, kind):
+            raise TypeError(f"fit_normal_map: {name} must be a {kind.__name__}, got "
+                            f"{type(value).__name__}")
+    try:
+        scale = float(strength)
+    except (TypeError, ValueError):
+        scale = math.nan
+    if isinstance(strength, bool) or not (math.isfinite(scale) and scale != 0):
+        raise ValueError(f"{problem.source}: strength must be a finite number other than 0 "
+                         f"(the map's x/y scale), got {strength!r}")
+    if time_limit is not None and not time_limit >= 0:
+        raise ValueError(f"{problem.source}: time_limit must be a number of seconds >= 0 "
+                         f"(0: the start alone) or None, got {time_limit!r}")
+    if progress not in (True, False, "lines"):
+        raise ValueError(f"fit_normal_map: progress must be True, False or 'lines', got "
+                         f"{progress!r}")
+
+
 def _setup(problem: FitProblem, options: FitOptions, *, prepared, ground_truth, error_texels,
            strength, checkpoint, checkpoint_every, resume, start) -> _Setup:
     """`fit_normal_map`'s arguments checked, the problem prepared, the first level's start
@@ -763,12 +785,12 @@ def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
     Warns (`FitWarning`) when no view has three lights with non-coplanar directions
     (`check_identifiability`). A `KeyboardInterrupt` (Ctrl-C) ends the fit with the best
     map so far (``stopped == "interrupted"``); no signal handler is installed.
-    Deterministic for a given `options.seed`. History step 0 is the start; the
-    loss of each record is that of the map the solver holds after the step; from step 1
-    on, ``accepted``, ``damping`` and ``predicted`` say how the solver took the step
-    (`jaxnm.fit.stopping`).
+    Deterministic for a given `options.seed`. History step 0 is the start; the loss of each
+    record is that of the map the solver holds after the step; from step 1 on, ``accepted``,
+    ``damping`` and ``predicted`` say how the solver took the step (`jaxnm.fit.stopping`).
     """
     t_start = time.perf_counter()
+    _check_call(problem, options, strength=strength, time_limit=time_limit, progress=progress)
     setup = _setup(problem, options, prepared=prepared, ground_truth=ground_truth,
                    error_texels=error_texels, strength=strength, checkpoint=checkpoint,
                    checkpoint_every=checkpoint_every, resume=resume, start=start)
