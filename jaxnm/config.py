@@ -134,9 +134,15 @@ def _field(data: dict, key: str, kind, default, where: str):
 
 
 def _keys(data: dict, known, where: str) -> None:
+    """Refuse keys of ``data`` outside ``known``, naming the known key each may be a typo of."""
+    import difflib
+
     unknown = sorted(set(data) - set(known))
     if unknown:
-        raise ValueError(f"{where}unknown keys {unknown}; known keys are {sorted(known)}")
+        meant = {k: difflib.get_close_matches(str(k), known, n=1, cutoff=0.75) for k in unknown}
+        hints = [f"{k!r} for {m[0]!r}" for k, m in meant.items() if m]
+        hint = f" (a typo? {', '.join(hints)})" if hints else ""
+        raise ValueError(f"{where}unknown keys {unknown}{hint}; known keys are {sorted(known)}")
 
 
 def _vector(v: Any, n: int, key: str, where: str) -> np.ndarray:

@@ -259,8 +259,11 @@ def _scene_folder(tmp_path: Path, **changes) -> Path:
 
 @pytest.mark.parametrize("changes,message", [
     ({"normal_map": {"path": "map.png", "encodng": "unsigned"}},
-     "normal_map: unknown keys ['encodng']; known keys are ['channels', 'encoding', 'filter', "
-     "'green', 'path', 'space', 'strength', 'uv_origin', 'wrap']"),
+     "normal_map: unknown keys ['encodng'] (a typo? 'encodng' for 'encoding'); known keys are "
+     "['channels', 'encoding', 'filter', 'green', 'path', 'space', 'strength', 'uv_origin', "
+     "'wrap']"),
+    ({"normal_map": {"path": "map.png", "tint": 1}},
+     "normal_map: unknown keys ['tint']; known keys are ['channels', 'encoding', 'filter', "),
     ({"normal_map": {"path": "map.png", "wrap": "around"}}, "normal_map: unknown wrap="),
     ({"normal_map": {"path": "map.png", "encoding": "sideways"}}, "normal_map: unknown encoding="),
     ({"normal_map": "mapp.png"}, "normal_map: {dir}/mapp.png: no such file"),
