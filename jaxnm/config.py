@@ -63,6 +63,7 @@ PNG/JPEG) or ``"linear"`` (default for EXR/npy/npz).
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 from pathlib import Path
 from typing import Any
@@ -135,8 +136,6 @@ def _field(data: dict, key: str, kind, default, where: str):
 
 def _keys(data: dict, known, where: str) -> None:
     """Refuse keys of ``data`` outside ``known``, naming the known key each may be a typo of."""
-    import difflib
-
     unknown = sorted(set(data) - set(known))
     if unknown:
         meant = {k: difflib.get_close_matches(str(k), known, n=1, cutoff=0.75) for k in unknown}
