@@ -7,6 +7,7 @@ against independent computations (PSNR by hand, FLIP called directly, colours fr
 
 import dataclasses
 import math
+import re
 import warnings
 
 import jax.numpy as jnp
@@ -307,6 +308,20 @@ def test_a_fit_starts_from_the_map_it_is_given():
 # --------------------------------------------------------------------------------------
 # a low-poly mesh from a high-poly one
 # --------------------------------------------------------------------------------------
+
+
+def test_arguments_of_the_wrong_kind_or_range_are_refused_in_one_line():
+    mesh, _ = _torus(hi=(16, 8))
+    with pytest.raises(TypeError, match=r"^HIGH: expected a jaxnm Mesh \(jaxnm.io.load_mesh\), "
+                                        r"got str$"):
+        decimate("hi.obj", 100)
+    with pytest.raises(TypeError, match=r"^bake_mesh_pair: options must be a PairBakeOptions, "
+                                        r"got dict$"):
+        bake_mesh_pair(mesh, mesh, {"size": 16})
+    for kw, message in (({"size": 0}, "LOW: unwrap's size must be an integer >= 4, got 0"),
+                        ({"padding": -1}, "LOW: unwrap's padding must be an integer >= 0, got -1")):
+        with pytest.raises(ValueError, match="^" + re.escape(message) + "$"):
+            unwrap(mesh, **kw)
 
 
 def test_decimate_and_unwrap_make_a_mesh_to_bake_onto():

@@ -213,6 +213,12 @@ def test_input_errors_name_the_mesh():
         raycast_normal_map(high, low, 16, cage_mesh=uv_sphere(1.2, 12, 6))
 
 
+def test_what_is_not_a_mesh_is_refused_naming_it():
+    with pytest.raises(TypeError, match=r"^hi.obj: expected a jaxnm Mesh "
+                                        r"\(jaxnm.io.load_mesh\), got str$"):
+        raycast_normal_map("hi.obj", uv_sphere(0.9), 16, high_name="hi.obj")
+
+
 def test_a_cage_that_misses_is_reported_with_where():
     """HIGH is the upper half of the sphere: the rays of LOW's lower half hit nothing within
     the max distance; the warning counts them and says where, the margin fills what it

@@ -22,7 +22,11 @@ class BakeWarning(JaxnmWarning):
 
 
 def check_mesh(mesh: Mesh, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """Host float64 positions and int64 faces, or ValueError naming the mesh."""
+    """Host float64 positions and int64 faces, or ValueError naming the mesh (TypeError for
+    anything but a `Mesh`)."""
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"{name}: expected a jaxnm Mesh (jaxnm.io.load_mesh), got "
+                        f"{type(mesh).__name__}")
     p = np.asarray(mesh.positions, np.float64)
     f = np.asarray(mesh.faces)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:

@@ -330,6 +330,9 @@ def bake_mesh_pair(high: Mesh, low: Mesh, options: PairBakeOptions = PairBakeOpt
     when the meshes do not overlap; warns (`BakeWarning`) about missed rays, overlapping uv
     islands and degenerate or non-manifold triangles.
     """
+    if not isinstance(options, PairBakeOptions):
+        raise TypeError(f"bake_mesh_pair: options must be a PairBakeOptions, got "
+                        f"{type(options).__name__}")
     t0 = time.perf_counter()
     clock = _Clock(on_stage)
     o = options

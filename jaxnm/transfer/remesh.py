@@ -99,6 +99,9 @@ def unwrap(mesh: Mesh, *, size: int = 1024, padding: int = 2, name: str = "LOW")
         import xatlas
     except ImportError:
         raise ImportError('unwrapping needs xatlas: pip install -e ".[bake]"') from None
+    for what, v, lo in (("size", size, 4), ("padding", padding, 0)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+            raise ValueError(f"{name}: unwrap's {what} must be an integer >= {lo}, got {v!r}")
     p, f = check_mesh(mesh, name)
     p, f = weld(p, f)
     normals = angle_weighted_normals(p, f)
