@@ -275,14 +275,14 @@ def _load_scene(p: Path, ext: str) -> trimesh.Scene:
                                    resolver=trimesh.resolvers.FilePathResolver(str(p)),
                                    **kwargs)
     except Exception as e:  # trimesh raises anything from IndexError to KeyError
-        bad = _obj_malformed_line(data) if ext == ".obj" else None
-        raise ValueError(bad.format(src=p) if bad else
-                         f"{p}: trimesh cannot parse this {ext[1:].upper()} file "
-                         f"({type(e).__name__}: {e})") from None
+        bad = _obj_malformed_line(data, p) if ext == ".obj" else None
+        raise ValueError(bad or f"{p}: trimesh cannot parse this {ext[1:].upper()} file "
+                                f"({type(e).__name__}: {e})") from None
     if ext == ".obj" and any(np.shape(getattr(g, "vertices", np.zeros((0, 3))))[-1:] != (3,)
                              for g in scene.geometry.values()):
         # (trimesh reads 'v' lines of two numbers as 2-D positions)
-        raise ValueError(_obj_malformed_line(data, lax=False).format(src=p))
+        raise ValueError(_obj_malformed_line(data, p)
+                         or f"{p}: trimesh read positions that are not 3-D")
     return scene
 
 
@@ -437,10 +437,10 @@ def _clean_obj(data: bytes, src: str) -> bytes:
 _OBJ_COUNTS = {b"v": (3, 7, "x y z"), b"vt": (1, 3, "u [v [w]]"), b"vn": (3, 3, "x y z")}
 
 
-def _obj_malformed_line(data: bytes, lax: bool = True) -> str | None:
-    """For an OBJ file trimesh could not read: ``"{src}: line N: ..."`` naming the first
-    ``v``, ``vt`` or ``vn`` line that is not made of the numbers it needs, or None (``lax``)
-    if every such line is fine. A loop over the lines, run only when reading has failed."""
+def _obj_malformed_line(data: bytes, src) -> str | None:
+    """For an OBJ file trimesh could not read: ``"src: line N: ..."`` naming the first ``v``,
+    ``vt`` or ``vn`` line that is not made of the numbers it needs, or None if every such
+    line is fine. A loop over the lines, run only when reading has failed."""
     for lineno, line in enumerate(data.replace(b"\r", b"").split(b"\n"), 1):
         words = line.split()
         if not words or words[0] not in _OBJ_COUNTS:
@@ -452,9 +452,9 @@ def _obj_malformed_line(data: bytes, lax: bool = True) -> str | None:
             numbers = None
         if numbers is None or not lo <= len(numbers) <= hi:
             shown = line.decode(errors="replace").strip()
-            return (f"{{src}}: line {lineno}: {shown!r}: a '{words[0].decode()}' line holds "
+            return (f"{src}: line {lineno}: {shown!r}: a '{words[0].decode()}' line holds "
                     f"{form} (numbers)")
-    return None if lax else "{src}: trimesh read positions that are not 3-D"
+    return None
 
 
 def _obj_corner_indices(corners: bytes) -> list[np.ndarray]:
