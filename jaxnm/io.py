@@ -77,8 +77,16 @@ def atomic_write(path: PathLike):
     folder (``.NAME.PID-N.tmp``), which replaces ``path`` (`os.replace`) once the block has
     finished; if it raises (a ``KeyboardInterrupt`` included), the temporary file is
     removed and ``path`` is left as it was. Readers never see a part of a file, whenever
-    the writer is stopped. Parent directories are created."""
+    the writer is stopped. Parent directories are created. A ``path`` that is a folder, or
+    whose parent is a file, is refused before anything is written."""
     p = Path(os.fspath(path))
+    if p.is_dir():
+        raise IsADirectoryError(f"{p}: is a folder; name the file to write")
+    for folder in (p.parent, *p.parent.parents):
+        if folder.exists():
+            if not folder.is_dir():
+                raise NotADirectoryError(f"{p}: {folder} is a file, not a folder")
+            break
     p.parent.mkdir(parents=True, exist_ok=True)
     tmp = p.with_name(f".{p.name}.{os.getpid()}-{next(_TEMPORARY)}.tmp")
     try:
@@ -108,6 +116,15 @@ def _existing_file(path: PathLike) -> Path:
         raise FileNotFoundError(f"{p}: no such file")
     if not p.is_file():
         raise ValueError(f"{p}: not a regular file")
+    return p
+
+
+def _output_file(path: PathLike, suffix: str, writer: str, kind: str) -> Path:
+    """``path`` as a `Path`, or a ValueError naming it where its name does not end in
+    ``suffix``: what each ``save_*`` writes is read back by its extension."""
+    p = Path(os.fspath(path))
+    if p.suffix.lower() != suffix:
+        raise ValueError(f"{p}: {writer} writes {kind} files; the name must end in {suffix}")
     return p
 
 
@@ -233,9 +250,7 @@ def save_obj(path: PathLike, mesh: Mesh) -> None:
     ``vn`` where it has uvs and normals (origin of the uvs at the bottom left, as OBJ's),
     one ``f v/vt/vn`` corner per vertex index, counter-clockwise as ``mesh.faces``. Read
     back by `load_mesh` (which orders vertices by position index: the same vertices)."""
-    p = Path(os.fspath(path))
-    if p.suffix.lower() != ".obj":
-        raise ValueError(f"{p}: save_obj writes OBJ files; the name must end in .obj")
+    p = _output_file(path, ".obj", "save_obj", "OBJ")
     pos = np.asarray(mesh.positions, np.float64)
     faces = np.asarray(mesh.faces, np.int64) + 1
     parts = ["# jaxnm\n", "".join(f"v {x:.9g} {y:.9g} {z:.9g}\n" for x, y, z in pos)]
@@ -720,9 +735,7 @@ def save_png(path: PathLike, image, *, bits: int = 8) -> None:
     up). No colour transform is applied: encode sRGB first if you want it.
     Parent directories are created.
     """
-    p = Path(os.fspath(path))
-    if p.suffix.lower() != ".png":
-        raise ValueError(f"{p}: save_png writes PNG files; the name must end in .png")
+    p = _output_file(path, ".png", "save_png", "PNG")
     if bits not in (8, 16):
         raise ValueError(f"{p}: bits must be 8 or 16, got {bits!r}")
     img = np.asarray(image)
@@ -749,9 +762,7 @@ def save_aovs(path: PathLike, aovs: dict[str, Any]) -> None:
     2-D arrays get a trailing channel axis; bool and integer arrays become float32.
     Parent directories are created; the file is written atomically (`atomic_write`).
     """
-    p = Path(os.fspath(path))
-    if p.suffix.lower() != ".npz":
-        raise ValueError(f"{p}: save_aovs writes .npz files; the name must end in .npz")
+    p = _output_file(path, ".npz", "save_aovs", ".npz")
     out = {}
     for name, value in aovs.items():
         if not isinstance(name, str) or not name or "/" in name:
@@ -797,9 +808,10 @@ def _json_default(o):
 
 def save_json(path: PathLike, obj: Any) -> None:
     """Write ``obj`` as indented JSON (NumPy scalars and arrays as numbers and lists),
-    atomically (`atomic_write`)."""
+    atomically (`atomic_write`); the name must end in ``.json``."""
+    p = _output_file(path, ".json", "save_json", "JSON")
     text = json.dumps(obj, indent=2, default=_json_default) + "\n"
-    with atomic_write(path) as f:
+    with atomic_write(p) as f:
         f.write(text.encode())
 
 
@@ -807,8 +819,10 @@ def save_loss_plot(path: PathLike, history: list[dict]) -> bool:
     """Plot the loss (log scale) and, when recorded, the mean angular error per iteration.
 
     Needs matplotlib (the ``cli`` extra: ``pip install jaxnm[cli]``); returns False,
-    writing nothing, when it is not installed. Written atomically (`atomic_write`), as a PNG.
+    writing nothing, when it is not installed. Written atomically (`atomic_write`), as a PNG
+    (the name must end in ``.png``).
     """
+    path = _output_file(path, ".png", "save_loss_plot", "PNG")
     try:
         from matplotlib.figure import Figure  # no pyplot: leaves the caller's backend alone
     except ImportError:
@@ -858,10 +872,18 @@ def write_fit_outputs(outdir: PathLike, outputs, *, plot: bool = True) -> list[s
 def save_normal_map_npz(path: PathLike, normals, **extra) -> None:
     """Write a tangent-space map as ``jaxnm fit`` writes ``normal_map.npz``, atomically:
     ``normals`` ``(h, w, 3)`` float32 unit vectors, row 0 on top, and any ``extra`` arrays
-    (e.g. ``slopes``, masks) under their names."""
+    (e.g. ``slopes``, masks) under their names. Refused, writing nothing: a name not ending
+    in ``.npz``, normals of another shape or with NaN or infinite values (which
+    `load_texture` would not read back)."""
+    p = _output_file(path, ".npz", "save_normal_map_npz", ".npz")
     arrays = {"normals": np.asarray(normals, np.float32)}
+    n = arrays["normals"]
+    if n.ndim != 3 or n.shape[-1] != 3 or 0 in n.shape:
+        raise ValueError(f"{p}: normals must be (h, w, 3), got {n.shape}")
+    if not np.isfinite(n).all():
+        raise ValueError(f"{p}: the normals to save contain NaN or infinite values")
     arrays.update({k: np.asarray(v) for k, v in extra.items()})
-    with atomic_write(path) as f:
+    with atomic_write(p) as f:
         np.savez_compressed(f, **arrays)
 
 
@@ -871,7 +893,8 @@ def save_figure_grid(path: PathLike, rows: list[list], *, titles: list[str],
     in [0, 1]; None leaves a cell empty) as a PNG with column titles and row labels,
     atomically. A grey cell is given as ``(array, vmax, label)`` and drawn from 0 to
     ``vmax`` with a colour bar. Needs matplotlib (the ``cli`` extra); returns False, writing
-    nothing, without it."""
+    nothing, without it. The name must end in ``.png``."""
+    path = _output_file(path, ".png", "save_figure_grid", "PNG")
     try:
         from matplotlib.figure import Figure
     except ImportError:

@@ -370,9 +370,13 @@ def save_dds_normal_map(path: str | os.PathLike, normals: ArrayLike, *, format: 
     """
     _check_option("save_dds_normal_map", "format", format, DDS_FORMATS)
     _check_option("save_dds_normal_map", "encoder", encoder, ENCODERS)
+    _check_dds_name("save_dds_normal_map", path)
     n = np.asarray(normals, np.float32)
     if n.ndim != 3 or n.shape[-1] != 3:
         raise ValueError(f"save_dds_normal_map: `normals` must be (H, W, 3), got {n.shape}")
+    if not np.isfinite(n).all():
+        raise ValueError(f"save_dds_normal_map: {os.fspath(path)}: the normals to save contain "
+                         f"NaN or infinite values")
     codes = np.asarray(np.round(np.asarray(quantize(encode_normal_map(
         n, channels=2, green=green, uv_origin=uv_origin))) * 255), np.uint8)
     if encoder == "angular" and format == "bc5":
@@ -384,6 +388,13 @@ def save_dds_normal_map(path: str | os.PathLike, normals: ArrayLike, *, format: 
         blocks = encode_blocks(codes, format=format, encoder=encoder)
     save_dds_blocks(path, blocks, codes.shape[:2], format=format)
     return codes
+
+
+def _check_dds_name(writer: str, path) -> None:
+    """A ValueError naming ``path`` where it does not end in ``.dds``."""
+    if not os.fspath(path).lower().endswith(".dds"):
+        raise ValueError(f"{os.fspath(path)}: {writer} writes DDS files; the name must end in "
+                         f".dds")
 
 
 def save_dds_blocks(path: str | os.PathLike, blocks: bytes, size_hw: tuple[int, int], *,
@@ -398,6 +409,7 @@ def save_dds_blocks(path: str | os.PathLike, blocks: bytes, size_hw: tuple[int, 
     - `format`: one of `DDS_FORMATS`.
     """
     _check_option("save_dds_blocks", "format", format, DDS_FORMATS)
+    _check_dds_name("save_dds_blocks", path)
     h, w = int(size_hw[0]), int(size_hw[1])
     _check_block_size("save_dds_blocks", h, w)
     if len(blocks) != h * w:

@@ -519,6 +519,52 @@ def test_save_png_errors(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
+def test_writers_refuse_what_they_could_not_write_or_read_back(tmp_path):
+    """Each ``save_*`` names the file in one line and writes nothing: a folder as the name, a
+    file where a parent folder should be, a name its readers would not take, normals that
+    `load_texture` would refuse to read back."""
+    from jaxnm import io
+
+    (tmp_path / "folder.json").mkdir()
+    (tmp_path / "file").write_text("x")
+    unit = np.zeros((4, 4, 3), np.float32)
+    unit[..., 2] = 1
+    cases = [
+        (lambda p: io.save_json(p, {}), "folder.json", IsADirectoryError,
+         "folder.json: is a folder"),
+        (lambda p: io.save_normal_map_npz(p, unit), "folder.json", ValueError, r"\.npz"),
+        (lambda p: io.save_normal_map_npz(p, unit), "new/m.npz", None, None),
+        (lambda p: io.save_json(p, {}), "file/r.json", NotADirectoryError,
+         "file is a file, not a folder"),
+        (lambda p: io.save_png(p, unit), "file/a/b.png", NotADirectoryError,
+         "file is a file, not a folder"),
+        (lambda p: io.save_json(p, {}), "r.txt", ValueError, r"save_json.*end in \.json"),
+        (lambda p: io.save_normal_map_npz(p, unit), "m.txt", ValueError, r"end in \.npz"),
+        (lambda p: io.save_normal_map_npz(p, unit[..., :2]), "m.npz", ValueError,
+         r"\(h, w, 3\), got \(4, 4, 2\)"),
+        (lambda p: io.save_normal_map_npz(p, np.where(unit == 1, np.nan, unit)), "m.npz",
+         ValueError, "NaN or infinite"),
+        (lambda p: io.save_loss_plot(p, [{"loss": 1.0}]), "loss.jpg", ValueError,
+         r"end in \.png"),
+        (lambda p: io.save_figure_grid(p, [[unit]], titles=["a"], row_labels=["b"]),
+         "grid.svg", ValueError, r"end in \.png"),
+    ]
+    for write, name, error, match in cases:
+        before = sorted(tmp_path.rglob("*"))
+        path = tmp_path / name
+        if error is None:  # a folder in the name that does not exist yet is made
+            write(path)
+            assert path.is_file()
+            continue
+        with pytest.raises(error, match=match) as ei:
+            write(path)
+        assert str(path) in str(ei.value) and "\n" not in str(ei.value)
+        assert sorted(tmp_path.rglob("*")) == before, name
+    # what the writers write reads back
+    io.save_normal_map_npz(tmp_path / "ok.npz", unit)
+    np.testing.assert_array_equal(io.load_texture(tmp_path / "ok.npz")[0], unit)
+
+
 # ============================================================================ textures
 
 

@@ -157,6 +157,26 @@ def _one_line(excinfo, path):
     return msg
 
 
+def test_writing_refuses_a_name_or_normals_it_could_not_read_back(tmp_path):
+    n = _normals(8)
+    cases = [
+        (lambda p: S.save_dds_normal_map(p, n), "map.png", r"save_dds_normal_map.*\.dds"),
+        (lambda p: S.save_dds_blocks(p, b"\0" * 64, (8, 8)), "map.bc5", r"save_dds_blocks.*\.dds"),
+        (lambda p: S.save_dds_normal_map(p, np.where(n > 0.9, np.nan, n)), "nan.dds",
+         "NaN or infinite"),
+    ]
+    for write, name, match in cases:
+        with pytest.raises(ValueError, match=match) as ei:
+            write(tmp_path / name)
+        _one_line(ei, tmp_path / name)
+    (tmp_path / "folder.dds").mkdir()
+    with pytest.raises(IsADirectoryError, match="is a folder") as ei:
+        S.save_dds_normal_map(tmp_path / "folder.dds", n)
+    _one_line(ei, tmp_path / "folder.dds")
+    assert [p.name for p in tmp_path.iterdir()] == ["folder.dds"]
+    assert not any((tmp_path / "folder.dds").iterdir())
+
+
 def test_bad_files_get_one_line_naming_them(tmp_path):
     good = tmp_path / "good.dds"
     S.save_dds_normal_map(good, _normals(8), format="bc5")
