@@ -782,3 +782,43 @@ def test_prepare_refuses_what_is_not_a_problem():
                                         r"\(jaxnm.config.load_fit, jaxnm.fit.FitProblem\), got "
                                         r"str$"):
         F.prepare("fit.json")
+
+
+@pytest.mark.parametrize("call, message", [
+    (dict(render_size=0), "default_problem: render_size must be an integer 1 to 16384, got 0"),
+    (dict(render_size=16.0), "default_problem: render_size must be an integer 1 to 16384, "
+                             "got 16.0"),
+    (dict(map_size=0), "default_problem: map_size must be an integer >= 1, got 0"),
+    (dict(n_lights=0), "default_problem: n_lights must be an integer >= 1, got 0"),
+    (dict(views=True), "default_problem: views must be an integer 1 to 3, got True"),
+    (dict(views=4), "default_problem: views must be an integer 1 to 3, got 4"),
+    (dict(seed=None), "default_problem: seed must be an integer >= 0, got None"),
+    (dict(noise=-0.1), "default_problem: noise must be a finite number >= 0, got -0.1"),
+    (dict(noise=float("nan")), "default_problem: noise must be a finite number >= 0, got nan"),
+])
+def test_the_built_in_problem_refuses_arguments_out_of_range_before_rendering(
+        monkeypatch, call, message):
+    """Each argument is named in one line (a render size of 0 divided by zero, no lights
+    made a problem without targets, a negative or NaN noise was ignored)."""
+    import jaxnm.procedural.builtin as B
+
+    def no_render(*a, **k):
+        raise AssertionError("the problem was rendered before its arguments were checked")
+
+    monkeypatch.setattr(B, "render", no_render)
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        default_problem(**{"render_size": 16, "map_size": 8, **call})
+
+
+def test_the_built_in_scene_names_a_size_out_of_range():
+    from jaxnm.procedural import default_fit_job, default_scene
+
+    with pytest.raises(ValueError, match=r"^default_scene: `width` must be a positive integer, "
+                                         r"got 0$"):
+        default_scene(width=0, height=8)  # said "camera: `aspect` must be positive"
+    with pytest.raises(ValueError, match=r"^default_scene: `height` must be a positive integer, "
+                                         r"got '8'$"):
+        default_scene(width=8, height="8")
+    with pytest.raises(ValueError, match="^default_fit_job: quick must be True or False, got "
+                                         "'yes'$"):
+        default_fit_job(quick="yes")

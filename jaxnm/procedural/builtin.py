@@ -9,13 +9,22 @@
 
 from __future__ import annotations
 
+import math
+
 import jax.numpy as jnp
 import numpy as np
 
 from ..camera import Camera, eye_to_world, look_at, perspective
 from ..fit import FitJob, FitOptions, FitProblem, FitTarget, problem_from_scene
 from ..render import render
-from ..scene import Scene, back_faces_hidden, default_material, validate_scene
+from ..scene import (
+    MAX_IMAGE_SIZE,
+    Scene,
+    back_faces_hidden,
+    check_scene_options,
+    default_material,
+    validate_scene,
+)
 from ..shading import (
     DirectionalLight,
     Lights,
@@ -39,6 +48,7 @@ HELD_OUT_LIGHT = (0.45, 0.35, 0.82)
 
 def default_scene(*, width: int = 512, height: int = 512) -> Scene:
     """The built-in scene: a rivet-mapped torus under two lights (no files needed)."""
+    check_scene_options(width=width, height=height, source="default_scene")
     cam = Camera.from_matrices(look_at((0.0, -2.35, 1.75), (0.0, 0.0, -0.1), (0.0, 0.0, 1.0)),
                                perspective(45.0, width / height, 0.1, 50.0))
     lights = Lights(
@@ -89,9 +99,8 @@ def default_problem(*, render_size: int = 512, map_size: int = 256, n_lights: in
     (relative to each target's maximum), and returns ``(problem,
     ground_truth_normals, scene)``.
     """
-    if not 1 <= views <= len(DEFAULT_FIT_EYES):
-        raise ValueError(f"default_problem: views must be 1 to {len(DEFAULT_FIT_EYES)}, got "
-                         f"{views}")
+    _check_problem_args(render_size=render_size, map_size=map_size, n_lights=n_lights,
+                        noise=noise, seed=seed, views=views)
     scene = _fit_scene(render_size, map_size)
     gt = np.asarray(decode_normal_map(jnp.asarray(scene.normal_map), encoding="unsigned"),
                     np.float64)
@@ -113,10 +122,29 @@ def default_problem(*, render_size: int = 512, map_size: int = 256, n_lights: in
     return problem, gt, scene
 
 
+def _check_problem_args(*, render_size, map_size, n_lights, noise, seed, views) -> None:
+    """`default_problem`'s arguments, each refused in one line naming it."""
+    def integer(v):
+        return not isinstance(v, bool) and isinstance(v, (int, np.integer))
+
+    for name, v, lo, hi in (("render_size", render_size, 1, MAX_IMAGE_SIZE),
+                            ("map_size", map_size, 1, None), ("n_lights", n_lights, 1, None),
+                            ("views", views, 1, len(DEFAULT_FIT_EYES)),
+                            ("seed", seed, 0, None)):
+        if not integer(v) or v < lo or (hi is not None and v > hi):
+            bound = f"{lo} to {hi}" if hi is not None else f">= {lo}"
+            raise ValueError(f"default_problem: {name} must be an integer {bound}, got {v!r}")
+    if isinstance(noise, bool) or not isinstance(noise, (int, float, np.floating)) \
+            or not math.isfinite(noise) or noise < 0:
+        raise ValueError(f"default_problem: noise must be a finite number >= 0, got {noise!r}")
+
+
 def default_fit_job(*, quick: bool = False) -> FitJob:
     """``jaxnm fit`` with no fit file: `default_problem` (512x512 renders and a 256x256 map,
     or 128x128 and 64x64 with ``quick``), 15 texel-space LM steps of 20 conjugate-gradient
     iterations, scored against the ground truth and a held-out light (`HELD_OUT_LIGHT`)."""
+    if not isinstance(quick, bool):
+        raise ValueError(f"default_fit_job: quick must be True or False, got {quick!r}")
     size, msize = (128, 64) if quick else (512, 256)
     problem, gt, scene = default_problem(render_size=size, map_size=msize, n_lights=6, views=2)
     cam = problem.targets[0].camera
