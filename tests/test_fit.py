@@ -103,6 +103,24 @@ def test_render_with_map_reproduces_targets(small):
         np.testing.assert_allclose(np.asarray(imgs), prep.target_images(v), rtol=3e-3, atol=2e-3)
 
 
+def test_render_with_map_refuses_a_map_or_lights_the_problem_does_not_have(small):
+    problem, gt, _, prep, _ = small
+    h, w = gt.shape[:2]
+    cases = [
+        ((problem, gt), {}, TypeError, "render_with_map: prep must be a Prepared "
+                                       "(jaxnm.fit.prepare), got FitProblem"),
+        ((prep, gt[: h // 2, : w // 2]), {}, ValueError,
+         f"render_with_map: normals must be {(h, w, 3)}, the prepared problem's map, got "
+         f"{(h // 2, w // 2, 3)}"),
+        ((prep, gt[..., :2]), {}, ValueError, f"got {(h, w, 2)}"),
+        ((prep, gt), {"lights": []}, ValueError,
+         f"render_with_map: lights must hold one Lights per view ({prep.num_views}), got 0"),
+    ]
+    for args, kw, error, message in cases:  # (said "mip_sizes: levels must be ..." or raised
+        with pytest.raises(error, match=re.escape(message)):  # from inside JAX)
+            F.render_with_map(*args, **kw)
+
+
 def test_prepared_keeps_only_covered_pixels_and_needed_taps(small):
     """The compact step model: covered pixels only, views stacked for one vmap, 4-tap gathers
     where one mip level is read, and padding that weighs nothing."""

@@ -164,7 +164,17 @@ def render_with_map(prep: Prepared, normals: Array, *, strength: float = 1.0,
     ``lights`` (one stacked `Lights` per view, leaves (T, ...)) replaces the
     prepared lights, e.g. to render from held-out light directions.
     """
+    if not isinstance(prep, Prepared):
+        raise TypeError(f"render_with_map: prep must be a Prepared (jaxnm.fit.prepare), got "
+                        f"{type(prep).__name__}")
     opts = prep.options[0]
+    want = (*opts.normal_map_shape, 3)
+    if jnp.shape(normals) != want:
+        raise ValueError(f"render_with_map: normals must be {want}, the prepared problem's map, "
+                         f"got {jnp.shape(normals)}")
+    if lights is not None and len(lights) != prep.num_views:
+        raise ValueError(f"render_with_map: lights must hold one Lights per view "
+                         f"({prep.num_views}), got {len(lights)}")
     out = []
     for v in range(prep.num_views):
         view = prep.view(v)
