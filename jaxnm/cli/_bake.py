@@ -105,7 +105,7 @@ _OPTIONS = ("method", "size", "frame", "cage", "max_distance", "samples", "margi
 def _check_shape(args) -> None:
     """One-line errors for the arguments' shape (which meshes, options the method uses) and
     plain ranges."""
-    from ..transfer.pair import RENDER_SIZES
+    from ..transfer import RENDER_SIZES
 
     if args.low is not None and args.decimate is not None:
         raise ValueError("give LOW or --decimate N (LOW made from HIGH), not both")

@@ -20,6 +20,7 @@ from .evaluate import MethodScores as MethodScores
 from .evaluate import PairEvaluation as PairEvaluation
 from .evaluate import evaluate_maps as evaluate_maps
 from .pair import METHODS as METHODS
+from .pair import RENDER_SIZES as RENDER_SIZES
 from .pair import PairBake as PairBake
 from .pair import PairBakeOptions as PairBakeOptions
 from .pair import bake_mesh_pair as bake_mesh_pair
@@ -32,5 +33,5 @@ from .views import ViewPlan as ViewPlan
 from .views import plan_views as plan_views
 
 __all__ = ["RAYCAST_FRAMES", "BakeWarning", "RaycastBake", "raycast_normal_map", "METHODS",
-           "PairBakeOptions", "PairBake", "bake_mesh_pair", "ViewPlan", "plan_views",
-           "MethodScores", "PairEvaluation", "evaluate_maps", "decimate", "unwrap"]
+           "RENDER_SIZES", "PairBakeOptions", "PairBake", "bake_mesh_pair", "ViewPlan",
+           "plan_views", "MethodScores", "PairEvaluation", "evaluate_maps", "decimate", "unwrap"]
