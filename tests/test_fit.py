@@ -103,6 +103,19 @@ def test_render_with_map_reproduces_targets(small):
         np.testing.assert_allclose(np.asarray(imgs), prep.target_images(v), rtol=3e-3, atol=2e-3)
 
 
+def test_problem_from_scene_refuses_what_is_not_a_scene_or_a_size(small):
+    problem, _, scene, _, _ = small
+    with pytest.raises(TypeError, match="^problem_from_scene: scene must be a Scene "
+                                        r"\(jaxnm.config.load_scene\), got dict$"):
+        F.problem_from_scene({}, problem.targets, (32, 32))  # ('dict' has no attribute 'model')
+    for size in (32, "32x32"):  # an int raised "'int' object is not iterable"
+        with pytest.raises(ValueError, match=f"the map size must be two integers >= 2, got "
+                                             f"{re.escape(repr(size))}$"):
+            F.problem_from_scene(scene, problem.targets, size)
+    # (a size of 31.5 was truncated to 31; now kept, and refused by prepare, above)
+    assert F.problem_from_scene(scene, problem.targets, np.array([16, 32])).map_size == (16, 32)
+
+
 def test_render_with_map_refuses_a_map_or_lights_the_problem_does_not_have(small):
     problem, gt, _, prep, _ = small
     h, w = gt.shape[:2]
@@ -263,6 +276,14 @@ def _bad(problem, **target_changes):
     (lambda p: dataclasses.replace(p, mesh=dataclasses.replace(p.mesh, uv=None)),
      "no texture coordinates"),
     (lambda p: dataclasses.replace(p, targets=()), "no target"),
+    (lambda p: _bad(p, width=0), r"view0_light0: width and height must be positive integers, got "
+                                 r"0 x 64$"),
+    (lambda p: _bad(p, height=64.0), "width and height must be positive integers, got 64 x 64.0"),
+    (lambda p: _bad(p, camera=None), "view0_light0: the camera must be a Camera, got NoneType$"),
+    (lambda p: dataclasses.replace(p, targets=(p.targets[0].image,)),
+     "target 0 must be a FitTarget, got ndarray$"),
+    (lambda p: dataclasses.replace(p, map_size=(31.5, 32)),
+     r"the map size must be two integers >= 2, got \(31.5, 32\)$"),
 ])
 def test_bad_input_is_refused_before_compiling(small, change, match):
     with pytest.raises(ValueError, match=match):

@@ -12,6 +12,7 @@ from ..camera import Camera
 from ..frames import check_frame
 from ..geometry import Mesh
 from ..interpolate import check_derivatives, check_precision, require_x64
+from ..scene import Scene
 from ..shading import Lights, Material, check_shading_model
 from ..textures import NormalMapOptions
 
@@ -79,15 +80,22 @@ def problem_from_scene(scene, targets, map_size, *, source: str | None = None) -
     applied to the mesh (the fit works in world space). The scene's ``precision`` is the
     shader arithmetic the map is fitted for (the frame and the perturbation; the solver
     itself works in float32)."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"problem_from_scene: scene must be a Scene (jaxnm.config.load_scene), "
+                        f"got {type(scene).__name__}")
+    src = scene.source if source is None else source
+    if isinstance(map_size, (str, bytes)) or not np.iterable(map_size):
+        raise ValueError(f"{src}: the map size must be two integers >= 2, got {map_size!r}")
     mesh = scene.mesh if scene.model is None else scene.mesh.transformed(scene.model)
     return FitProblem(mesh=mesh, material=scene.material, targets=tuple(targets),
-                      map_size=tuple(int(s) for s in map_size), albedo=scene.albedo,
+                      map_size=tuple(int(s) if isinstance(s, np.integer) else s
+                                     for s in map_size), albedo=scene.albedo,
                       shading=scene.shading, frame=scene.frame, derivatives=scene.derivatives,
                       precision=scene.precision,
                       double_sided=scene.double_sided,
                       sampling=dataclasses.replace(scene.normal_map_options, encoding="signed",
                                                    channels=3),
-                      source=scene.source if source is None else source)
+                      source=src)
 
 
 def _check_int(name: str, v, lo: int) -> None:
@@ -230,7 +238,16 @@ def validate_problem(problem: FitProblem) -> None:
     if a_shape != (3,) and not (len(a_shape) == 3 and a_shape[2] == 3):
         raise ValueError(f"{src}: the albedo must be (3,) or (H, W, 3), got {a_shape}")
     for i, t in enumerate(problem.targets):
+        if not isinstance(t, FitTarget):
+            raise ValueError(f"{src}: target {i} must be a FitTarget, got {type(t).__name__}")
         name = t.name or f"target {i}"
+        if not isinstance(t.camera, Camera):
+            raise ValueError(f"{src}: {name}: the camera must be a Camera, got "
+                             f"{type(t.camera).__name__}")
+        if any(isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1
+               for v in (t.width, t.height)):
+            raise ValueError(f"{src}: {name}: width and height must be positive integers, got "
+                             f"{t.width!r} x {t.height!r}")
         img = np.asarray(t.image)
         if img.ndim != 3 or img.shape[2] != 3:
             raise ValueError(f"{src}: {name}: the target must be an RGB image (H, W, 3), got "
