@@ -827,7 +827,7 @@ def test_prepare_refuses_what_is_not_a_problem():
     (dict(render_size=0), "default_problem: render_size must be an integer 1 to 16384, got 0"),
     (dict(render_size=16.0), "default_problem: render_size must be an integer 1 to 16384, "
                              "got 16.0"),
-    (dict(map_size=0), "default_problem: map_size must be an integer >= 1, got 0"),
+    (dict(map_size=1), "default_problem: map_size must be an integer >= 2, got 1"),
     (dict(n_lights=0), "default_problem: n_lights must be an integer >= 1, got 0"),
     (dict(views=True), "default_problem: views must be an integer 1 to 3, got True"),
     (dict(views=4), "default_problem: views must be an integer 1 to 3, got 4"),

@@ -128,7 +128,7 @@ def _check_problem_args(*, render_size, map_size, n_lights, noise, seed, views) 
         return not isinstance(v, bool) and isinstance(v, (int, np.integer))
 
     for name, v, lo, hi in (("render_size", render_size, 1, MAX_IMAGE_SIZE),
-                            ("map_size", map_size, 1, None), ("n_lights", n_lights, 1, None),
+                            ("map_size", map_size, 2, None), ("n_lights", n_lights, 1, None),
                             ("views", views, 1, len(DEFAULT_FIT_EYES)),
                             ("seed", seed, 0, None)):
         if not integer(v) or v < lo or (hi is not None and v > hi):
