@@ -124,7 +124,16 @@ def mikktspace_tangents(positions, normals, uv, faces) -> np.ndarray:
     surface, in the tangent plane of the vertex normal) and its sign ``w``
     (+1 or -1, the bitangent is ``w * cross(N, T)``), the values the reference
     implementation's ``setTSpaceBasic`` reports.
+
+    Arrays of the wrong shape or dtype, non-finite values and face indices out of range
+    are refused in one line (`jaxnm.geometry.check_mesh_arrays`).
     """
+    from .geometry import check_mesh_arrays  # (geometry imports this module when asked)
+
+    for name, arr in (("uv", uv), ("normals", normals)):
+        if arr is None:
+            raise ValueError(f"mikktspace_tangents: needs {name}, got None")
+    check_mesh_arrays(positions, faces, uv, normals, source="mikktspace_tangents")
     pos = np.asarray(positions, np.float32)
     nrm = np.asarray(normals, np.float32)
     tex = np.asarray(uv, np.float32)

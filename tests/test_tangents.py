@@ -7,6 +7,7 @@ turns a missing Blender into a failure)."""
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 from pathlib import Path
 
@@ -144,6 +145,23 @@ def test_tangents_are_unit_in_the_tangent_plane_with_a_sign(name):
     good = ~np.isin(np.arange(len(faces)), [len(faces) - 1]) if "position" in name else ...
     n = nrm[faces]
     assert np.abs(np.sum(t[good][..., :3] * n[good], -1)).max() < 1e-5
+
+
+def test_unusable_arrays_are_refused_in_one_line():
+    """(NumPy's errors from inside: a concatenation's dimensions, an index out of bounds.)"""
+    m = procedural.torus(major_segments=8, minor_segments=6)
+    p, n, uv, f = (np.asarray(a) for a in (m.positions, m.normals, m.uv, m.faces))
+    cases = [
+        ((p, n, None, f), "mikktspace_tangents: needs uv, got None"),
+        ((p, None, uv, f), "mikktspace_tangents: needs normals, got None"),
+        ((p, n, uv[:3], f), f"mikktspace_tangents: uv must have shape ({len(p)}, 2), got (3, 2)"),
+        ((p, n, uv, f + 1000), f"mikktspace_tangents: face indices must be in [0, {len(p) - 1}]"),
+        ((np.where(p > 0.5, np.nan, p), n, uv, f), "mikktspace_tangents: "),
+    ]
+    for args, message in cases:
+        with pytest.raises(ValueError, match=re.escape(message)) as ei:
+            mikktspace_tangents(*args)
+        assert "\n" not in str(ei.value)
 
 
 def test_a_mirror_seam_gives_shared_vertices_two_tangents():
