@@ -47,8 +47,8 @@ if TYPE_CHECKING:  # trimesh (with scipy, ~45 MB) is imported when a mesh file i
 __all__ = [
     "JaxnmWarning", "load_mesh", "load_texture", "load_image_float", "save_png", "save_aovs",
     "load_aovs", "load_json", "save_json", "save_loss_plot", "write_fit_outputs",
-    "write_fit_renders", "atomic_write", "unfinished_writes", "PathLike", "MESH_EXTENSIONS",
-    "TEXTURE_EXTENSIONS", "IMAGE_EXTENSIONS", "save_obj", "save_normal_map_npz",
+    "write_fit_renders", "atomic_write", "writable", "unfinished_writes", "PathLike",
+    "MESH_EXTENSIONS", "TEXTURE_EXTENSIONS", "IMAGE_EXTENSIONS", "save_obj", "save_normal_map_npz",
     "save_figure_grid"
 ]
 
@@ -78,15 +78,8 @@ def atomic_write(path: PathLike):
     finished; if it raises (a ``KeyboardInterrupt`` included), the temporary file is
     removed and ``path`` is left as it was. Readers never see a part of a file, whenever
     the writer is stopped. Parent directories are created. A ``path`` that is a folder, or
-    whose parent is a file, is refused before anything is written."""
-    p = Path(os.fspath(path))
-    if p.is_dir():
-        raise IsADirectoryError(f"{p}: is a folder; name the file to write")
-    for folder in (p.parent, *p.parent.parents):
-        if folder.exists():
-            if not folder.is_dir():
-                raise NotADirectoryError(f"{p}: {folder} is a file, not a folder")
-            break
+    whose parent is a file, is refused before anything is written (`writable`)."""
+    p = writable(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     tmp = p.with_name(f".{p.name}.{os.getpid()}-{next(_TEMPORARY)}.tmp")
     try:
@@ -98,6 +91,25 @@ def atomic_write(path: PathLike):
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def writable(path: PathLike, *, folder: bool = False) -> Path:
+    """``path`` as a `Path`, or an `OSError` naming it where nothing could be written there:
+    a file's name that is a folder (``IsADirectoryError``), a folder's name (``folder``)
+    that is a file, or a parent that is a file (``NotADirectoryError``). Missing parents are
+    fine (the writers make them). What a command checks before its work, so that a wrong
+    output name is not found after it."""
+    p = Path(os.fspath(path))
+    if folder and p.exists() and not p.is_dir():
+        raise NotADirectoryError(f"{p}: is a file, not a folder")
+    if not folder and p.is_dir():
+        raise IsADirectoryError(f"{p}: is a folder; name the file to write")
+    for parent in p.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise NotADirectoryError(f"{p}: {parent} is a file, not a folder")
+            break
+    return p
 
 
 def unfinished_writes(folder: PathLike) -> list[Path]:

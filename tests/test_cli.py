@@ -446,3 +446,36 @@ def test_the_targets_example_on_the_command_line_page_runs(tmp_path, monkeypatch
             assert main(command[1:]) == 0, command
     assert len(list(Path("targets").glob("t_0?.png"))) == 4
     assert json.loads(Path("fit_out/report.json").read_text())["steps"] > 0
+
+
+def test_an_output_that_cannot_be_written_is_named_before_the_work(tmp_path, capsys,
+                                                                   monkeypatch):
+    """A folder where a file goes, a file where a folder goes (or above it): one line naming
+    the flag, exit 2, before the scene or the meshes are read (it was a traceback after the
+    render, after the fit's preparation)."""
+    import jaxnm.cli._bake as cli_bake
+    import jaxnm.cli._fit as cli_fit
+    import jaxnm.cli._render as cli_render
+
+    def too_late(*a, **k):
+        raise AssertionError("the work started before the outputs were checked")
+
+    for module, name in ((cli_render, "_scene"), (cli_fit, "read_job"), (cli_bake, "_meshes")):
+        monkeypatch.setattr(module, name, too_late)
+    (tmp_path / "file").write_text("x")
+    (tmp_path / "dir.png").mkdir()
+    d = tmp_path
+    for argv, message in (
+            (["render", "-o", f"{d}/file/x.png"], f"-o {d}/file/x.png: {d}/file is a file, not a "
+                                                 f"folder"),
+            (["render", "-o", f"{d}/dir.png"], f"-o {d}/dir.png: is a folder; name the file to "
+                                              f"write"),
+            (["render", "--aovs", f"{d}/file/a/b.npz"], f"--aovs {d}/file/a/b.npz: {d}/file is a "
+                                                       f"file, not a folder"),
+            (["fit", "-o", f"{d}/file"], f"-o {d}/file: is a file, not a folder"),
+            (["fit", "-o", f"{d}/file/out"], f"-o {d}/file/out: {d}/file is a file, not a folder"),
+            (["bake", f"{d}/high.obj", "--decimate", "100", "-o", f"{d}/file"],
+             f"-o {d}/file: is a file, not a folder")):
+        assert main([*argv, "--no-compile-cache"]) == 2, argv
+        assert capsys.readouterr().err.strip() == f"jaxnm {argv[0]}: error: {message}"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dir.png", "file"]

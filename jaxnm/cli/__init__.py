@@ -149,7 +149,7 @@ def main(argv=None, *, sigint=None) -> int:
     except (Interrupted, KeyboardInterrupt):  # (the latter where the handler is not installed)
         print(f"{ctrl_c.command}: interrupted", file=sys.stderr)
         return 130
-    except (ValueError, FileNotFoundError, ImportError) as e:
+    except (ValueError, OSError, ImportError) as e:  # OSError: a file that cannot be written
         print(f"{ctrl_c.command}: error: {e}", file=sys.stderr)
         return 2
     finally:

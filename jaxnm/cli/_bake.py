@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-from ._flags import as_flags
+from ._flags import as_flags, output_path
 from ._interrupt import CtrlC
 
 __all__ = ["add_parser", "run", "STORES"]
@@ -194,7 +194,7 @@ def run(args, ctrl_c: CtrlC) -> int:
         from ..storage import encode_blocks
 
         encode_blocks(np.zeros((4, 4, 2), np.uint8), format="bc5")  # the storage extra
-    out = Path(args.output)
+    out = output_path("-o", args.output, folder=True)
     ctrl_c.output = out
     high, low, low_name, cage, made = _meshes(args, _say)
     ctrl_c.check()

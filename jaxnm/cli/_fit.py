@@ -9,7 +9,7 @@ import sys
 import time
 from pathlib import Path
 
-from ._flags import as_flags
+from ._flags import as_flags, output_path
 from ._interrupt import CtrlC
 
 __all__ = ["add_parser", "run", "check_arguments", "read_job", "write_outputs",
@@ -187,7 +187,7 @@ def run(args, ctrl_c: CtrlC, *, process: tuple[int, int] = (0, 1), images=None) 
     me, count = process
     say = _say(me == 0)
     overrides = check_arguments(args)
-    out = Path(args.output)
+    out = output_path("-o", args.output, folder=True)
     ctrl_c.output = out
     checkpoint = out / CHECKPOINT_NAME
     if args.resume and not checkpoint.is_file():

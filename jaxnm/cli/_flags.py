@@ -1,8 +1,11 @@
-"""Option names in the library's messages written as the command line's flags."""
+"""Option names in the library's messages written as the command line's flags, and the
+outputs a flag names checked before a command's work."""
 
 from __future__ import annotations
 
-__all__ = ["as_flags"]
+from pathlib import Path
+
+__all__ = ["as_flags", "output_path"]
 
 
 def as_flags(text: str, names) -> str:
@@ -16,3 +19,15 @@ def as_flags(text: str, names) -> str:
         if "_" in name:
             text = text.replace(name, f"--{name.replace('_', '-')}")
     return text
+
+
+def output_path(flag: str, path, *, folder: bool = False) -> Path:
+    """``path``, the output that ``flag`` names, as a `Path`; a ValueError naming the flag
+    where nothing could be written there (`jaxnm.io.writable`): checked before the work,
+    not found after it."""
+    from ..io import writable
+
+    try:
+        return writable(path, folder=folder)
+    except OSError as e:
+        raise ValueError(f"{flag} {e}") from None

@@ -9,6 +9,7 @@ import os
 import time
 from pathlib import Path
 
+from ._flags import output_path
 from ._interrupt import CtrlC
 
 __all__ = ["add_parser", "run", "frame_name", "TARGETS_SUFFIX"]
@@ -219,6 +220,9 @@ def run(args, ctrl_c: CtrlC) -> int:
         raise ValueError(f"-o {args.output}: jaxnm render writes PNG images; the name must end "
                          "in .png")
     _check_map_options(args)
+    output_path("-o", args.output)
+    if args.aovs is not None:
+        output_path("--aovs", args.aovs)
     scene, frame = _scene(args)
     ctrl_c.check()
     lights = ([directional_light(d) for d in args.light] if args.light
