@@ -69,6 +69,7 @@ import jaxnm
 from jaxnm import fit as F
 from jaxnm import procedural
 from jaxnm.textures import encode_normal_map
+from scripts._cli import output, run_script
 from scripts.benchmarks import bench_problem as B
 from scripts.benchmarks import timing
 
@@ -794,6 +795,7 @@ def main(argv=None) -> None:
     ap.add_argument("--texel-sums", dest="texel_sums", default="auto", choices=F.TEXEL_SUMS,
                     help="the fit benchmark's FitOptions.texel_sums (default auto)")
     args = ap.parse_args(argv)
+    output("--out", args.out, folder=True)  # before the work
     if args.fit_worker:
         return fit_worker(args)
     if args.views_worker:
@@ -840,4 +842,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnm.transfer import BakeWarning, raycast_normal_map
+from scripts._cli import run_script
 from scripts.benchmarks import bake_pairs
 from scripts.studies.blender_bake_cases import blender_python
 
@@ -180,4 +181,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

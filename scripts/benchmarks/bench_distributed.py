@@ -42,6 +42,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from scripts._cli import output, run_script
+
 ROOT = Path(__file__).resolve().parents[2]
 MODULE = "scripts.benchmarks.bench_distributed"
 #: Seconds one configuration's processes may take before the benchmark gives up on them.
@@ -273,6 +275,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path)
     ap.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    output("--out", args.out, folder=False)  # before the work
     if args.worker:  # one benchmark process: prints its JSON line
         kind, rest = args.worker[0], args.worker[1:]
         if kind == "make":
@@ -317,4 +320,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main))

@@ -18,12 +18,14 @@ import dataclasses
 import datetime
 import json
 import math
+import sys
 
 import jax
 import numpy as np
 
 import jaxnm
 from jaxnm import procedural
+from scripts._cli import output, run_script
 from scripts.benchmarks import bench_problem as B
 from scripts.benchmarks import timing
 
@@ -91,6 +93,7 @@ def main(argv=None) -> None:
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args(argv)
+    output("--out", args.out, folder=False)  # before the work
     res = {"metadata": metadata(),
            "frames": frame_timings(args.quick, 3 if args.quick else args.repeats)}
     text = json.dumps(res, indent=1)
@@ -101,4 +104,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,7 @@ from jaxnm.procedural import HELD_OUT_LIGHT, default_problem
 from jaxnm.render import render
 from jaxnm.shading import directional_light
 from jaxnm.textures import linear_to_srgb
+from scripts._cli import output, run_script
 
 
 def _list(x) -> list:
@@ -112,9 +114,10 @@ def main(argv=None) -> None:
     ap.add_argument("--noise", type=float, default=0.0,
                     help="Gaussian noise on the targets, relative to each target's maximum")
     args = ap.parse_args(argv)
+    output("OUTDIR", args.outdir, folder=True)  # before the work
     path = write_example(Path(args.outdir), args.render, args.map, args.noise)
     print(f"wrote {path}; run: jaxnm fit {path} -o {Path(args.outdir) / 'out'}")
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -12,6 +12,7 @@ error against the true map (texels that no view sees in grey). Needs matplotlib 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ import numpy as np
 import jaxnm
 from jaxnm import fit
 from jaxnm.textures import linear_to_srgb
+from scripts._cli import output, run_script
 
 ROOT = Path(__file__).resolve().parents[2]
 ERROR_MAX_DEG = 5.0
@@ -68,6 +70,7 @@ def main(argv=None) -> None:
     ap.add_argument("--render", type=int, default=512, help="target size (square)")
     ap.add_argument("--map", type=int, default=256, help="normal map size (square)")
     args = ap.parse_args(argv)
+    output("--out", args.out, folder=False)  # before the work
     panels = make(args.render, args.map)
     draw(panels, args.out)
     print(f"wrote {args.out} (mean error {panels['mean_error']:.3f} deg over "
@@ -75,4 +78,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

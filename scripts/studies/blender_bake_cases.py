@@ -34,6 +34,7 @@ import jaxnm
 from jaxnm.frames import FRAMES
 from jaxnm.scene import Scene
 from jaxnm.textures import NormalMapOptions
+from scripts._cli import output, run_script
 
 ROOT = Path(__file__).resolve().parents[2]  # the repository
 AMPLITUDE = 0.04
@@ -263,6 +264,7 @@ def main(argv=None) -> None:
     ap.add_argument("--out", default=None, help="also write table.json and table.md here")
     ap.add_argument("--size", type=int, default=128, help="render size")
     args = ap.parse_args(argv)
+    output("--out", args.out, folder=True)  # before the work
     blender = blender_python()
     if blender is None:
         sys.exit("no Blender Python: set JAXNM_BLENDER_PYTHON or make .venv-blender with "
@@ -293,4 +295,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -32,6 +32,7 @@ from jaxnm.camera import Camera, look_at, perspective
 from jaxnm.scene import Scene
 from jaxnm.shading import DirectionalLight, Lights, PointLight, stack_lights
 from jaxnm.textures import NormalMapOptions
+from scripts._cli import output, run_script
 
 MAP_VALUE = np.array([0.35, -0.25, 0.9])  # decoded tangent-space vector (clearly tilted)
 #: Worst-pixel angle to the exact perturbed normal every plane case must meet (degrees).
@@ -267,6 +268,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="hard_cases_out")
     ap.add_argument("--size", type=int, default=64)
     args = ap.parse_args(argv)
+    output("--out", args.out, folder=True)  # before the work
     from jaxnm.io import save_png
 
     out = Path(args.out)
@@ -294,4 +296,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main))

@@ -16,11 +16,14 @@ import dataclasses
 import hashlib
 import os
 import subprocess
+import sys
 import tarfile
 import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from scripts._cli import run_script
 
 
 @dataclasses.dataclass(frozen=True)
@@ -133,4 +136,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -49,6 +50,7 @@ from jaxnm.interpolate import DERIVATIVE_MODES
 from jaxnm.procedural import default_scene
 from jaxnm.shading import shade
 from jaxnm.textures import NormalMapOptions, decode_normal_map, sample
+from scripts._cli import output, run_script
 from scripts.benchmarks import timing
 from scripts.studies.study_frames import GRADIENT_METHODS, Torus, angle, truth_frames
 
@@ -225,6 +227,7 @@ def main(argv=None) -> None:
     ap.add_argument("--full", action="store_true",
                     help="the whole frame x derivative-mode x precision grid (about 3x longer)")
     args = ap.parse_args(argv)
+    output("--out", args.out, folder=True)  # before the work
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     surf = Torus(64)
@@ -252,4 +255,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -37,6 +37,7 @@ import argparse
 import json
 import os
 import platform
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -54,6 +55,7 @@ from jaxnm.transfer import (
 )
 from jaxnm.transfer.pair import bake_material
 from jaxnm.transfer.views import framing_camera, held_out_views
+from scripts._cli import output, run_script
 from scripts.benchmarks import bake_pairs
 from scripts.studies.blender_bake_cases import blender_python
 
@@ -184,6 +186,7 @@ def main(argv=None) -> None:
     ap.add_argument("--bunny", default=None, help="the Stanford Bunny's OBJ")
     ap.add_argument("--bunny-triangles", type=int, default=3000, dest="bunny_triangles")
     args = ap.parse_args(argv)
+    output("--out", args.out, folder=True)  # before the work
     machine = {"cpus": os.cpu_count(), "processor": platform.processor() or platform.machine(),
                "python": platform.python_version(),
                "load_average_before": [round(x, 2) for x in os.getloadavg()]}
@@ -203,4 +206,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -46,6 +47,7 @@ from jaxnm.fit import FitOptions, FitTarget, fit_normal_map, problem_from_scene
 from jaxnm.procedural import default_light_directions, default_scene
 from jaxnm.shading import DirectionalLight, Lights, stack_lights
 from jaxnm.textures import NormalMapOptions
+from scripts._cli import output, run_script
 
 R, RT = 1.0, 0.4  # torus radii
 AMP = 0.025  # displacement amplitude (world units)
@@ -204,6 +206,7 @@ def main(argv=None) -> None:
     ap.add_argument("--fit-steps", type=int, default=40)
     ap.add_argument("--no-fit", action="store_true", help="projection bakes only")
     args = ap.parse_args(argv)
+    output("--out", args.out, folder=True)  # before the work
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -233,4 +236,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -82,6 +82,7 @@ from jaxnm.interpolate import DERIVATIVE_MODES
 from jaxnm.scene import Scene
 from jaxnm.tangents import mikktspace_tangents
 from jaxnm.textures import NormalMapOptions, decode_normal_map, sample
+from scripts._cli import output, run_script
 
 MAP_VALUE = np.array([0.35, -0.25, 0.9]) / np.linalg.norm([0.35, -0.25, 0.9])
 METHODS = [f for f in FRAMES if f != "none"]
@@ -1302,6 +1303,7 @@ def main(argv=None) -> None:
                     help="only draw the figures from a summary file (frames_summary.json, "
                     "e.g. docs/studies/data/frames_summary.json) into --out; runs nothing")
     args = ap.parse_args(argv)
+    output("--out", args.out, folder=True)  # before the work
     if args.figures:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -1349,4 +1351,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -41,6 +41,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -54,6 +55,7 @@ from jaxnm import io as jio
 from jaxnm.blend import BLEND_METHODS, blend_normal_maps, normal_from_gradient
 from jaxnm.maps import bump_normal
 from jaxnm.textures import build_mipmaps, decode_normal_map, encode_normal_map, quantize
+from scripts._cli import output, run_script
 from scripts.benchmarks.timing import side_by_side, time_call
 
 TAU = 2 * np.pi
@@ -931,6 +933,7 @@ def main(argv=None) -> dict:
                     help="only the atlas of storage error on real maps (fetched from Debian "
                          "packages by scripts.studies.real_maps): representations_atlas.json")
     args = ap.parse_args(argv)
+    output("--out", args.out, folder=True)  # before the work
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.atlas:
@@ -951,4 +954,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))
