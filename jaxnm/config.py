@@ -426,6 +426,9 @@ def _scene_loader(data: Any, *, base_dir=".", source: str = "<dict>"):
     where = f"{source}: "
     if not isinstance(data, dict):
         raise ValueError(f"{where}a scene must be a JSON object, got {type(data).__name__}")
+    if "targets" in data and not set(data) & {"mesh", "camera"}:
+        raise ValueError(f"{where}a fit file (it has 'targets'), not a scene file: run it "
+                         f"with `jaxnm fit`; the scene to render is the one its 'scene' names")
     _keys(data, SCENE_KEYS, where)
     base = Path(base_dir)
     width = _field(data, "width", int, 512, where)
@@ -577,6 +580,10 @@ def fit_from_dict(data: dict, *, base_dir=".", source: str = "<dict>",
     base = Path(base_dir)
     if not isinstance(data, dict):
         raise ValueError(f"{where}a fit file must be a JSON object")
+    if "mesh" in data and "targets" not in data:
+        name = "scene.json" if source.startswith("<") else Path(source).name
+        raise ValueError(f"{where}a scene file (it has 'mesh'), not a fit file: a fit file "
+                         f"names its scene (\"scene\": \"{name}\") and lists its 'targets'")
     _keys(data, FIT_KEYS, where)
     options, time_limit = _solver_options(data.get("solver", {}), where)
     map_size, output = _output_map(data.get("map", {}), where)

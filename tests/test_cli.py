@@ -479,3 +479,22 @@ def test_an_output_that_cannot_be_written_is_named_before_the_work(tmp_path, cap
         assert main([*argv, "--no-compile-cache"]) == 2, argv
         assert capsys.readouterr().err.strip() == f"jaxnm {argv[0]}: error: {message}"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dir.png", "file"]
+
+
+def test_a_scene_file_given_to_fit_and_a_fit_file_given_to_render_are_named_as_such(
+        tmp_path, capsys):
+    """(They listed every key as unknown, or asked for a camera.)"""
+    scene = tmp_path / "torus.json"
+    scene.write_text(json.dumps({"mesh": "builtin:torus", "width": 16, "height": 16,
+                                 "camera": {"eye": [0, -3, 2], "target": [0, 0, 0]}}))
+    fit = tmp_path / "fit.json"
+    fit.write_text(json.dumps({"scene": "torus.json", "targets": [], "map": {"size": [8, 8]}}))
+    assert main(["fit", str(scene), "--no-progress"]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"jaxnm fit: error: {scene}: a scene file (it has 'mesh'), not a fit file: a fit file "
+        f"names its scene (\"scene\": \"torus.json\") and lists its 'targets'")
+    assert main(["render", str(fit), "-o", str(tmp_path / "x.png")]) == 2
+    assert capsys.readouterr().err.strip() == (
+        f"jaxnm render: error: {fit}: a fit file (it has 'targets'), not a scene file: run it "
+        f"with `jaxnm fit`; the scene to render is the one its 'scene' names")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fit.json", "torus.json"]
