@@ -269,6 +269,8 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=int, default=64)
     args = ap.parse_args(argv)
     output("--out", args.out, folder=True)  # before the work
+    if args.size < 1:
+        raise ValueError(f"--size must be a positive number of pixels, got {args.size}")
     from jaxnm.io import save_png
 
     out = Path(args.out)
