@@ -1,9 +1,11 @@
 """Files in and out: meshes, textures, images, AOVs, JSON, and the outputs of a fit.
 
-This is the only module of jaxnm that reads or writes files, and the only one
-that imports trimesh or imageio. Every other module sees plain arrays. Errors
-about bad files are raised here, because only here is the file name at hand:
-every message starts with the path.
+Every file jaxnm reads or writes goes through this module but two kinds: the DDS files
+of `jaxnm.storage` and the checkpoints of `jaxnm.fit.checkpoint`, which write through
+`atomic_write` as well. It is the only module that imports trimesh or imageio; the
+stages of the pipeline see plain arrays. Errors about bad files are raised where the file
+is read or written, because there the file name is at hand: every message starts with
+the path.
 
 Conventions:
 
