@@ -380,3 +380,13 @@ def test_a_large_mesh_renders_in_pieces_as_it_renders_whole():
     same = np.all(whole.position == pieces.position, axis=-1)[whole.mask]
     assert same.mean() > 0.999
     assert np.abs(whole.normal - pieces.normal)[whole.mask][same].max() == 0
+
+
+def test_the_view_planner_refuses_a_map_size_that_is_not_two_integers():
+    """(A zero raised an IndexError from inside, a single int "'int' object is not
+    iterable".)"""
+    low = _torus()[1]
+    for size in ((0, 16), 16, (16.5, 16), ("16", 16), (16, 16, 3)):
+        with pytest.raises(ValueError, match=re.escape(
+                f"plan_views: map_size must be two integers >= 1, (h, w), got {size!r}")):
+            plan_views(low, size, render_size=32)

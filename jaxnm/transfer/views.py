@@ -196,8 +196,13 @@ def plan_views(low: Mesh, map_size: tuple[int, int], *, views: int = 8, lights: 
             raise ValueError(f"plan_views: {name} must be an integer >= {lo}, got {v!r}")
     if not 0 < max_angle_deg < 90:
         raise ValueError(f"plan_views: max_angle_deg must be in (0, 90), got {max_angle_deg}")
+    size = tuple(map_size) if np.iterable(map_size) else ()
+    if len(size) != 2 or not all(not isinstance(s, bool) and isinstance(s, (int, np.integer))
+                                 and s >= 1 for s in size):
+        raise ValueError(f"plan_views: map_size must be two integers >= 1, (h, w), got "
+                         f"{map_size!r}")
     t0 = time.perf_counter()
-    h, w = (int(s) for s in map_size)
+    h, w = (int(s) for s in size)
     centre, radius = bounding_sphere(low, *(() if high is None else (high,)))
     chart = rasterize_uv(np.asarray(low.uv), np.asarray(low.faces), (h, w)).face >= 0
     dirs = fibonacci_sphere(int(candidates))
