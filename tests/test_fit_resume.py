@@ -441,3 +441,22 @@ def test_a_broken_checkpoint_is_one_line(tmp_path):
     with pytest.raises(ValueError, match=r"fit.npz: cannot read the checkpoint") as e:
         F.load_checkpoint(bad)
     assert "\n" not in str(e.value)
+
+
+def test_a_checkpoint_that_could_not_be_written_is_refused_before_the_fit(small, tmp_path,
+                                                                           monkeypatch):
+    """(It was found at the first checkpoint, after the preparation, the compile and the
+    first steps.)"""
+    def too_late(*a, **k):
+        raise AssertionError("the problem was prepared before the checkpoint was checked")
+
+    monkeypatch.setattr(S, "prepare", too_late)
+    (tmp_path / "file").write_text("x")
+    opts = F.FitOptions(max_steps=2)
+    for path, error, message in (
+            (tmp_path, IsADirectoryError, f"{tmp_path}: is a folder; name the file to write"),
+            (tmp_path / "file" / "c.npz", NotADirectoryError,
+             f"{tmp_path / 'file' / 'c.npz'}: {tmp_path / 'file'} is a file, not a folder")):
+        with pytest.raises(error, match=f"^{re.escape(message)}$"):
+            F.fit_normal_map(small[0], opts, progress=False, checkpoint=path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]

@@ -602,6 +602,10 @@ def _setup(problem: FitProblem, options: FitOptions, *, prepared, ground_truth, 
     source = checkpoint if resume is True else (resume or None)
     if resume is True and checkpoint is None:
         raise ValueError("resume=True needs the `checkpoint` to resume from")
+    if checkpoint is not None:  # a folder, or a file as its folder: refused before the work
+        from ..io import writable  # (as `save_checkpoint` imports it)
+
+        writable(checkpoint)
     prep = prepared if prepared is not None else prepare(problem)
     spread = spread_over_processes(prep)
     if spread and options.coarse_to_fine:
