@@ -207,6 +207,12 @@ def test_decimate_writes_the_low_poly_mesh_with_uvs(files, tmp_path, capsys, unw
     (["{d}/hi.obj", "{d}/lo.obj", "--method", "raycast", "--views", "3"],
      "jaxnm bake: error: --views: an option of the fit, and --method raycast fits nothing"),
     (["{d}/hi.obj", "{d}/nope.obj"], "jaxnm bake: error: {d}/nope.obj: no such file"),
+    (["{d}/hi.obj", "--decimate", "10", "--cage-mesh", "{d}/lo.obj"],
+     "jaxnm bake: error: --cage-mesh: a cage has LOW's triangles, and --decimate makes new "
+     "ones; give LOW and its cage, or --cage DIST"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--method", "raycast", "--cage-mesh", "{d}/lo_twice.obj"],
+     "jaxnm bake: error: {d}/lo_twice.obj: a cage mesh must have {d}/lo.obj's triangles in "
+     "{d}/lo.obj's order; it has 16 faces, {d}/lo.obj 8"),
     (["{d}/hi.obj", "{d}/lo_nouv.obj", "--method", "raycast"],
      "jaxnm bake: error: {d}/lo_nouv.obj: the mesh has no texture coordinates (uv); a normal "
      "map is baked into LOW's uv layout (--unwrap makes one with xatlas)"),

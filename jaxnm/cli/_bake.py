@@ -112,6 +112,9 @@ def _check_shape(args) -> None:
     if args.low is None and args.decimate is None:
         raise ValueError("no LOW: give the low-poly mesh, or --decimate N to make one from "
                          "HIGH")
+    if args.cage_mesh is not None and args.decimate is not None:
+        raise ValueError("--cage-mesh: a cage has LOW's triangles, and --decimate makes new "
+                         "ones; give LOW and its cage, or --cage DIST")
     for flag, v in (("--cage", args.cage), ("--max-distance", args.max_distance)):
         if v is not None and not (v >= 0 and v < float("inf")):
             raise ValueError(f"{flag} must be a finite distance >= 0, got {v}")
@@ -177,7 +180,7 @@ def _meshes(args, say):
     cage = None
     if args.cage_mesh:
         say(f"reading {args.cage_mesh} ...")
-        cage = io.load_mesh(args.cage_mesh)
+        cage = io.load_mesh(args.cage_mesh, normals="angle")  # (the rays use its points)
     return high, low, low_name, cage, made
 
 
@@ -210,7 +213,8 @@ def run(args, ctrl_c: CtrlC) -> int:
     from ..transfer import bake_mesh_pair
 
     bake = bake_mesh_pair(high, low, options, cage_mesh=cage, high_name=args.high,
-                          low_name=low_name, on_stage=stage,
+                          low_name=low_name, cage_name=args.cage_mesh or "cage mesh",
+                          on_stage=stage,
                           should_stop=lambda: ctrl_c.requested is not None,
                           progress="lines" if args.no_progress else True)
     ctrl_c.phase = "writing"

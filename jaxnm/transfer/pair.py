@@ -305,7 +305,7 @@ def fit_pair_map(problem: FitProblem, options: PairBakeOptions, start: np.ndarra
 
 def bake_mesh_pair(high: Mesh, low: Mesh, options: PairBakeOptions = PairBakeOptions(), *,
                    cage_mesh: Mesh | None = None, high_name: str = "HIGH",
-                   low_name: str = "LOW",
+                   low_name: str = "LOW", cage_name: str = "cage mesh",
                    on_stage: Callable[[str, str], None] | None = None,
                    should_stop: Callable[[], bool] | None = None,
                    progress: bool | str = False) -> PairBake:
@@ -316,8 +316,9 @@ def bake_mesh_pair(high: Mesh, low: Mesh, options: PairBakeOptions = PairBakeOpt
     **Arguments:**
     - `high`, `low`: the meshes (LOW with uvs; normals are computed where missing).
     - `options`: a `PairBakeOptions`.
-    - `cage_mesh`: a cage with LOW's triangles for the rays (instead of `options.cage`).
-    - `high_name`, `low_name`: for messages (the files).
+    - `cage_mesh`: a cage with LOW's triangles, in LOW's order, for the rays (instead of
+      `options.cage`; `raycast_normal_map`'s).
+    - `high_name`, `low_name`, `cage_name`: for messages (the files).
     - `on_stage`: called as ``on_stage(stage, message)`` before each stage (``"inputs"``,
       ``"raycast"``, ``"plan"``, ``"targets"``, ``"prepare"``, ``"fit"``,
       ``"evaluate"``); an exception it raises ends the bake.
@@ -351,7 +352,8 @@ def bake_mesh_pair(high: Mesh, low: Mesh, options: PairBakeOptions = PairBakeOpt
         raycast = raycast_normal_map(high, low, o.map_size, frame=o.frame, cage=o.cage,
                                      cage_mesh=cage_mesh, max_distance=o.max_distance,
                                      samples=o.samples, margin=o.margin,
-                                     high_name=high_name, low_name=low_name)
+                                     high_name=high_name, low_name=low_name,
+                                     cage_name=cage_name)
         low = with_normals(low, low_name)
         if o.frame == "vertex" and low.tangents is None:
             low = low.with_tangents()

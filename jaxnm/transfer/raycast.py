@@ -147,15 +147,33 @@ def _check_options(size, frame, cage, cage_mesh, max_distance, samples, margin):
     return int(hw[0]), int(hw[1])
 
 
-def _check_cage_mesh(cage_mesh: Mesh | None, low: Mesh, name: str) -> np.ndarray | None:
+def _cage_positions(cage_mesh: Mesh | None, low: Mesh, name: str,
+                    low_name: str) -> np.ndarray | None:
+    """The cage's point for each of LOW's vertices, or None without a cage. Corner ``k`` of
+    the cage's face ``i`` is where corner ``k`` of LOW's face ``i`` moves: the cage must have
+    LOW's triangles in LOW's order, but may split its vertices at other seams (a cage saved
+    without uvs, or LOW unwrapped again), as long as it puts each of LOW's vertices at one
+    place."""
     if cage_mesh is None:
         return None
     p, f = check_mesh(cage_mesh, name)
-    if f.shape != np.shape(low.faces) or not np.array_equal(f, np.asarray(low.faces)):
-        raise ValueError(f"{name}: a cage mesh must have the low-poly mesh's triangles "
-                         f"({np.shape(low.faces)[0]} faces, the same vertex indices), got "
-                         f"{f.shape[0]} faces")
-    return p
+    lf = np.asarray(low.faces, np.int64).reshape(-1)
+    if f.shape[0] * 3 != lf.size:
+        raise ValueError(f"{name}: a cage mesh must have {low_name}'s triangles in "
+                         f"{low_name}'s order; it has {f.shape[0]} faces, {low_name} "
+                         f"{lf.size // 3}")
+    corners = p[f.reshape(-1)]
+    out = np.asarray(low.positions, np.float64).copy()  # (vertices no face uses)
+    out[lf] = corners
+    moved = np.abs(out[lf] - corners).max(axis=-1)
+    scale = max(float(np.ptp(p, axis=0).max()), np.finfo(np.float64).tiny)
+    torn = np.flatnonzero(moved > 1e-6 * scale)
+    if torn.size:
+        raise ValueError(f"{name}: a cage mesh must have {low_name}'s triangles in "
+                         f"{low_name}'s order; its faces put {len(np.unique(lf[torn]))} of "
+                         f"{low_name}'s vertices at two places (the first in face "
+                         f"{torn[0] // 3})")
+    return out
 
 
 # ----------------------------------------------------------------------------- per texel
@@ -390,7 +408,7 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
                        samples: int = 1, margin: int = 16, seed: int = 0,
                        chunk_texels: int | None = None, workers: int | None = None,
                        engine: str | None = None, high_name: str = "HIGH",
-                       low_name: str = "LOW") -> RaycastBake:
+                       low_name: str = "LOW", cage_name: str = "cage mesh") -> RaycastBake:
     """Bake HIGH's normals into a tangent-space map on LOW's uv layout by casting rays, as
     Blender's Cycles "selected to active" bake does (the module docstring has the rules and
     the Blender sources they follow).
@@ -405,8 +423,8 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
       jaxnm's ``frame: "vertex"``) or ``"cotangent"``.
     - `cage`: the extrusion (Blender's ``cage_extrusion``), in LOW's units; None (with no
       `cage_mesh`) chooses one so that rays start outside HIGH (`RaycastBake.cage`).
-    - `cage_mesh`: a mesh with LOW's triangles whose points the rays start from (Blender's
-      cage object).
+    - `cage_mesh`: a mesh with LOW's triangles, in LOW's order, whose points the rays start
+      from (Blender's cage object); its vertices may be split at other seams than LOW's.
     - `max_distance`: rays longer than this from their origin miss (0: no limit).
     - `samples`: Cycles' bake samples per texel (jittered within the hit triangle).
     - `margin`: passes of the extend filter around the islands (Blender's default 16).
@@ -416,7 +434,7 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
       `engine`: how to reach Embree, ``"direct"`` (its library through ctypes, rays in
       packets on every worker) or ``"embreex"`` (embreex's scene, one ray at a time), the
       same hits; None: ``"direct"`` where it can be had;
-      `high_name`, `low_name`: for messages (the files).
+      `high_name`, `low_name`, `cage_name`: for messages (the files).
 
     **Returns:** a `RaycastBake`. Raises ValueError when no ray hits HIGH at all (the
     meshes do not overlap) and for unusable input; warns (`BakeWarning`) about missed
@@ -437,7 +455,7 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
         scene = pool.submit(EmbreeScene, hp, hf, engine=engine)
         low = prepare_low(low, frame, low_name)
         hn = np.asarray(with_normals(high, high_name).normals, np.float64)
-        geo = _Low.build(low, _check_cage_mesh(cage_mesh, low, "cage mesh"), hw)
+        geo = _Low.build(low, _cage_positions(cage_mesh, low, cage_name, low_name), hw)
         tick("inputs")
         cover, texels, tri, bary = _texels(low, hw, low_name)
         tick("texels")
