@@ -56,6 +56,7 @@ def files(tmp_path_factory):
     io.save_obj(d / "lo.obj", _mesh(p, f, uv, up))
     io.save_obj(d / "lo_nouv.obj", _mesh(p, f, None, up))
     io.save_obj(d / "far.obj", _mesh(p + [10, 0, 0], f, uv, up))
+    io.save_obj(d / "cage_up.obj", _mesh(p + [0, 0, 0.1], f, None, up))  # no uvs
     two = np.concatenate([p, p + [0, 0, 0.02]])  # a second LOW over the first, same uvs
     io.save_obj(d / "lo_twice.obj", _mesh(two, np.concatenate([f, f + len(p)]),
                                           np.concatenate([uv, uv]), np.concatenate([up, up])))
@@ -177,6 +178,27 @@ def test_decimate_writes_the_low_poly_mesh_with_uvs(files, tmp_path, capsys, unw
     assert "low.obj" in rep["files"] and not (out / "fit").exists()
     n = np.load(out / "raycast" / "normal_map.npz")["normals"]
     assert n.shape == (32, 32, 3)
+
+
+def test_a_cage_mesh_without_uvs_with_an_unwrapped_low(files, tmp_path):
+    """LOW without uvs, unwrapped by xatlas (its vertices split at new seams), and its cage
+    0.1 above it saved without uvs: the cage is matched face by face, and its rays (from 0.1
+    above each texel's point, straight down) are those of a 0.1 extrusion along LOW's
+    straight-up normals, so both maps agree to float rounding."""
+    maps, missed = [], []
+    for i, cage in enumerate((["--cage-mesh", files / "cage_up.obj"], ["--cage", "0.1"])):
+        out = tmp_path / f"o{i}"
+        with warnings.catch_warnings():  # (texels on the chart's rim: rays along HIGH's rim)
+            warnings.simplefilter("ignore")
+            assert _bake(files / "hi.obj", files / "lo_nouv.obj", "--unwrap", "--method",
+                         "raycast", "--eval-views", "0", "--size", "16", *cage, "-o", out) == 0
+        rep = json.loads((out / "report.json").read_text())
+        assert rep["raycast"]["cage_source"] == ("mesh" if i == 0 else "given")
+        missed.append(rep["raycast"]["texels_missed"])
+        maps.append(np.load(out / "raycast" / "normal_map.npz")["normals"])
+    assert missed[0] == missed[1] < 0.2 * 16 * 16
+    np.testing.assert_allclose(maps[0], maps[1], rtol=0, atol=1e-6)
+    assert np.abs(maps[0][..., :2]).max() > 0.05  # HIGH's normals tilt: the rays found them
 
 
 # ----------------------------------------------------------------------------- bad input
