@@ -318,6 +318,18 @@ def test_arguments_of_the_wrong_kind_or_range_are_refused_in_one_line():
     with pytest.raises(TypeError, match=r"^bake_mesh_pair: options must be a PairBakeOptions, "
                                         r"got dict$"):
         bake_mesh_pair(mesh, mesh, {"size": 16})
+    # (each refused before any work: a fit's `should_stop` would be polled only after the
+    # rays, `progress` checked only once the fit starts)
+    fit = PairBakeOptions(method="fit", size=16)
+    for kw, error, message in (
+            (dict(cage_mesh=mesh), ValueError, "bake_mesh_pair: cage_mesh is for ray casting, "
+                                               "and options.method 'fit' casts no rays"),
+            (dict(progress="yes"), ValueError, "bake_mesh_pair: progress must be True, False "
+                                               "or 'lines', got 'yes'"),
+            (dict(on_stage=print, should_stop=True), TypeError,
+             "bake_mesh_pair: should_stop must be a function or None, got bool")):
+        with pytest.raises(error, match="^" + re.escape(message) + "$"):
+            bake_mesh_pair(mesh, mesh, fit, **kw)
     for kw, message in (({"size": 0}, "LOW: unwrap's size must be an integer >= 4, got 0"),
                         ({"padding": -1}, "LOW: unwrap's padding must be an integer >= 0, got -1")):
         with pytest.raises(ValueError, match="^" + re.escape(message) + "$"):

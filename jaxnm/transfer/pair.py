@@ -334,6 +334,16 @@ def bake_mesh_pair(high: Mesh, low: Mesh, options: PairBakeOptions = PairBakeOpt
     if not isinstance(options, PairBakeOptions):
         raise TypeError(f"bake_mesh_pair: options must be a PairBakeOptions, got "
                         f"{type(options).__name__}")
+    if cage_mesh is not None and options.method == "fit":
+        raise ValueError("bake_mesh_pair: cage_mesh is for ray casting, and options.method "
+                         "'fit' casts no rays")
+    if progress not in (True, False, "lines"):
+        raise ValueError(f"bake_mesh_pair: progress must be True, False or 'lines', got "
+                         f"{progress!r}")
+    for what, f in (("on_stage", on_stage), ("should_stop", should_stop)):
+        if f is not None and not callable(f):
+            raise TypeError(f"bake_mesh_pair: {what} must be a function or None, got "
+                            f"{type(f).__name__}")
     t0 = time.perf_counter()
     clock = _Clock(on_stage)
     o = options
