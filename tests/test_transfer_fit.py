@@ -330,6 +330,9 @@ def test_arguments_of_the_wrong_kind_or_range_are_refused_in_one_line():
              "bake_mesh_pair: should_stop must be a function or None, got bool")):
         with pytest.raises(error, match="^" + re.escape(message) + "$"):
             bake_mesh_pair(mesh, mesh, fit, **kw)
+    with pytest.raises(ValueError, match=r"^HIGH: decimate's triangles must be an integer, "
+                                         r"got 100.5$"):
+        decimate(mesh, 100.5)
     for kw, message in (({"size": 0}, "LOW: unwrap's size must be an integer >= 4, got 0"),
                         ({"padding": -1}, "LOW: unwrap's padding must be an integer >= 0, got -1")):
         with pytest.raises(ValueError, match="^" + re.escape(message) + "$"):

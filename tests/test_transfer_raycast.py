@@ -12,6 +12,7 @@ Cycles' sample jitter, where it shows (256 samples on large triangles).
 
 import dataclasses
 import os
+import re
 import subprocess
 import sys
 import warnings
@@ -235,6 +236,30 @@ def test_a_cage_split_at_other_seams_moves_the_same_points():
     res = raycast_normal_map(ico_sphere(3), low, 32, cage_mesh=welded)
     np.testing.assert_array_equal(res.normals, own.normals)
     assert res.texels_inside > 500 and res.texels_missed == 0
+
+
+def test_bad_arguments_and_non_finite_attributes_are_named_before_any_ray():
+    low, high = uv_sphere(0.9), ico_sphere(2)
+    uv = np.asarray(low.uv).copy()
+    uv[[3, 7]] = np.nan
+    normals = np.asarray(low.normals).copy()
+    normals[5] = np.inf
+    for kw, message in (
+            (dict(low=dataclasses.replace(low, uv=jnp.asarray(uv))),
+             "lo.obj: 2 of 325 vertex uvs are NaN or infinite"),
+            (dict(low=dataclasses.replace(low, normals=jnp.asarray(normals))),
+             "lo.obj: 1 of 325 vertex normals are NaN or infinite"),
+            (dict(size=True), "raycast_normal_map: size must be a positive int or (height, "
+                              "width), got True"),
+            (dict(chunk_texels=0), "raycast_normal_map: chunk_texels must be an int >= 1 or "
+                                   "None, got 0"),
+            (dict(workers=1.5), "raycast_normal_map: workers must be an int >= 1 or None, "
+                                "got 1.5"),
+            (dict(engine="optix"), "raycast_normal_map: engine must be one of direct, embreex "
+                                   "or None, got 'optix'")):
+        args = dict(high=high, low=low, size=16, low_name="lo.obj") | kw
+        with pytest.raises(ValueError, match="^" + re.escape(message) + "$"):
+            raycast_normal_map(args.pop("high"), args.pop("low"), args.pop("size"), **args)
 
 
 def test_what_is_not_a_mesh_is_refused_naming_it():

@@ -41,13 +41,22 @@ def check_mesh(mesh: Mesh, name: str) -> tuple[np.ndarray, np.ndarray]:
     return p, f.astype(np.int64)
 
 
+def _count_bad(rows: np.ndarray) -> int:
+    """How many rows of ``rows`` hold a NaN or an infinity."""
+    return int(np.sum(~np.all(np.isfinite(rows), axis=-1)))
+
+
 def with_normals(mesh: Mesh, name: str) -> Mesh:
     """``mesh`` with its normals checked, or angle-weighted ones where it has none (as
     Blender computes them), or ValueError naming the mesh."""
     if mesh.normals is not None:
         n = np.asarray(mesh.normals)
-        if n.shape != np.shape(mesh.positions) or not np.all(np.isfinite(n)):
-            raise ValueError(f"{name}: normals must be finite with shape (V, 3), got {n.shape}")
+        if n.shape != np.shape(mesh.positions):
+            raise ValueError(f"{name}: normals must have the positions' shape "
+                             f"{np.shape(mesh.positions)}, got {n.shape}")
+        if not np.all(np.isfinite(n)):
+            raise ValueError(f"{name}: {_count_bad(n)} of {len(n)} vertex normals are NaN or "
+                             f"infinite")
         return mesh
     return dataclasses.replace(mesh, normals=vertex_normals(mesh.positions, mesh.faces))
 
@@ -60,8 +69,10 @@ def prepare_low(low: Mesh, frame: str, name: str) -> Mesh:
         raise ValueError(f"{name}: the mesh has no texture coordinates (uv); a normal map is "
                          "baked into the low-poly mesh's uv layout")
     uv = np.asarray(low.uv)
-    if uv.shape != (len(p), 2) or not np.all(np.isfinite(uv)):
-        raise ValueError(f"{name}: uv must be finite with shape ({len(p)}, 2), got {uv.shape}")
+    if uv.shape != (len(p), 2):
+        raise ValueError(f"{name}: uv must have shape ({len(p)}, 2), got {uv.shape}")
+    if not np.all(np.isfinite(uv)):
+        raise ValueError(f"{name}: {_count_bad(uv)} of {len(uv)} vertex uvs are NaN or infinite")
     low = with_normals(low, name)
     if frame == "vertex" and low.tangents is None:
         low = low.with_tangents()

@@ -62,7 +62,7 @@ import numpy as np
 
 from ..bake import world_to_tangent
 from ..geometry import Mesh
-from ._embree import EmbreeScene
+from ._embree import ENGINES, EmbreeScene
 from ._meshes import BakeWarning as BakeWarning
 from ._meshes import check_mesh, prepare_low, warn_overlap, with_normals
 from ._texels import extend_margin_texels, rasterize_uv, uv_box
@@ -127,9 +127,10 @@ class RaycastBake:
 # ----------------------------------------------------------------------------- inputs
 
 
-def _check_options(size, frame, cage, cage_mesh, max_distance, samples, margin):
+def _check_options(size, frame, cage, cage_mesh, max_distance, samples, margin,
+                   chunk_texels, workers, engine):
     hw = (size, size) if np.ndim(size) == 0 else tuple(size)
-    if len(hw) != 2 or not all(int(x) == x and x > 0 for x in hw):
+    if len(hw) != 2 or not all(not isinstance(x, bool) and int(x) == x and x > 0 for x in hw):
         raise ValueError(f"raycast_normal_map: size must be a positive int or (height, width), "
                          f"got {size!r}")
     if frame not in RAYCAST_FRAMES:
@@ -144,6 +145,13 @@ def _check_options(size, frame, cage, cage_mesh, max_distance, samples, margin):
         raise ValueError(f"raycast_normal_map: samples must be an int >= 1, got {samples!r}")
     if int(margin) != margin or margin < 0:
         raise ValueError(f"raycast_normal_map: margin must be an int >= 0, got {margin!r}")
+    for what, x in (("chunk_texels", chunk_texels), ("workers", workers)):
+        if x is not None and (isinstance(x, bool) or int(x) != x or x < 1):
+            raise ValueError(f"raycast_normal_map: {what} must be an int >= 1 or None, got "
+                             f"{x!r}")
+    if engine not in (None,) + ENGINES:
+        raise ValueError(f"raycast_normal_map: engine must be one of {', '.join(ENGINES)} or "
+                         f"None, got {engine!r}")
     return int(hw[0]), int(hw[1])
 
 
@@ -349,8 +357,6 @@ def _jitter(draw, attempt, a, b, dudx, dudy, dvdx, dvdy):
 def _workers(workers: int | None, chunks: int) -> int:
     if workers is None:
         workers = min(4, os.cpu_count() or 1)
-    if int(workers) != workers or workers < 1:
-        raise ValueError(f"raycast_normal_map: workers must be an int >= 1, got {workers!r}")
     return max(1, min(int(workers), chunks))
 
 
@@ -449,7 +455,8 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
         timings[stage] = timings.get(stage, 0.0) + now - lap[0]
         lap[0] = now
 
-    hw = _check_options(size, frame, cage, cage_mesh, max_distance, samples, margin)
+    hw = _check_options(size, frame, cage, cage_mesh, max_distance, samples, margin,
+                        chunk_texels, workers, engine)
     hp, hf = check_mesh(high, high_name)
     with concurrent.futures.ThreadPoolExecutor(1) as pool:  # Embree builds meanwhile
         scene = pool.submit(EmbreeScene, hp, hf, engine=engine)

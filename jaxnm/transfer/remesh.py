@@ -67,7 +67,9 @@ def decimate(mesh: Mesh, triangles: int, *, name: str = "HIGH") -> Mesh:
                           ) from None
     p, f = check_mesh(mesh, name)
     p, f = weld(p, f)
-    if isinstance(triangles, bool) or int(triangles) != triangles or triangles < 4:
+    if isinstance(triangles, bool) or int(triangles) != triangles:
+        raise ValueError(f"{name}: decimate's triangles must be an integer, got {triangles!r}")
+    if triangles < 4:
         raise ValueError(f"{name}: the decimated mesh needs at least 4 triangles, got "
                          f"{triangles!r}")
     if triangles >= len(f):
