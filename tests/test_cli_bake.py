@@ -201,6 +201,19 @@ def test_a_cage_mesh_without_uvs_with_an_unwrapped_low(files, tmp_path):
     assert np.abs(maps[0][..., :2]).max() > 0.05  # HIGH's normals tilt: the rays found them
 
 
+def test_held_out_views_of_an_open_surface_score_its_front(files, tmp_path):
+    """LOW and HIGH are one-sided grids: a held-out view from the spiral alone would see the
+    single view's grid edge-on and score no pixel (no PSNR); the views face the grid."""
+    out = tmp_path / "o"
+    assert _bake(files / "hi.obj", files / "lo.obj", "--method", "raycast", "--eval-views", "1",
+                 "--size", "16", "-o", out) == 0
+    ev = json.loads((out / "report.json").read_text())["evaluation"]
+    assert ev["scored_pixels_per_view"][0] > 50  # of 16x16
+    for method in ("none", "raycast"):
+        assert 10 < ev["methods"][method]["psnr_db"] < 100
+        assert 0 < ev["methods"][method]["flip"] < 1
+
+
 # ----------------------------------------------------------------------------- bad input
 
 

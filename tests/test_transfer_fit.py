@@ -149,6 +149,39 @@ def test_held_out_views_avoid_the_plans():
     assert np.max(lights.reshape(-1, 3) @ used.T) < math.cos(math.radians(0.5))
 
 
+def test_held_out_views_face_an_open_surface_and_keep_a_closed_ones():
+    """A one-sided square seen edge-on or from behind scores no pixel: with LOW given, every
+    held-out view sees its front (projected area, checked here from the square's own normal:
+    its cosine at least a tenth), and no two views coincide; a torus keeps the spiral's
+    directions. `front_area` against the closed forms: the square's area times the cosine,
+    and a closed mesh's front area, the same from opposite directions."""
+    from jaxnm.transfer.views import front_area
+
+    p = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float64)
+    square = jaxnm.Mesh(positions=jnp.asarray(p, jnp.float32),
+                        faces=jnp.asarray([[0, 1, 2], [0, 2, 3]], jnp.int32))
+    d = np.array([[0, 0, 1], [0.6, 0, 0.8], [0, 0, -1], [1, 0, 0]])
+    np.testing.assert_allclose(front_area(square, d), [1.0, 0.8, 0.0, 0.0], atol=1e-12)
+    _, torus = _torus()
+    d = jaxnm.transfer.views.fibonacci_sphere(16)
+    np.testing.assert_allclose(front_area(torus, d), front_area(torus, -d), rtol=1e-9)
+    centre, radius = np.array([0.5, 0.5, 0.0]), 0.75
+    for n in (1, 4, 9):
+        spiral, _ = held_out_views(centre, radius, np.zeros((0, 3)), n, 2)
+        cams, lights = held_out_views(centre, radius, np.zeros((0, 3)), n, 2, low=square)
+        assert len(cams) == n and lights.shape == (n, 2, 3)
+        eyes = np.array([np.asarray(c.eye, np.float64) - centre for c in cams])
+        eyes /= np.linalg.norm(eyes, axis=1, keepdims=True)
+        assert np.all(eyes[:, 2] >= 0.1), eyes
+        assert n == 1 or np.max(eyes @ eyes.T - 2 * np.eye(n)) < math.cos(math.radians(5))
+        kept = [np.allclose(a.eye, b.eye) for a, b in zip(spiral, cams)]
+        assert kept == [bool(np.asarray(c.eye)[2] - centre[2] >= 0.1 * np.linalg.norm(
+            np.asarray(c.eye) - centre)) for c in spiral]  # (only those that show too little)
+        spiral, _ = held_out_views(centre, radius, np.zeros((0, 3)), n, 2)
+        same, _ = held_out_views(centre, radius, np.zeros((0, 3)), n, 2, low=torus)
+        assert all(np.array_equal(a.eye, b.eye) for a, b in zip(spiral, same))
+
+
 # --------------------------------------------------------------------------------------
 # the scores, against independent computations
 # --------------------------------------------------------------------------------------

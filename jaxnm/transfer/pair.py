@@ -430,7 +430,7 @@ def _evaluate(result: PairBake, high, low, stop) -> PairEvaluation | None:
         centre, radius, used = result.plan.centre, result.plan.radius, result.plan.directions
     else:
         (centre, radius), used = bounding_sphere(low, high), np.zeros((0, 3))
-    cams, lights = held_out_views(centre, radius, used, o.eval_views, o.eval_lights)
+    cams, lights = held_out_views(centre, radius, used, o.eval_views, o.eval_lights, low=low)
     return evaluate_maps(high, low, result.maps, cams, lights, frame=o.frame,
                          size=o.views_render_size, map_size=o.map_size,
                          material=bake_material(), albedo=np.full(3, o.albedo, np.float32),

@@ -41,8 +41,9 @@ from ..geometry import Mesh
 from ._surfaces import facing, surface
 from ._texels import rasterize_uv
 
-__all__ = ["ViewPlan", "plan_views", "held_out_views", "framing_camera", "fibonacci_sphere",
-           "view_lights", "texels_seen", "bounding_sphere", "FIELD_OF_VIEW_DEG"]
+__all__ = ["ViewPlan", "plan_views", "held_out_views", "front_area", "framing_camera",
+           "fibonacci_sphere", "view_lights", "texels_seen", "bounding_sphere",
+           "FIELD_OF_VIEW_DEG"]
 
 #: The vertical (and horizontal) field of view of every planned camera.
 FIELD_OF_VIEW_DEG = 30.0
@@ -93,6 +94,30 @@ def fibonacci_sphere(n: int, *, turn: float = 0.0) -> np.ndarray:
     r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
     a = _GOLDEN * np.arange(n) + turn
     return np.stack([r * np.cos(a), r * np.sin(a), z], -1)
+
+
+def front_area(mesh: Mesh, directions: np.ndarray) -> np.ndarray:
+    """The area of ``mesh``'s front faces (counter-clockwise winding) projected along each
+    unit direction ``(N, 3)`` towards the viewer, occlusion ignored, ``(N,)``."""
+    p = np.asarray(mesh.positions, np.float64)[np.asarray(mesh.faces)]
+    half_normals = 0.5 * np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    return np.maximum(half_normals @ np.asarray(directions, np.float64).T, 0.0).sum(0)
+
+
+def _facing_views(low: Mesh, dirs: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """``dirs`` with those that show little of ``low`` replaced (`held_out_views`)."""
+    dense = fibonacci_sphere(256, turn=0.25 * _GOLDEN)
+    area = front_area(low, dense)
+    good = dense[area >= 0.5 * area.max()]
+    dirs = dirs.copy()
+    for i in np.flatnonzero(front_area(low, dirs) < 0.1 * area.max()):
+        others = np.concatenate([np.delete(dirs, i, axis=0), used])
+        if len(others):
+            good_far = np.min(np.arccos(np.clip(good @ others.T, -1.0, 1.0)), axis=1)
+            dirs[i] = good[int(np.argmax(good_far))]
+        else:
+            dirs[i] = good[0]
+    return dirs
 
 
 def framing_camera(centre, radius: float, direction) -> Camera:
@@ -225,13 +250,21 @@ def plan_views(low: Mesh, map_size: tuple[int, int], *, views: int = 8, lights: 
 
 
 def held_out_views(centre, radius: float, used: np.ndarray, views: int = 4,
-                   lights: int = 2) -> tuple[tuple[Camera, ...], np.ndarray]:
+                   lights: int = 2, *, low: Mesh | None = None
+                   ) -> tuple[tuple[Camera, ...], np.ndarray]:
     """Views and lights for scoring maps, none of which a plan uses: ``views`` directions
     spread evenly over the sphere (a Fibonacci spiral turned by half a golden angle off the
     candidates', so that no direction is a candidate's), each framing the sphere
     (``centre``, ``radius``), with ``lights`` lights on a 45-degree cone about the direction
     at azimuths half-way between a plan's. ``used`` (``(K, 3)``, `ViewPlan.directions`) is
     only checked: a direction within 1 degree of one of them is turned away from it.
+
+    With ``low``, a direction from which LOW's front faces show less than a tenth of the
+    area they show at most (`front_area`: an open surface seen edge-on or from behind, where
+    a view would score no pixel) is replaced by the direction, of a denser spiral, that
+    shows at least half of that area and lies farthest from the other views and ``used``.
+    A closed mesh keeps the spiral's directions unless it is far longer than it is wide.
+
     Returns the cameras and ``(E, lights, 3)`` light directions."""
     dirs = fibonacci_sphere(int(views), turn=0.5 * _GOLDEN + 0.1)
     used = np.asarray(used, np.float64).reshape(-1, 3)
@@ -239,6 +272,8 @@ def held_out_views(centre, radius: float, used: np.ndarray, views: int = 4,
         if len(used) and np.max(used @ d) > math.cos(math.radians(1.0)):
             e = np.cross(d, np.eye(3)[int(np.argmin(np.abs(d)))])
             dirs[i] = d * math.cos(0.1) + e / np.linalg.norm(e) * math.sin(0.1)
+    if low is not None:
+        dirs = _facing_views(low, dirs, used)
     cams = tuple(framing_camera(centre, radius, d) for d in dirs)
     polar = math.radians(45.0)
     out = []
