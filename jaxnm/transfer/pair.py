@@ -303,6 +303,23 @@ def fit_pair_map(problem: FitProblem, options: PairBakeOptions, start: np.ndarra
     return result, n.astype(np.float32), seen
 
 
+def _check_call(options, cage_mesh, progress, on_stage, should_stop) -> None:
+    """`bake_mesh_pair`'s arguments, checked before any work."""
+    if not isinstance(options, PairBakeOptions):
+        raise TypeError(f"bake_mesh_pair: options must be a PairBakeOptions, got "
+                        f"{type(options).__name__}")
+    if cage_mesh is not None and options.method == "fit":
+        raise ValueError("bake_mesh_pair: cage_mesh is for ray casting, and options.method "
+                         "'fit' casts no rays")
+    if progress not in (True, False, "lines"):
+        raise ValueError(f"bake_mesh_pair: progress must be True, False or 'lines', got "
+                         f"{progress!r}")
+    for what, f in (("on_stage", on_stage), ("should_stop", should_stop)):
+        if f is not None and not callable(f):
+            raise TypeError(f"bake_mesh_pair: {what} must be a function or None, got "
+                            f"{type(f).__name__}")
+
+
 def bake_mesh_pair(high: Mesh, low: Mesh, options: PairBakeOptions = PairBakeOptions(), *,
                    cage_mesh: Mesh | None = None, high_name: str = "HIGH",
                    low_name: str = "LOW", cage_name: str = "cage mesh",
@@ -331,19 +348,7 @@ def bake_mesh_pair(high: Mesh, low: Mesh, options: PairBakeOptions = PairBakeOpt
     when the meshes do not overlap; warns (`BakeWarning`) about missed rays, overlapping uv
     islands and degenerate or non-manifold triangles.
     """
-    if not isinstance(options, PairBakeOptions):
-        raise TypeError(f"bake_mesh_pair: options must be a PairBakeOptions, got "
-                        f"{type(options).__name__}")
-    if cage_mesh is not None and options.method == "fit":
-        raise ValueError("bake_mesh_pair: cage_mesh is for ray casting, and options.method "
-                         "'fit' casts no rays")
-    if progress not in (True, False, "lines"):
-        raise ValueError(f"bake_mesh_pair: progress must be True, False or 'lines', got "
-                         f"{progress!r}")
-    for what, f in (("on_stage", on_stage), ("should_stop", should_stop)):
-        if f is not None and not callable(f):
-            raise TypeError(f"bake_mesh_pair: {what} must be a function or None, got "
-                            f"{type(f).__name__}")
+    _check_call(options, cage_mesh, progress, on_stage, should_stop)
     t0 = time.perf_counter()
     clock = _Clock(on_stage)
     o = options

@@ -442,10 +442,9 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
       same hits; None: ``"direct"`` where it can be had;
       `high_name`, `low_name`, `cage_name`: for messages (the files).
 
-    **Returns:** a `RaycastBake`. Raises ValueError when no ray hits HIGH at all (the
-    meshes do not overlap) and for unusable input; warns (`BakeWarning`) about missed
-    texels, overlapping uv islands and degenerate or non-manifold triangles.
-    """
+    **Returns:** a `RaycastBake`. Raises ValueError when no ray hits HIGH (the meshes do not
+    overlap) and for unusable input; warns (`BakeWarning`) about missed texels, overlapping
+    uv islands and degenerate or non-manifold triangles."""
     t0 = time.perf_counter()
     timings = {}
     lap = [t0]
