@@ -29,13 +29,10 @@ def run_script(main) -> int:
 
 def output(flag: str, path, *, folder: bool) -> Path | None:
     """``path``, the output that ``flag`` names (None: none asked for), as a `Path`; a
-    ValueError naming the flag where nothing could be written there
-    (`jaxnm.io.writable`)."""
+    ValueError naming the flag where nothing could be written there (the ``jaxnm`` command's
+    own check)."""
     if path is None:
         return None
-    from jaxnm.io import writable
+    from jaxnm.cli._flags import output_path
 
-    try:
-        return writable(path, folder=folder)
-    except OSError as e:
-        raise ValueError(f"{flag} {e}") from None
+    return output_path(flag, path, folder=folder)
