@@ -214,6 +214,25 @@ def test_held_out_views_of_an_open_surface_score_its_front(files, tmp_path):
         assert 0 < ev["methods"][method]["flip"] < 1
 
 
+def test_the_summary_says_when_no_pixel_was_scored_and_when_images_are_identical():
+    """The report stores a score that is not finite as null; the printed summary says which
+    it was: no held-out pixel scored (no scores at all, not "PSNR nan"), or, with pixels
+    scored, identical images (an infinite PSNR)."""
+    from jaxnm.cli._bake import _summary
+
+    def report(pixels, psnr):
+        s = {"psnr_db": psnr, "flip": 0.0 if pixels else None,
+             "angle_mean_deg": 0.0 if pixels else None}
+        return {"interrupted": False, "evaluation": {"scored_pixels_per_view": pixels,
+                                                     "methods": {"none": s, "raycast": s}}}
+
+    text = _summary(report([0, 0], None))
+    assert "no pixel scored" in text and "nan" not in text and "PSNR" not in text
+    text = _summary(report([0, 12], None))
+    assert text.count("held-out PSNR inf dB, FLIP 0.0000") == 2 and "nan" not in text
+    assert "held-out PSNR 21.50 dB" in _summary(report([3], 21.5))
+
+
 # ----------------------------------------------------------------------------- bad input
 
 

@@ -229,11 +229,18 @@ def run(args, ctrl_c: CtrlC) -> int:
 def _summary(report: dict) -> str:
     """A line per method: how it went and its held-out scores."""
     lines = []
-    scores = report.get("evaluation", {}).get("methods", {})
+    evaluation = report.get("evaluation", {})
+    scores = evaluation.get("methods", {})
+    if scores and not sum(evaluation["scored_pixels_per_view"]):
+        lines.append("held-out views: no pixel scored (LOW hidden or off-screen in every "
+                     "view), so no scores")
+        scores = {}
     for name in ("none", "raycast", "fit"):
         if name not in scores:
             continue
-        s = {k: math.nan if v is None else v for k, v in scores[name].items()}
+        # with pixels scored, a PSNR left out of the report is that of identical images
+        s = {k: (math.inf if k == "psnr_db" else math.nan) if v is None else v
+             for k, v in scores[name].items()}
         lines.append(f"{'no map' if name == 'none' else name:>8}: held-out PSNR "
                      f"{s['psnr_db']:.2f} dB, FLIP {s['flip']:.4f}, normal angle mean "
                      f"{s['angle_mean_deg']:.2f} deg")
@@ -336,7 +343,7 @@ def _figure(out: Path, bake) -> str | None:
     from .. import io
 
     ev = bake.evaluation
-    if ev is None:
+    if ev is None or not sum(ev.pixels):
         return None
     names = ["none"] + [n for n in ("raycast", "fit") if n in ev.example]
     ex = ev.example
