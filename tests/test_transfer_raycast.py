@@ -157,6 +157,27 @@ def test_rays_through_edges_and_vertices_hit(engine):
         assert _angle(res.normals, want).max() < 1e-3
 
 
+@pytest.mark.parametrize("engine", ["direct", "embreex"])
+def test_texels_on_the_rim_of_an_open_surface_hit(engine):
+    """LOW and HIGH are the same open square at z = 0, LOW's uvs placed so that the 16x16
+    map's outer texel centres lie on the square's edges (as xatlas places a chart's rim):
+    their rays graze HIGH's boundary. Every texel hits, with HIGH's normal (z: the map's
+    normal, LOW's frame being x, y, z)."""
+    k = np.arange(5) / 4
+    x, y = np.meshgrid(k, k, indexing="xy")
+    p = np.stack([x, y, 0 * x], -1).reshape(-1, 3)
+    j, i = np.meshgrid(np.arange(4), np.arange(4), indexing="ij")
+    a = (j * 5 + i).ravel()
+    faces = np.concatenate([np.stack([a, a + 1, a + 6], 1), np.stack([a, a + 6, a + 5], 1)])
+    high = _mesh(p, faces, None, np.tile([0.0, 0, 1], (len(p), 1)))
+    q = np.array([[0, 0, 0.0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+    uv = 1 / 32 + q[:, :2] * 15 / 16  # texel centres (c + 1/2) / 16 at x, y = c / 15
+    low = _mesh(q, [[0, 1, 2], [0, 2, 3]], uv, np.tile([0.0, 0, 1], (4, 1)))
+    res = raycast_normal_map(high, low, 16, margin=0, engine=engine)
+    assert res.texels_inside == 256 and res.texels_missed == 0
+    assert _angle(res.normals.reshape(-1, 3), [0, 0, 1]).max() < 1e-3
+
+
 def test_chunks_threads_and_engines_change_no_bit():
     low, high = uv_sphere(0.9), ico_sphere(3)
     one = raycast_normal_map(high, low, 48, samples=4, cage=0.2, workers=1)

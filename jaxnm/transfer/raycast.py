@@ -40,7 +40,10 @@ The differences from Blender: texel centres are exact (Blender shifts them by 0.
 0.002 texel to dodge ties), rays leave along LOW's own ``normals`` (Blender uses the vertex
 normals it computes, angle-weighted, for smooth faces and face normals for flat ones: they
 agree for a smooth LOW whose normals are angle-weighted, `jaxnm.geometry.vertex_normals`),
-and the random numbers are a hash of the texel and the sample, not Cycles' sequence.
+the random numbers are a hash of the texel and the sample, not Cycles' sequence, and a ray
+that misses HIGH is cast once more from a thousandth of the way towards its LOW triangle's
+centroid (a texel centre on a chart's rim lies on LOW's edge, and where HIGH ends at that
+edge, as open surfaces do, the first ray grazes HIGH's boundary).
 
 The rays are cast with Embree (the ``bake`` extra's ``embreex``, robust mode: a ray through
 an edge or a vertex shared by triangles hits one of them), in
@@ -378,10 +381,33 @@ def _automatic_cage(engine: EmbreeScene, low: _Low, tri, bary, chunks) -> float:
     return 1.05 * need + 1e-4 * size
 
 
-def _bake_chunk(engine, high, low, tri, bary, keys, *, cage, max_distance, samples):
-    """World-space normals ``(3, N)`` and hit flags of one chunk of texels."""
+#: How far a missed texel's ray is moved towards its LOW triangle's centroid for its second
+#: cast, as a fraction of the way.
+_RETRY_INWARD = 1e-3
+
+
+def _cast(engine, low: _Low, tri, bary, cage, max_distance):
+    """The rays of texels ``(tri, bary)`` (`_rays`) cast on HIGH: the directions, whether
+    each is defined, and Embree's hit triangle (-1: none) and weights. A texel centre on the
+    edge of LOW's uv chart lies on the edge of its triangle, and where HIGH ends at the same
+    edge (open surfaces: a grid, a terrain patch) its ray grazes HIGH's boundary and may miss
+    it; a ray that misses is cast once more from a point `_RETRY_INWARD` of the way towards
+    its triangle's centroid."""
     origin, direction, ok = _rays(low, tri, bary, cage)
     prim, u, v, _ = engine.cast(origin.T, direction.T, max_distance)
+    again = np.flatnonzero(ok & (prim < 0))
+    if again.size:
+        inward = (1.0 - _RETRY_INWARD) * bary[again] + _RETRY_INWARD / 3.0
+        o2, d2, _ = _rays(low, tri[again], inward, cage)
+        p2, u2, v2, _ = engine.cast(o2.T, d2.T, max_distance)
+        direction[:, again] = d2
+        prim[again], u[again], v[again] = p2, u2, v2
+    return direction, ok, prim, u, v
+
+
+def _bake_chunk(engine, high, low, tri, bary, keys, *, cage, max_distance, samples):
+    """World-space normals ``(3, N)`` and hit flags of one chunk of texels."""
+    direction, ok, prim, u, v = _cast(engine, low, tri, bary, cage, max_distance)
     hit = ok & (prim >= 0)
     world = np.zeros((3, len(tri)))
     if hit.any():
