@@ -179,7 +179,8 @@ def test_cli_errors_are_one_line_and_exit_2(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv,message", [
-    (["--width", "-5"], "--width must be positive, got -5"),
+    (["--width", "-5"], "--width must be 1 to 16384 pixels, got -5"),
+    (["--height", "20000"], "--height must be 1 to 16384 pixels, got 20000"),
     (["--exposure", "-1"], "--exposure must be a positive finite scale, got -1.0"),
     (["--exposure", "nan"], "--exposure must be a positive finite scale, got nan"),
     (["-o", "{d}/x.jpg"], "-o {d}/x.jpg: jaxnm render writes PNG images; the name must end "

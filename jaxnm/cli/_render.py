@@ -207,13 +207,14 @@ def run(args, ctrl_c: CtrlC) -> int:
 
     from .. import io
     from ..render import render
+    from ..scene import MAX_IMAGE_SIZE
     from ..shading import directional_light, to_display
 
     t0 = time.perf_counter()
     aovs = _aov_names(args)
     for flag, v in (("--width", args.width), ("--height", args.height)):
-        if v is not None and v <= 0:
-            raise ValueError(f"{flag} must be positive, got {v}")
+        if v is not None and not 0 < v <= MAX_IMAGE_SIZE:
+            raise ValueError(f"{flag} must be 1 to {MAX_IMAGE_SIZE} pixels, got {v}")
     if not 0 < args.exposure < float("inf"):
         raise ValueError(f"--exposure must be a positive finite scale, got {args.exposure}")
     if Path(args.output).suffix.lower() != ".png":
