@@ -307,6 +307,26 @@ def test_a_fit_file_is_checked_whole_and_targets_against_their_view(tmp_path, mo
         f"jaxnm fit: error: {path}: targets[1]: image: {path.parent / 't9.npy'}: no such file")
 
 
+def test_more_coarse_levels_than_the_map_has_are_refused_before_the_work(tmp_path, capsys,
+                                                                         monkeypatch):
+    """A 16x16 map halves 3 times to 2x2: ``--coarse-to-fine 4`` (or the fit file's
+    ``coarse_to_fine``) would solve 2x2 twice; refused before anything is prepared."""
+    path = _fit_folder(tmp_path / "job")
+    monkeypatch.setattr(F, "prepare", lambda *a, **k: pytest.fail("prepared"))
+    assert _fit(path, "-o", tmp_path / "out", "--coarse-to-fine", "4") == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"jaxnm fit: error: {path}: --coarse-to-fine 4 asks for levels below 2x2 texels: a "
+        "16x16 map has at most 3 coarser levels")
+    fit = json.loads(path.read_text())
+    fit["solver"]["coarse_to_fine"] = 4
+    path.write_text(json.dumps(fit))
+    assert _fit(path, "-o", tmp_path / "out") == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"jaxnm fit: error: {path}: coarse_to_fine = 4 asks for levels below 2x2 texels: a "
+        "16x16 map has at most 3 coarser levels")
+    assert not (tmp_path / "out").exists()
+
+
 # ----------------------------------------------------------------------------- render
 
 
@@ -380,7 +400,7 @@ def test_the_checkpoint_goes_when_the_fit_ends_unless_asked_for(tmp_path, option
     report = json.loads((out / "report.json").read_text())
     assert report["checkpoint"]["file"] == (CHECKPOINT_NAME if kept else None)
     assert report["stopped"] == "max_steps"
-    assert report["stopped_because"] == "reached the step limit (3 steps a level)"
+    assert report["stopped_because"] == "reached the step limit (3 steps)"
     if kept:  # and it resumes: nothing left to do
         assert _fit(path, "-o", out, "--no-progress", "--resume", *options) == 0
 

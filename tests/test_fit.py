@@ -365,6 +365,23 @@ def test_fit_file_errors_name_the_file(tmp_path):
 
 
 @pytest.mark.slow
+def test_level_sizes_halve_down_to_two_texels_and_no_further():
+    """Each allowed level count gives levels that all differ (each side halved, at least 2);
+    one more level, which would repeat a 2 x 2 level, is refused naming the source."""
+    for hw in [(64, 64), (64, 16), (16, 64), (5, 8), (3, 3), (2, 2), (6, 6), (1000, 3)]:
+        most = 0  # halve until neither side is above 2, counted by hand
+        h, w = hw
+        while max(h, w) > 2:
+            h, w, most = max(2, h // 2), max(2, w // 2), most + 1
+        sizes = F.level_sizes(hw, most)
+        assert sizes[-1] == hw and len(set(sizes)) == most + 1
+        assert most == 0 or sizes[0] == (2, 2)
+        with pytest.raises(ValueError, match=f"^fit.json: coarse_to_fine = {most + 1} asks "
+                                             f"for levels below 2x2 texels: a {hw[0]}x{hw[1]} "
+                                             f"map has at most {most} coarser levels$"):
+            F.level_sizes(hw, most + 1, "fit.json")
+
+
 def test_coarse_to_fine_and_smoothness(small):
     """Coarse-to-fine solves 16x16 then 32x32 (upsampling the start); smoothness pulls
     towards flat slopes. Both still recover the map roughly and keep unit normals."""

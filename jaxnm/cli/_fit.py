@@ -152,6 +152,7 @@ def read_job(args, overrides: dict, say, images=None):
     `jaxnm.config.fit_from_dict`) or the built-in problem's, with the command line's
     options."""
     from ..config import load_fit
+    from ..fit import level_sizes
     from ..procedural import default_fit_job
 
     if args.config:
@@ -170,6 +171,12 @@ def read_job(args, overrides: dict, say, images=None):
                              ) from None
     if args.time_limit is not None:
         job = dataclasses.replace(job, time_limit=args.time_limit)
+    try:  # (before the work: the fit checks its levels once prepared)
+        level_sizes(tuple(job.problem.map_size), job.options.coarse_to_fine,
+                    args.config or "the built-in problem")
+    except ValueError as e:
+        raise ValueError(as_flags(str(e), OVERRIDES).replace(" = ", " ", 1)
+                         if "coarse_to_fine" in overrides else str(e)) from None
     if args.store:
         from ..fit.stored import check_storage
 

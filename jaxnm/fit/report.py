@@ -91,9 +91,11 @@ def fit_renders(prep: Prepared, normals: np.ndarray) -> list:
 def stopped_in_words(result: FitResult, options) -> str:
     """Why a fit stopped, for people: ``"reached the step limit"`` for ``"max_steps"``,
     and so on (``report.json``'s ``"stopped_because"``)."""
+    n = options.max_steps
+    limit = f"{n} step{'' if n == 1 else 's'}{' a level' if options.coarse_to_fine else ''}"
     words = {
         "converged": "converged",
-        "max_steps": f"reached the step limit ({options.max_steps} steps a level)",
+        "max_steps": f"reached the step limit ({limit})",
         "time_limit": "reached the time limit",
         "interrupted": "was interrupted",
         "no_progress": "made no progress (the loss never went below the start's by more than "

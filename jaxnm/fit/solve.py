@@ -317,9 +317,16 @@ def _digest(x: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(x).tobytes()).hexdigest()
 
 
-def level_sizes(map_size: tuple[int, int], coarse_to_fine: int) -> list[tuple[int, int]]:
-    """The map sizes solved in turn: each coarser level halves the previous one (at least 2)."""
+def level_sizes(map_size: tuple[int, int], coarse_to_fine: int,
+                source: str = "<fit>") -> list[tuple[int, int]]:
+    """The map sizes solved in turn: each coarser level halves the previous one (at least 2
+    texels a side). A `ValueError` naming ``source`` where a level would not be smaller than
+    the next (a 64 x 64 map has 5 coarser levels, down to 2 x 2)."""
     h, w = map_size
+    most = (max(h, w) // 3).bit_length()  # the halvings of a side above 2
+    if coarse_to_fine > most:
+        raise ValueError(f"{source}: coarse_to_fine = {coarse_to_fine} asks for levels below "
+                         f"2x2 texels: a {h}x{w} map has at most {most} coarser levels")
     return [(max(2, h >> k), max(2, w >> k)) for k in range(coarse_to_fine, -1, -1)]
 
 
@@ -405,7 +412,7 @@ def compile_fit(problem: FitProblem, options: FitOptions = FitOptions(), *,
     """
     t0 = time.perf_counter()
     prep = prepared if prepared is not None else prepare(problem)
-    size = level_sizes(tuple(problem.map_size), options.coarse_to_fine)[0]
+    size = level_sizes(tuple(problem.map_size), options.coarse_to_fine, problem.source)[0]
     args, scale_host = _level_args(prep, size, options, strength)
     solver = make_solver(options)
     z = jax.device_put((_start_slopes(size, options) / scale_host).astype(np.float32))
@@ -620,7 +627,7 @@ def _setup(problem: FitProblem, options: FitOptions, *, prepared, ground_truth, 
     if start is not None and np.shape(start) != (h, w, 3):
         raise ValueError(f"{problem.source}: the start is {np.shape(start)}, not the map's "
                          f"{(h, w, 3)}")
-    sizes = level_sizes((h, w), options.coarse_to_fine)
+    sizes = level_sizes((h, w), options.coarse_to_fine, problem.source)
     # (on the host; the device gets z later)
     slopes = (_start_slopes(sizes[0], options) if start is None
               else _given_start(start, sizes[0], options, problem.source))
