@@ -460,7 +460,23 @@ def _clean_obj(data: bytes, src: str) -> bytes:
             raise ValueError(f"{src}: line {_obj_face_line_with(text, kind, i)}: a face refers to "
                              f"{name} {i}, but the file has {n} ('{kind}' lines; indices are "
                              f"1..{n} or -{n}..-1)")
+    corners, with_uv = len(indices[0]), len(indices[1])
+    if 0 < with_uv < corners:  # trimesh then drops every uv
+        warnings.warn(f"{src}: only {with_uv} of {corners} face corners have texture coordinates "
+                      f"(the first without: line {_obj_face_line_without_uv(text)}); ignoring "
+                      f"them all", JaxnmWarning, stacklevel=4)
     return data
+
+
+def _obj_face_line_without_uv(text: bytes) -> int | str:
+    """Line number of the first face with a corner that has no ``vt`` index."""
+    for lineno, line in enumerate(text[1:].split(b"\n"), 1):
+        if line.startswith((b"f ", b"f\t")):
+            for corner in line.split()[1:]:
+                parts = corner.split(b"/")
+                if len(parts) < 2 or not parts[1]:
+                    return lineno
+    return "?"
 
 
 _OBJ_COUNTS = {b"v": (3, 7, "x y z"), b"vt": (1, 3, "u [v [w]]"), b"vn": (3, 3, "x y z")}

@@ -8,6 +8,7 @@ tests/data/make_assets.py (glTF, written with numpy and json only).
 import json
 import re
 import struct
+import warnings
 import zlib
 from pathlib import Path
 
@@ -114,6 +115,24 @@ def test_obj_uv_seam_vertices_are_not_merged(tmp_path):
     pos, uv = _corners(m)
     np.testing.assert_array_equal(pos, v[fv - 1])
     np.testing.assert_array_equal(uv, vt[ft - 1])
+
+
+def test_obj_with_uvs_on_some_faces_only_says_where_they_stop(tmp_path):
+    """trimesh drops every uv of an OBJ whose faces have them only in part: a warning says
+    so and names the first face without, so that the error of a caller needing uvs is
+    understood."""
+    text = ("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 0 0\nvn 0 0 1\n"
+            "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
+            "f 1/1/1 2/2/1 3/3/1\nf 1/1/1 3/3/1 4/4/1\nf 2//1 5//1 3//1\n")
+    path = _write(tmp_path / "partial.obj", text)
+    with pytest.warns(JaxnmWarning, match=re.escape(
+            f"{path}: only 6 of 9 face corners have texture coordinates (the first without: "
+            "line 13); ignoring them all")):
+        m = load_mesh(path)
+    assert m.uv is None and m.num_faces == 3
+    with pytest.raises(ValueError, match="no texture coordinates"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", JaxnmWarning)
+        load_mesh(path, require_uv=True)
 
 
 def test_obj_without_normals_warns_and_computes_angle_weighted(tmp_path):
