@@ -119,9 +119,9 @@ class FitOptions:
     - `max_steps`: outer iterations (per coarse-to-fine level).
     - `smoothness`: weight of the first-difference penalty on the slopes
       (residuals ``sqrt(w) * (s[i+1] - s[i])``), 0 to disable.
-    - `coarse_to_fine`: number of extra coarser levels solved first (each half
-      the resolution, down to 2 x 2 texels: `jaxnm.fit.level_sizes`), then upsampled as the next
-      level's start.
+    - `coarse_to_fine`: number of extra coarser levels solved first (each half the
+      resolution, down to 2 x 2 texels: `jaxnm.fit.level_sizes`), then upsampled as the
+      next level's start.
     - `lsmr_steps`: inner LSMR iterations per (Gauss-Newton/LM) step (conjugate-gradient
       iterations for ``"lm-texel"``).
     - `rtol`, `atol`: convergence tolerances of the outer solver.
