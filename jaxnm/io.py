@@ -288,8 +288,9 @@ def _load_scene(p: Path, ext: str) -> trimesh.Scene:
 
     data = p.read_bytes()
     kwargs: dict[str, Any] = {"process": False}
+    partial_uvs = None
     if ext == ".obj":
-        data = _clean_obj(data, str(p))
+        data, partial_uvs = _clean_obj(data, str(p))
         # materials are not used; skipping them avoids decoding texture images and
         # keeps the uvs (trimesh keeps them on a material-less OBJ mesh)
         kwargs["skip_materials"] = True
@@ -312,6 +313,7 @@ def _load_scene(p: Path, ext: str) -> trimesh.Scene:
         # (trimesh reads 'v' lines of two numbers as 2-D positions)
         raise ValueError(_obj_malformed_line(data, p)
                          or f"{p}: trimesh read positions that are not 3-D")
+    scene.metadata["jaxnm_partial_uvs"] = partial_uvs  # (said where no uv is left)
     return scene
 
 
@@ -385,16 +387,24 @@ def _concatenate_scene(scene: trimesh.Scene, src: str):
         warnings.warn(f"{src}: only {with_t} of {len(tans)} meshes have TANGENT; ignoring "
                       f"them all (MikkTSpace tangents are computed instead)", JaxnmWarning,
                       stacklevel=3)
-    with_uv = sum(u is not None for u in uvs)
-    if with_uv == len(uvs):
-        uv_all = np.concatenate(uvs)
-    else:
-        uv_all = None
-        if with_uv:
-            warnings.warn(f"{src}: only {with_uv} of {len(uvs)} meshes have texture "
-                          f"coordinates; ignoring them all", JaxnmWarning, stacklevel=3)
+    uv_all = _joined_uvs(uvs, scene.metadata.get("jaxnm_partial_uvs"), src)
     return (np.concatenate(pos), np.concatenate(faces), uv_all, np.concatenate(nrm),
             np.concatenate(has_n), tangents)
+
+
+def _joined_uvs(uvs: list, partial: str | None, src: str) -> np.ndarray | None:
+    """The meshes' uvs (each (V_i, 2) or None) joined; None, with a warning, where some
+    meshes have none, or where an OBJ's faces had them in part (``partial``, `_clean_obj`'s
+    words) and trimesh dropped them."""
+    with_uv = sum(u is not None for u in uvs)
+    if with_uv == len(uvs):
+        return np.concatenate(uvs)
+    if with_uv:
+        warnings.warn(f"{src}: only {with_uv} of {len(uvs)} meshes have texture coordinates; "
+                      f"ignoring them all", JaxnmWarning, stacklevel=4)
+    elif partial:
+        warnings.warn(f"{src}: {partial}; ignoring them all", JaxnmWarning, stacklevel=4)
+    return None
 
 
 def _resolve_normals(pos: np.ndarray, faces: np.ndarray, file_n: np.ndarray,
@@ -442,8 +452,11 @@ _OBJ_FACE_LINE = re.compile(rb"\nf[ \t]([^\n]*)")
 _OBJ_KINDS = (("v", "vertex"), ("vt", "texture coordinate"), ("vn", "normal"))
 
 
-def _clean_obj(data: bytes, src: str) -> bytes:
-    """OBJ text without comments, after checking that every face index exists.
+def _clean_obj(data: bytes, src: str) -> tuple[bytes, str | None]:
+    """OBJ text without comments, after checking that every face index exists, and, where
+    the face corners have ``vt`` indices in part only (trimesh then drops the uvs of every
+    mesh that mixes them), ``"only K of N face corners have texture coordinates (the first
+    without: line L)"`` (else None).
 
     trimesh crashes with an IndexError on a bad ``v`` index, silently drops all
     uvs (normals) on a bad ``vt`` (``vn``) index and reads index 0 as 1, so check
@@ -460,12 +473,11 @@ def _clean_obj(data: bytes, src: str) -> bytes:
             raise ValueError(f"{src}: line {_obj_face_line_with(text, kind, i)}: a face refers to "
                              f"{name} {i}, but the file has {n} ('{kind}' lines; indices are "
                              f"1..{n} or -{n}..-1)")
-    corners, with_uv = len(indices[0]), len(indices[1])
-    if 0 < with_uv < corners:  # trimesh then drops every uv
-        warnings.warn(f"{src}: only {with_uv} of {corners} face corners have texture coordinates "
-                      f"(the first without: line {_obj_face_line_without_uv(text)}); ignoring "
-                      f"them all", JaxnmWarning, stacklevel=4)
-    return data
+    v, vt = len(indices[0]), len(indices[1])
+    if not 0 < vt < v:
+        return data, None
+    return data, (f"only {vt} of {v} face corners have texture coordinates (the first "
+                  f"without: line {_obj_face_line_without_uv(text)})")
 
 
 def _obj_face_line_without_uv(text: bytes) -> int | str:

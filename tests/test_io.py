@@ -133,6 +133,14 @@ def test_obj_with_uvs_on_some_faces_only_says_where_they_stop(tmp_path):
     with pytest.raises(ValueError, match="no texture coordinates"), warnings.catch_warnings():
         warnings.simplefilter("ignore", JaxnmWarning)
         load_mesh(path, require_uv=True)
+    # faces without uvs in a material group of their own: trimesh keeps the other group's,
+    # and the one warning is about the groups
+    path = _write(tmp_path / "groups.obj", text.replace("f 2//1", "usemtl b\nf 2//1"))
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        assert load_mesh(path).uv is None
+    said = [str(w.message) for w in seen if "texture coordinates" in str(w.message)]
+    assert said == [f"{path}: only 1 of 2 meshes have texture coordinates; ignoring them all"]
 
 
 def test_obj_without_normals_warns_and_computes_angle_weighted(tmp_path):
