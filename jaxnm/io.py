@@ -245,18 +245,24 @@ def load_mesh(path: PathLike, *, require_uv: bool = False,
         raise ValueError(f"{src}: the mesh has no texture coordinates (uv); normal mapping "
                          f"needs them.{hint}")
 
-    n = _resolve_normals(pos, faces, file_n, has_n, normals, src)
+    n = _resolve_normals(pos, faces, file_n, has_n, normals, src,
+                         partial=scene.metadata.get("jaxnm_partial", {}).get("normals"))
     check_mesh_arrays(pos, faces, uv, n, source=src)
     if tangents is not None:
-        if not np.all(np.isfinite(tangents)):
-            raise ValueError(f"{src}: TANGENT contains NaN or infinite values")
-        xyz = tangents[..., :3]
-        xyz = xyz / np.maximum(np.linalg.norm(xyz, axis=-1, keepdims=True), 1e-30)
-        w = np.where(tangents[..., 3:] < 0, -1.0, 1.0)
-        tangents = jnp.asarray(np.concatenate([xyz, w], -1), jnp.float32)
+        tangents = _file_tangents(tangents, src)
     return Mesh(positions=jnp.asarray(pos), faces=jnp.asarray(faces),
                 uv=None if uv is None else jnp.asarray(uv), normals=jnp.asarray(n),
                 tangents=tangents, tangent_source=None if tangents is None else "file")
+
+
+def _file_tangents(tangents: np.ndarray, src: str) -> jax.Array:
+    """A file's per-corner tangents (..., 4) as unit xyz and a sign w of +-1, float32."""
+    if not np.all(np.isfinite(tangents)):
+        raise ValueError(f"{src}: TANGENT contains NaN or infinite values")
+    xyz = tangents[..., :3]
+    xyz = xyz / np.maximum(np.linalg.norm(xyz, axis=-1, keepdims=True), 1e-30)
+    w = np.where(tangents[..., 3:] < 0, -1.0, 1.0)
+    return jnp.asarray(np.concatenate([xyz, w], -1), jnp.float32)
 
 
 def save_obj(path: PathLike, mesh: Mesh) -> None:
@@ -288,9 +294,9 @@ def _load_scene(p: Path, ext: str) -> trimesh.Scene:
 
     data = p.read_bytes()
     kwargs: dict[str, Any] = {"process": False}
-    partial_uvs = None
+    partial = {}
     if ext == ".obj":
-        data, partial_uvs = _clean_obj(data, str(p))
+        data, partial = _clean_obj(data, str(p))
         # materials are not used; skipping them avoids decoding texture images and
         # keeps the uvs (trimesh keeps them on a material-less OBJ mesh)
         kwargs["skip_materials"] = True
@@ -313,7 +319,7 @@ def _load_scene(p: Path, ext: str) -> trimesh.Scene:
         # (trimesh reads 'v' lines of two numbers as 2-D positions)
         raise ValueError(_obj_malformed_line(data, p)
                          or f"{p}: trimesh read positions that are not 3-D")
-    scene.metadata["jaxnm_partial_uvs"] = partial_uvs  # (said where no uv is left)
+    scene.metadata["jaxnm_partial"] = partial  # (said where none is left)
     return scene
 
 
@@ -387,7 +393,7 @@ def _concatenate_scene(scene: trimesh.Scene, src: str):
         warnings.warn(f"{src}: only {with_t} of {len(tans)} meshes have TANGENT; ignoring "
                       f"them all (MikkTSpace tangents are computed instead)", JaxnmWarning,
                       stacklevel=3)
-    uv_all = _joined_uvs(uvs, scene.metadata.get("jaxnm_partial_uvs"), src)
+    uv_all = _joined_uvs(uvs, scene.metadata.get("jaxnm_partial", {}).get("uv"), src)
     return (np.concatenate(pos), np.concatenate(faces), uv_all, np.concatenate(nrm),
             np.concatenate(has_n), tangents)
 
@@ -408,8 +414,10 @@ def _joined_uvs(uvs: list, partial: str | None, src: str) -> np.ndarray | None:
 
 
 def _resolve_normals(pos: np.ndarray, faces: np.ndarray, file_n: np.ndarray,
-                     has_n: np.ndarray, mode: str, src: str) -> np.ndarray:
-    """Final (V, 3) float32 unit normals: the file's where ``has_n`` (and usable)."""
+                     has_n: np.ndarray, mode: str, src: str,
+                     partial: str | None = None) -> np.ndarray:
+    """Final (V, 3) float32 unit normals: the file's where ``has_n`` (and usable).
+    ``partial``: `_clean_obj`'s words for an OBJ whose faces had normals in part only."""
     if mode != "file_or_angle":
         return _vertex_normals(pos, faces, mode).astype(np.float32)
     absent = ~has_n
@@ -421,8 +429,9 @@ def _resolve_normals(pos: np.ndarray, faces: np.ndarray, file_n: np.ndarray,
         computed = _vertex_normals(pos, faces, "angle").astype(np.float64)
         out[fill] = computed[fill]
     if absent.all():
-        warnings.warn(f"{src}: no vertex normals in the file; computed angle-weighted normals",
-                      JaxnmWarning, stacklevel=3)
+        why = f"{partial}, which were dropped" if partial else "no vertex normals in the file"
+        warnings.warn(f"{src}: {why}; computed angle-weighted normals", JaxnmWarning,
+                      stacklevel=3)
     elif absent.any():
         warnings.warn(f"{src}: no vertex normals in the file for {int(absent.sum())} of "
                       f"{len(absent)} vertices; computed angle-weighted normals for them",
@@ -452,11 +461,11 @@ _OBJ_FACE_LINE = re.compile(rb"\nf[ \t]([^\n]*)")
 _OBJ_KINDS = (("v", "vertex"), ("vt", "texture coordinate"), ("vn", "normal"))
 
 
-def _clean_obj(data: bytes, src: str) -> tuple[bytes, str | None]:
-    """OBJ text without comments, after checking that every face index exists, and, where
-    the face corners have ``vt`` indices in part only (trimesh then drops the uvs of every
-    mesh that mixes them), ``"only K of N face corners have texture coordinates (the first
-    without: line L)"`` (else None).
+def _clean_obj(data: bytes, src: str) -> tuple[bytes, dict[str, str]]:
+    """OBJ text without comments, after checking that every face index exists, and, for
+    ``"uv"`` (``"normals"``) where the face corners have ``vt`` (``vn``) indices in part only
+    (trimesh then drops those of every mesh that mixes them), ``"only K of N face corners
+    have texture coordinates (normals) (the first without: line L)"``.
 
     trimesh crashes with an IndexError on a bad ``v`` index, silently drops all
     uvs (normals) on a bad ``vt`` (``vn``) index and reads index 0 as 1, so check
@@ -473,20 +482,23 @@ def _clean_obj(data: bytes, src: str) -> tuple[bytes, str | None]:
             raise ValueError(f"{src}: line {_obj_face_line_with(text, kind, i)}: a face refers to "
                              f"{name} {i}, but the file has {n} ('{kind}' lines; indices are "
                              f"1..{n} or -{n}..-1)")
-    v, vt = len(indices[0]), len(indices[1])
-    if not 0 < vt < v:
-        return data, None
-    return data, (f"only {vt} of {v} face corners have texture coordinates (the first "
-                  f"without: line {_obj_face_line_without_uv(text)})")
+    partial = {}
+    for k, key, what in ((1, "uv", "texture coordinates"), (2, "normals", "normals")):
+        if 0 < len(indices[k]) < len(indices[0]):
+            partial[key] = (f"only {len(indices[k])} of {len(indices[0])} face corners have "
+                            f"{what} (the first without: line "
+                            f"{_obj_face_line_without(text, k)})")
+    return data, partial
 
 
-def _obj_face_line_without_uv(text: bytes) -> int | str:
-    """Line number of the first face with a corner that has no ``vt`` index."""
+def _obj_face_line_without(text: bytes, k: int) -> int | str:
+    """Line number of the first face with a corner that has no ``vt`` (``k`` = 1) or ``vn``
+    (``k`` = 2) index."""
     for lineno, line in enumerate(text[1:].split(b"\n"), 1):
         if line.startswith((b"f ", b"f\t")):
             for corner in line.split()[1:]:
                 parts = corner.split(b"/")
-                if len(parts) < 2 or not parts[1]:
+                if len(parts) <= k or not parts[k]:
                     return lineno
     return "?"
 

@@ -118,9 +118,9 @@ def test_obj_uv_seam_vertices_are_not_merged(tmp_path):
 
 
 def test_obj_with_uvs_on_some_faces_only_says_where_they_stop(tmp_path):
-    """trimesh drops every uv of an OBJ whose faces have them only in part: a warning says
-    so and names the first face without, so that the error of a caller needing uvs is
-    understood."""
+    """trimesh drops every uv (normal) of an OBJ whose faces have them only in part: a
+    warning says so and names the first face without, so that the error of a caller needing
+    uvs is understood."""
     text = ("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 0 0\nvn 0 0 1\n"
             "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
             "f 1/1/1 2/2/1 3/3/1\nf 1/1/1 3/3/1 4/4/1\nf 2//1 5//1 3//1\n")
@@ -141,6 +141,14 @@ def test_obj_with_uvs_on_some_faces_only_says_where_they_stop(tmp_path):
         assert load_mesh(path).uv is None
     said = [str(w.message) for w in seen if "texture coordinates" in str(w.message)]
     assert said == [f"{path}: only 1 of 2 meshes have texture coordinates; ignoring them all"]
+    # normals likewise: every vertex's normal is then computed
+    path = _write(tmp_path / "partial_n.obj", text.replace("f 2//1 5//1 3//1", "f 2/2 5/3 3/4"))
+    with pytest.warns(JaxnmWarning, match=re.escape(
+            f"{path}: only 6 of 9 face corners have normals (the first without: line 13), "
+            "which were dropped; computed angle-weighted normals")):
+        m = load_mesh(path)
+    assert m.uv is not None
+    np.testing.assert_allclose(m.normals, np.tile([0.0, 0, 1], (m.num_vertices, 1)), atol=1e-6)
 
 
 def test_obj_without_normals_warns_and_computes_angle_weighted(tmp_path):
