@@ -494,13 +494,7 @@ def _clean_obj(data: bytes, src: str) -> tuple[bytes, dict[str, str]]:
 def _obj_face_line_without(text: bytes, k: int) -> int | str:
     """Line number of the first face with a corner that has no ``vt`` (``k`` = 1) or ``vn``
     (``k`` = 2) index."""
-    for lineno, line in enumerate(text[1:].split(b"\n"), 1):
-        if line.startswith((b"f ", b"f\t")):
-            for corner in line.split()[1:]:
-                parts = corner.split(b"/")
-                if len(parts) <= k or not parts[k]:
-                    return lineno
-    return "?"
+    return _obj_first_face_line(text, k, lambda x: not x)
 
 
 _OBJ_COUNTS = {b"v": (3, 7, "x y z"), b"vt": (1, 3, "u [v [w]]"), b"vn": (3, 3, "x y z")}
@@ -548,11 +542,19 @@ def _obj_corner_indices(corners: bytes) -> list[np.ndarray]:
 def _obj_face_line_with(text: bytes, kind: str, index: int) -> int | str:
     """Line number of the first face using ``index`` for ``kind`` (for error messages)."""
     k = [name for name, _ in _OBJ_KINDS].index(kind)
+    return _obj_first_face_line(
+        text, k, lambda x: x.lstrip(b"-").isdigit() and int(x) == index)
+
+
+def _obj_first_face_line(text: bytes, k: int, test) -> int | str:
+    """Line number of the first face with a corner whose index ``k`` (0: ``v``, 1: ``vt``,
+    2: ``vn``; b"" where the corner has none) passes ``test``, or "?" (a loop over the
+    lines, for error messages only)."""
     for lineno, line in enumerate(text[1:].split(b"\n"), 1):
         if line.startswith((b"f ", b"f\t")):
             for corner in line.split()[1:]:
                 parts = corner.split(b"/")
-                if len(parts) > k and parts[k].lstrip(b"-").isdigit() and int(parts[k]) == index:
+                if test(parts[k] if len(parts) > k else b""):
                     return lineno
     return "?"
 
