@@ -30,6 +30,7 @@ import json
 import os
 import re
 import struct
+import tempfile
 import warnings
 import zlib
 from pathlib import Path
@@ -98,19 +99,23 @@ def atomic_write(path: PathLike):
 def writable(path: PathLike, *, folder: bool = False) -> Path:
     """``path`` as a `Path`, or an `OSError` naming it where nothing could be written there:
     a file's name that is a folder (``IsADirectoryError``), a folder's name (``folder``)
-    that is a file, or a parent that is a file (``NotADirectoryError``). Missing parents are
-    fine (the writers make them). What a command checks before its work, so that a wrong
-    output name is not found after it."""
+    that is a file, or a parent that is a file (``NotADirectoryError``), or a folder that
+    takes no new file (read-only, no permission: tried with a nameless temporary file).
+    Missing parents are fine (the writers make them). What a command checks before its
+    work, so that a wrong output name is not found after it."""
     p = Path(os.fspath(path))
     if folder and p.exists() and not p.is_dir():
         raise NotADirectoryError(f"{p}: is a file, not a folder")
     if not folder and p.is_dir():
         raise IsADirectoryError(f"{p}: is a folder; name the file to write")
-    for parent in p.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise NotADirectoryError(f"{p}: {parent} is a file, not a folder")
-            break
+    nearest = next(q for q in ((p, *p.parents) if folder else p.parents) if q.exists())
+    if not nearest.is_dir():
+        raise NotADirectoryError(f"{p}: {nearest} is a file, not a folder")
+    try:
+        with tempfile.TemporaryFile(dir=nearest):
+            pass
+    except OSError as e:
+        raise type(e)(f"{p}: cannot write in {nearest}: {e.strerror or e}") from None
     return p
 
 

@@ -470,9 +470,10 @@ def test_the_targets_example_on_the_command_line_page_runs(tmp_path, monkeypatch
 
 def test_an_output_that_cannot_be_written_is_named_before_the_work(tmp_path, capsys,
                                                                    monkeypatch):
-    """A folder where a file goes, a file where a folder goes (or above it): one line naming
-    the flag, exit 2, before the scene or the meshes are read (it was a traceback after the
-    render, after the fit's preparation)."""
+    """A folder where a file goes, a file where a folder goes (or above it), a folder that
+    takes no file, a mesh file that is not there: one line naming the flag, exit 2, before
+    the scene or the meshes are read (it was a traceback after the render, after the fit's
+    preparation, after the bake)."""
     import jaxnm.cli._bake as cli_bake
     import jaxnm.cli._fit as cli_fit
     import jaxnm.cli._render as cli_render
@@ -485,6 +486,11 @@ def test_an_output_that_cannot_be_written_is_named_before_the_work(tmp_path, cap
     (tmp_path / "file").write_text("x")
     (tmp_path / "dir.png").mkdir()
     d = tmp_path
+    # a folder that takes no new file (Linux's /proc: even for root)
+    unwritable = [(["fit", "-o", "/proc/jaxnm/out"], "-o /proc/jaxnm/out: cannot write in "
+                   "/proc: No such file or directory"),
+                  (["render", "-o", "/proc/x.png"], "-o /proc/x.png: cannot write in /proc: No "
+                   "such file or directory")] if Path("/proc/self").is_dir() else []
     for argv, message in (
             (["render", "-o", f"{d}/file/x.png"], f"-o {d}/file/x.png: {d}/file is a file, not a "
                                                  f"folder"),
@@ -495,7 +501,12 @@ def test_an_output_that_cannot_be_written_is_named_before_the_work(tmp_path, cap
             (["fit", "-o", f"{d}/file"], f"-o {d}/file: is a file, not a folder"),
             (["fit", "-o", f"{d}/file/out"], f"-o {d}/file/out: {d}/file is a file, not a folder"),
             (["bake", f"{d}/high.obj", "--decimate", "100", "-o", f"{d}/file"],
-             f"-o {d}/file: is a file, not a folder")):
+             f"-o {d}/file: is a file, not a folder"),
+            # every mesh file is looked for before the first is read
+            (["bake", f"{d}/file", f"{d}/file", "--cage-mesh", f"{d}/cage.obj"],
+             f"--cage-mesh {d}/cage.obj: no such file"),
+            (["bake", f"{d}/file", f"{d}/dir.png"], f"{d}/dir.png: a folder, not a mesh file"),
+            *unwritable):
         assert main([*argv, "--no-compile-cache"]) == 2, argv
         assert capsys.readouterr().err.strip() == f"jaxnm {argv[0]}: error: {message}"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dir.png", "file"]

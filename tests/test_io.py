@@ -600,6 +600,20 @@ def test_writers_refuse_what_they_could_not_write_or_read_back(tmp_path):
     np.testing.assert_array_equal(io.load_texture(tmp_path / "ok.npz")[0], unit)
 
 
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+def test_writable_tries_the_folder_it_would_write_in(tmp_path):
+    """A folder that takes no new file is named before the work (Linux's /proc refuses even
+    root); a writable one is left as it was."""
+    from jaxnm import io
+
+    for path, folder in (("/proc/jaxnm/out", True), ("/proc/jaxnm.png", False)):
+        with pytest.raises(OSError, match=f"^{path}: cannot write in /proc: "):
+            io.writable(path, folder=folder)
+    assert io.writable(tmp_path / "new" / "x.png") == tmp_path / "new" / "x.png"
+    assert io.writable(tmp_path, folder=True) == tmp_path
+    assert list(tmp_path.iterdir()) == []
+
+
 # ============================================================================ textures
 
 

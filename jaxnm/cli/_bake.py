@@ -143,6 +143,15 @@ def _check_shape(args) -> None:
                          f"non-coplanar directions determine a normal), got {args.lights}")
 
 
+def _check_inputs(args) -> None:
+    """A FileNotFoundError naming the first of HIGH, LOW and the cage mesh that is not a
+    file: before any is read, so that a wrong name is not found after minutes of work."""
+    for flag, path in (("", args.high), ("", args.low), ("--cage-mesh ", args.cage_mesh)):
+        if path is not None and not Path(path).is_file():
+            why = "a folder, not a mesh file" if Path(path).is_dir() else "no such file"
+            raise FileNotFoundError(f"{flag}{path}: {why}")
+
+
 def _options(args):
     """The `PairBakeOptions` of ``args``, or a one-line ValueError naming the option."""
     from ..transfer import PairBakeOptions
@@ -198,6 +207,7 @@ def run(args, ctrl_c: CtrlC) -> int:
 
         encode_blocks(np.zeros((4, 4, 2), np.uint8), format="bc5")  # the storage extra
     out = output_path("-o", args.output, folder=True)
+    _check_inputs(args)
     ctrl_c.output = out
     high, low, low_name, cage, made = _meshes(args, _say)
     ctrl_c.check()
