@@ -278,9 +278,15 @@ def _map_options(spec: dict, known, where: str, **fixed) -> NormalMapOptions:
         raise ValueError(f"{where}{str(e).removeprefix('NormalMapOptions: ')}") from None
 
 
-def _input_file(base: Path, ref: Any, key: str, where: str) -> Path:
-    """``base / ref``, checked to name an existing file: else a one-line error naming the
-    field (``"scene.json: normal_map: maps/rivet.png: no such file"``)."""
+#: The file formats each kind of input is read in (by its name's extension).
+_FORMATS = {"mesh": io.MESH_EXTENSIONS, "texture": io.TEXTURE_EXTENSIONS,
+            "normal map": (*io.TEXTURE_EXTENSIONS, ".dds"), "image": io.IMAGE_EXTENSIONS}
+
+
+def _input_file(base: Path, ref: Any, key: str, where: str, kind: str | None = None) -> Path:
+    """``base / ref``, checked to name an existing file (and, for a ``kind`` of `_FORMATS`,
+    one read in that kind's formats): else a one-line error naming the field
+    (``"scene.json: normal_map: maps/rivet.png: no such file"``)."""
     if not isinstance(ref, str) or not ref:
         raise ValueError(f"{where}'{key}' must be a file path, got {ref!r}")
     p = base / ref
@@ -288,6 +294,12 @@ def _input_file(base: Path, ref: Any, key: str, where: str) -> Path:
         raise FileNotFoundError(f"{where}{key}: {p}: no such file")
     if not p.is_file():
         raise ValueError(f"{where}{key}: {p}: not a regular file")
+    formats = _FORMATS.get(kind, ())
+    if formats and p.suffix.lower() not in formats:
+        a = "an" if kind[0] in "aeiou" else "a"
+        raise ValueError(f"{where}{key}: {p}: not {a} {kind} format that jaxnm reads "
+                         f"({p.suffix.lower() or 'no extension'}); it reads "
+                         f"{', '.join(formats)}")
     return p
 
 
@@ -309,7 +321,7 @@ def _normal_map_loader(spec: Any, *, base_dir=".", where: str = ""):
         if opts.encoding != "unsigned" or opts.channels != 3:
             raise ValueError(f"{w}'builtin:rivets' is stored as a 3-channel unsigned map")
         return lambda: (default_normal_map_texels(256), dataclasses.replace(opts, bits=8))
-    path = _input_file(Path(base_dir), ref, "normal_map", where)
+    path = _input_file(Path(base_dir), ref, "normal_map", where, "normal map")
     if path.suffix.lower() == ".dds":  # BC5 or DXT5nm: two 8-bit channels
         if opts.encoding != "unsigned" or opts.space != "tangent":
             raise ValueError(f"{w}{ref!r}: a DDS map is an unsigned tangent-space map")
@@ -349,7 +361,7 @@ def _height_map_loader(spec: Any, *, base_dir=".", where: str = ""):
                         channels=2, space="derivative")
     if opts.wrap == "mirror":
         raise ValueError(f"{w}'wrap' must be 'repeat' or 'clamp'")
-    path = _input_file(Path(base_dir), ref, "height_map", where)
+    path = _input_file(Path(base_dir), ref, "height_map", where, "texture")
 
     def load():
         raw, _ = io.load_texture(path, channels=1)
@@ -378,7 +390,7 @@ def _albedo_loader(spec: Any, base: Path, where: str):
     spec = _object(spec, "albedo", where)
     _keys(spec, ("path", "srgb"), f"{where}albedo: ")
     srgb = _field(spec, "srgb", bool, True, f"{where}albedo: ")
-    path = _input_file(base, spec["path"], "albedo", where)
+    path = _input_file(base, spec["path"], "albedo", where, "texture")
 
     def load():
         tex, _ = io.load_texture(path, channels=3)
@@ -397,7 +409,7 @@ def _mesh_loader(ref: Any, base: Path, where: str):
             raise ValueError(f"{where}'mesh': unknown built-in mesh {name!r}; expected one of "
                              f"{', '.join(BUILTIN_MESHES)}")
         return lambda: builtin_mesh(name)
-    path = _input_file(base, ref, "mesh", where)
+    path = _input_file(base, ref, "mesh", where, "mesh")
     return lambda: io.load_mesh(path)
 
 
@@ -650,8 +662,8 @@ def _target_spec(t: Any, i: int, key: str, views: list, base: Path, where: str):
     color_space = _field(t, "color_space", str, None, w)
     if color_space not in (None, "srgb", "linear"):
         raise ValueError(f"{w}'color_space' must be 'srgb' or 'linear', got {color_space!r}")
-    image = _input_file(base, t["image"], "image", w)
-    mask = _input_file(base, t["mask"], "mask", w) if "mask" in t else None
+    image = _input_file(base, t["image"], "image", w, "image")
+    mask = _input_file(base, t["mask"], "mask", w, "texture") if "mask" in t else None
     lights = _parse_lights(t["lights"], where=w)
     cam, width, height = views[vi]
     bare = FitTarget(cam, width, height, lights, None, None, name=f"{key}[{i}] ({t['image']})")
@@ -678,7 +690,7 @@ def _ground_truth_loader(spec: Any, base: Path, map_size: tuple[int, int], where
     _keys(spec, ("path", "encoding", "green"), w)
     opts = _map_options({k: v for k, v in spec.items() if k != "path"}, ("encoding", "green"),
                         w)
-    path = _input_file(base, spec["path"], "ground_truth", where)
+    path = _input_file(base, spec["path"], "ground_truth", where, "texture")
 
     def load():
         raw, bits = io.load_texture(path, channels=3)

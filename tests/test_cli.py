@@ -269,6 +269,11 @@ def _scene_folder(tmp_path: Path, **changes) -> Path:
     ({"normal_map": "mapp.png"}, "normal_map: {dir}/mapp.png: no such file"),
     ({"mesh": "quadd.obj"}, "mesh: {dir}/quadd.obj: no such file"),
     ({"albedo": {"path": "albedo.png"}}, "albedo: {dir}/albedo.png: no such file"),
+    ({"mesh": "map.png"}, "mesh: {dir}/map.png: not a mesh format that jaxnm reads (.png); it "
+     "reads .obj, .ply, .gltf, .glb, .stl, .off"),
+    ({"normal_map": "scene.json"}, "normal_map: {dir}/scene.json: not a normal map format "
+     "that jaxnm reads (.json); it reads .png, .jpg, .jpeg, .npy, .npz, .dds"),
+    ({"albedo": {"path": "quad.obj"}}, "albedo: {dir}/quad.obj: not a texture format"),
     ({"frame": "sideways"}, "unknown frame 'sideways'"),
 ])
 def test_a_scene_file_is_checked_whole_before_any_file_is_read(tmp_path, monkeypatch, capsys,
@@ -305,6 +310,12 @@ def test_a_fit_file_is_checked_whole_and_targets_against_their_view(tmp_path, mo
     assert _fit(path, "-o", tmp_path / "out") == 2
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
         f"jaxnm fit: error: {path}: targets[1]: image: {path.parent / 't9.npy'}: no such file")
+    fit["targets"][1]["image"] = path.name  # a file, but not an image
+    path.write_text(json.dumps(fit))
+    assert _fit(path, "-o", tmp_path / "out") == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"jaxnm fit: error: {path}: targets[1]: image: {path}: not an image format that jaxnm "
+        f"reads (.json); it reads .png, .jpg, .jpeg, .npy, .npz, .exr")
 
 
 def test_more_coarse_levels_than_the_map_has_are_refused_before_the_work(tmp_path, capsys,
