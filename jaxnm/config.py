@@ -540,6 +540,9 @@ def _solver_options(spec: Any, where: str) -> tuple[FitOptions, float | None]:
     values = {_SOLVER_KEYS[k]: _field(spec, k, kinds.get(k, float), None, w)
               for k in spec if k in _SOLVER_KEYS}
     time_limit = _field(spec, "time_limit", float, None, w)
+    if time_limit is not None and not time_limit > 0:
+        raise ValueError(f"{w}'time_limit' must be a positive number of seconds, got "
+                         f"{time_limit}")
     try:
         return FitOptions(**values), time_limit
     except ValueError as e:
@@ -658,7 +661,8 @@ def _target_spec(t: Any, i: int, key: str, views: list, base: Path, where: str):
     _keys(t, ("view", "image", "lights", "mask", "color_space"), w)
     vi = _field(t, "view", int, 0, w)
     if not 0 <= vi < len(views):
-        raise ValueError(f"{w}'view' = {vi} but there are {len(views)} views")
+        there = "there is 1 view" if len(views) == 1 else f"there are {len(views)} views"
+        raise ValueError(f"{w}'view' = {vi} but {there}")
     color_space = _field(t, "color_space", str, None, w)
     if color_space not in (None, "srgb", "linear"):
         raise ValueError(f"{w}'color_space' must be 'srgb' or 'linear', got {color_space!r}")

@@ -499,6 +499,8 @@ _TARGET = {"image": "t0.npy", "lights": [{"type": "directional", "direction": [0
     (dict(solver={"max_steps": 0}), r"solver: max_steps must be an integer >= 1"),
     (dict(solver={"smoothness": -1}), r"solver: smoothness must be a finite number >= 0"),
     (dict(solver={"time_limit": "soon"}), r"solver: 'time_limit' must be a number"),
+    (dict(solver={"time_limit": -1}), r"solver: 'time_limit' must be a positive number of "
+     r"seconds, got -1"),
     (dict(solver={"lsmr": 3}), r"solver: unknown keys \['lsmr'\]"),
     (dict(solver={"texel_sums": "atomic"}), r"solver: unknown texel_sums 'atomic'"),
     (dict(solver={"method": "lm", "texel_sums": "tables"}), r"solver: texel_sums 'tables' is"),
@@ -509,7 +511,7 @@ _TARGET = {"image": "t0.npy", "lights": [{"type": "directional", "direction": [0
     (dict(extra=1), r"unknown keys \['extra'\]"),
     (dict(scene=None), r"'scene' must name a scene JSON file"),
     (dict(targets=[]), r"'targets' must be a non-empty list"),
-    (dict(targets=[{**_TARGET, "view": 3}]), r"targets\[0\]: 'view' = 3 but there are 1 views"),
+    (dict(targets=[{**_TARGET, "view": 3}]), r"targets\[0\]: 'view' = 3 but there is 1 view$"),
     (dict(targets=[{**_TARGET, "color_space": "xyz"}]), r"targets\[0\]: 'color_space' must be"),
     (dict(targets=[{**_TARGET, "lights": [{"type": "spot"}]}]), r"targets\[0\]: lights\[0\]"),
     (dict(targets=[{**_TARGET, "image": "missing.png"}]), r"missing.png"),
