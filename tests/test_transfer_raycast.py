@@ -307,6 +307,26 @@ def test_a_cage_that_misses_is_reported_with_where():
     assert res.missed_faces.size > 0 and res.filled[res.missed].any()
 
 
+def test_uvs_outside_the_unit_square_warn():
+    """A tiled (or UDIM) layout: the map covers [0, 1] only, so the second tile's triangle
+    gets no texel of its own; it warns, naming the range. A corner a hair past 1 does not."""
+    plane = _mesh(np.array([[-1, -1, 0], [2, -1, 0], [2, 2, 0], [-1, 2, 0]]), [[0, 1, 2],
+                                                                               [0, 2, 3]],
+                  None, np.tile([0.0, 0, 1], (4, 1)))
+    q = np.array([[0, 0, 0.1], [1, 0, 0.1], [1, 1, 0.1], [0, 1, 0.1]])
+    two = np.concatenate([q, q + [1, 0, 0]])  # side by side, the second in the next tile
+    low = _mesh(two, [[0, 1, 2], [4, 5, 6]], two[:, :2], np.tile([0.0, 0, 1], (8, 1)))
+    with pytest.warns(BakeWarning, match=r"^LOW: 1 of 2 triangles reach outside the unit uv "
+                                         r"square \(u 1 to 2, v 0 to 1; first: face 1\); the "
+                                         r"map covers \[0, 1\] only"):
+        res = raycast_normal_map(plane, low, 8, cage=0.2)
+    assert set(np.unique(res.face[res.inside])) == {0}  # the second tile's triangle: no texel
+    hair = _mesh(q, [[0, 1, 2], [0, 2, 3]], q[:, :2] * (1 + 1e-6), np.tile([0.0, 0, 1], (4, 1)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", BakeWarning)
+        raycast_normal_map(plane, hair, 8, cage=0.2)
+
+
 def test_overlapping_islands_degenerate_and_non_manifold_triangles_warn():
     q = np.array([[0, 0, 0.1], [1, 0, 0.1], [1, 1, 0.1], [0, 1, 0.1]])
     plane = _mesh(np.array([[-1, -1, 0], [2, -1, 0], [2, 2, 0], [-1, 2, 0]]), [[0, 1, 2],

@@ -11,8 +11,8 @@ needs the ``bake`` extra (``pip install -e ".[bake]"``: Embree through ``embreex
 fast-simplification, flip-evaluator), which ``import jaxnm`` does not load.
 
 `BakeWarning` (a `jaxnm.io.JaxnmWarning`) is what the bakers warn with when the bake goes on
-but something deserves attention: rays that hit nothing, overlapping uv islands, degenerate
-or non-manifold triangles.
+but something deserves attention: rays that hit nothing, overlapping uv islands, uvs
+outside the unit square, degenerate or non-manifold triangles.
 """
 
 from ._meshes import BakeWarning as BakeWarning

@@ -13,7 +13,7 @@ from ..geometry import Mesh, vertex_normals
 from ..io import JaxnmWarning
 
 __all__ = ["BakeWarning", "check_mesh", "with_normals", "prepare_low", "warn_bad_triangles",
-           "warn_overlap"]
+           "warn_overlap", "warn_outside_unit_square"]
 
 
 class BakeWarning(JaxnmWarning):
@@ -63,7 +63,8 @@ def with_normals(mesh: Mesh, name: str) -> Mesh:
 
 def prepare_low(low: Mesh, frame: str, name: str) -> Mesh:
     """LOW with uvs checked, normals (angle-weighted where it has none) and, for
-    ``"vertex"``, MikkTSpace tangents; warns about degenerate and non-manifold triangles."""
+    ``"vertex"``, MikkTSpace tangents; warns about degenerate and non-manifold triangles,
+    and uvs outside the unit square."""
     p, f = check_mesh(low, name)
     if low.uv is None:
         raise ValueError(f"{name}: the mesh has no texture coordinates (uv); a normal map is "
@@ -77,7 +78,29 @@ def prepare_low(low: Mesh, frame: str, name: str) -> Mesh:
     if frame == "vertex" and low.tangents is None:
         low = low.with_tangents()
     warn_bad_triangles(p, f, name)
+    warn_outside_unit_square(uv, f, name)
     return low
+
+
+#: How far (in uv units) a triangle's corner may lie outside [0, 1] unremarked: exporters
+#: write 1.0000001, and a thousandth is a texel of a 1024 map, within the bake's margin.
+_UV_SLACK = 1e-3
+
+
+def warn_outside_unit_square(uv: np.ndarray, f: np.ndarray, name: str) -> None:
+    """A `BakeWarning` where triangles reach outside the unit uv square: the map holds
+    [0, 1]² only, so their texels outside it are never baked, while a render repeats the
+    map there (tiled or UDIM layouts)."""
+    t = uv[f]
+    out = ((t < -_UV_SLACK) | (t > 1 + _UV_SLACK)).any(axis=(1, 2))
+    if out.any():
+        lo, hi = uv[f[out]].reshape(-1, 2).min(0), uv[f[out]].reshape(-1, 2).max(0)
+        warnings.warn(f"{name}: {int(out.sum())} of {len(f)} triangles reach outside the unit "
+                      f"uv square (u {lo[0]:.3g} to {hi[0]:.3g}, v {lo[1]:.3g} to "
+                      f"{hi[1]:.3g}; first: face {int(np.argmax(out))}); the map covers [0, 1] "
+                      "only, so no texel is baked for them there, and a render repeats the "
+                      "map over them: unwrap LOW anew (xatlas)", BakeWarning,
+                      stacklevel=4)
 
 
 def warn_bad_triangles(p: np.ndarray, f: np.ndarray, name: str) -> None:

@@ -346,7 +346,7 @@ def bake_mesh_pair(high: Mesh, low: Mesh, options: PairBakeOptions = PairBakeOpt
 
     **Returns:** a `PairBake`. Raises ValueError for unusable input (naming the mesh) and
     when the meshes do not overlap; warns (`BakeWarning`) about missed rays, overlapping uv
-    islands and degenerate or non-manifold triangles.
+    islands, uvs outside the unit square and degenerate or non-manifold triangles.
     """
     _check_call(options, cage_mesh, progress, on_stage, should_stop)
     t0 = time.perf_counter()
