@@ -13,7 +13,7 @@ import numpy as np
 
 from .camera import Camera
 
-__all__ = ["box_in_front", "clip_float64", "closed_shape"]
+__all__ = ["box_in_front", "clip_float64", "closed_shape", "enclosed_volume"]
 
 
 def _is_concrete(x) -> bool:
@@ -46,10 +46,18 @@ def closed_shape(positions, faces) -> np.ndarray | None:
     the host, in float64/int64 (a few passes over the faces)."""
     if not (_is_concrete(positions) and _is_concrete(faces)):
         return None
-    return _closed_shape_arrays(np.asarray(positions, np.float64), np.asarray(faces, np.int64))
+    p = np.asarray(positions, np.float64)
+    volume = enclosed_volume(p, np.asarray(faces, np.int64))
+    if volume is None or not volume > 0:
+        return None
+    return np.stack([p.min(axis=0), p.max(axis=0)])
 
 
-def _closed_shape_arrays(p: np.ndarray, f: np.ndarray) -> np.ndarray | None:
+def enclosed_volume(p: np.ndarray, f: np.ndarray) -> float | None:
+    """The signed volume that host float64 positions ``p`` and int64 faces ``f`` enclose
+    (positive where the counter-clockwise faces look outside), or None where they enclose
+    none: not closed, not manifold or not consistently oriented, after welding (as
+    `closed_shape` says)."""
     if p.shape[0] == 0 or f.shape[0] == 0 or not np.all(np.isfinite(p)):
         return None
     # positions equal up to rounding (a seam's copies: cos 2pi vs cos 0) weld together
@@ -68,10 +76,7 @@ def _closed_shape_arrays(p: np.ndarray, f: np.ndarray) -> np.ndarray | None:
     if not np.array_equal(edges, np.sort(b * n + a)):  # an edge without its reverse
         return None
     q = p[f]
-    volume = np.sum(q[:, 0] * np.cross(q[:, 1], q[:, 2]))
-    if not volume > 0:
-        return None
-    return np.stack([p.min(axis=0), p.max(axis=0)])
+    return float(np.sum(q[:, 0] * np.cross(q[:, 1], q[:, 2]))) / 6
 
 
 def box_in_front(box: np.ndarray, camera: Camera, model=None) -> bool:

@@ -68,7 +68,12 @@ def files(tmp_path_factory):
         np.concatenate([uv, line[:, :2]]), np.concatenate([up, up[:3]])))
     from scripts.benchmarks import bake_pairs as P
 
-    io.save_obj(d / "torus.obj", P.high_mesh(P.torus_pair((8, 4), (48, 24))))  # closed
+    pair = P.torus_pair((8, 4), (48, 24))
+    io.save_obj(d / "torus.obj", P.high_mesh(pair))  # closed
+    low = P.low_mesh(pair)  # closed, wound inwards, no normals (so they point inwards too)
+    io.save_obj(d / "torus_lo_inside_out.obj", _mesh(np.asarray(low.positions),
+                                                     np.asarray(low.faces)[:, ::-1],
+                                                     np.asarray(low.uv), None))
     return d
 
 
@@ -280,6 +285,23 @@ def test_bad_input_is_one_line_naming_the_file(files, tmp_path, capsys, argv, me
     assert rc == 2 and err[-1].startswith(message.format(d=files)), err
     assert [line for line in err if ": error: " in line] == [err[-1]]
     assert not out.exists()
+
+
+def test_a_low_mesh_wound_inwards_is_named(files, tmp_path, capsys):
+    """A closed LOW turned inside out: a warning names it, and the fit, which no view shows
+    its front faces to, says why instead of "do not overlap"."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")
+        rc = _bake(files / "torus.obj", files / "torus_lo_inside_out.obj", "-o", tmp_path / "o",
+                   "--method", "fit", "--size", "16", "--render-size", "32", "--views", "2")
+    err = capsys.readouterr().err.splitlines()
+    lo = files / "torus_lo_inside_out.obj"
+    assert rc == 2 and f"jaxnm bake: warning: {lo}: a closed mesh whose faces wind inwards (the " \
+        "volume they enclose is negative), so its front faces look inside; reverse their " \
+        "winding" in err, err
+    assert err[-1] == (f"jaxnm bake: error: {lo}: no view shows its front faces over "
+                       f"{files / 'torus.obj'}: they wind inwards (a closed mesh of negative "
+                       "volume); reverse their winding"), err
 
 
 @pytest.mark.parametrize("low,high,extra,warning", [

@@ -307,6 +307,28 @@ def test_a_cage_that_misses_is_reported_with_where():
     assert res.missed_faces.size > 0 and res.filled[res.missed].any()
 
 
+def test_a_low_mesh_wound_inwards_warns():
+    """LOW's faces reversed, its normals computed from them (inwards): a closed mesh turned
+    inside out is named, and the rays find HIGH facing away from it (the map's z < 0). The
+    same LOW wound outwards warns of neither."""
+    high, low = uv_sphere(1.0), uv_sphere(0.9)
+    out = _mesh(low.positions, low.faces, low.uv)
+    inward = _mesh(low.positions, np.asarray(low.faces)[:, ::-1], low.uv)
+    with pytest.warns(BakeWarning) as record:
+        res = raycast_normal_map(high, inward, 16, low_name="lo.obj")
+    said = [str(w.message) for w in record]
+    assert any(m.startswith("lo.obj: a closed mesh whose faces wind inwards") for m in said)
+    away = [re.match(r"HIGH faces away from lo.obj: at (\d+) of (\d+) texels whose ray hit it",
+                     m) for m in said]
+    k, n = map(int, next(m.groups() for m in away if m))
+    assert n == int((res.inside & ~res.missed).sum()) and k > n // 2
+    assert np.median(res.normals[res.inside & ~res.missed][:, 2]) < 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", BakeWarning)
+        res = raycast_normal_map(high, out, 16, low_name="lo.obj")
+    assert np.median(res.normals[res.inside & ~res.missed][:, 2]) > 0.99
+
+
 def test_uvs_outside_the_unit_square_warn():
     """A tiled (or UDIM) layout: the map covers [0, 1] only, so the second tile's triangle
     gets no texel of its own; it warns, naming the range. A corner a hair past 1 does not."""

@@ -12,7 +12,7 @@ fast-simplification, flip-evaluator), which ``import jaxnm`` does not load.
 
 `BakeWarning` (a `jaxnm.io.JaxnmWarning`) is what the bakers warn with when the bake goes on
 but something deserves attention: rays that hit nothing, overlapping uv islands, uvs
-outside the unit square, degenerate or non-manifold triangles.
+outside the unit square, degenerate or non-manifold triangles, meshes wound the wrong way.
 """
 
 from ._meshes import BakeWarning as BakeWarning

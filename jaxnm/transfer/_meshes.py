@@ -9,11 +9,12 @@ import warnings
 
 import numpy as np
 
+from .._host_geometry import enclosed_volume
 from ..geometry import Mesh, vertex_normals
 from ..io import JaxnmWarning
 
 __all__ = ["BakeWarning", "check_mesh", "with_normals", "prepare_low", "warn_bad_triangles",
-           "warn_overlap", "warn_outside_unit_square"]
+           "warn_overlap", "warn_outside_unit_square", "inside_out"]
 
 
 class BakeWarning(JaxnmWarning):
@@ -64,7 +65,7 @@ def with_normals(mesh: Mesh, name: str) -> Mesh:
 def prepare_low(low: Mesh, frame: str, name: str) -> Mesh:
     """LOW with uvs checked, normals (angle-weighted where it has none) and, for
     ``"vertex"``, MikkTSpace tangents; warns about degenerate and non-manifold triangles,
-    and uvs outside the unit square."""
+    uvs outside the unit square, and a closed mesh turned inside out."""
     p, f = check_mesh(low, name)
     if low.uv is None:
         raise ValueError(f"{name}: the mesh has no texture coordinates (uv); a normal map is "
@@ -79,7 +80,18 @@ def prepare_low(low: Mesh, frame: str, name: str) -> Mesh:
         low = low.with_tangents()
     warn_bad_triangles(p, f, name)
     warn_outside_unit_square(uv, f, name)
+    if inside_out(p, f):
+        warnings.warn(f"{name}: a closed mesh whose faces wind inwards (the volume they "
+                      "enclose is negative), so its front faces look inside; reverse their "
+                      "winding", BakeWarning, stacklevel=3)
     return low
+
+
+def inside_out(p: np.ndarray, f: np.ndarray) -> bool:
+    """Whether host positions ``p`` and faces ``f`` are a closed mesh whose faces wind
+    inwards (a negative enclosed volume): its front faces look inside."""
+    volume = enclosed_volume(p, f)
+    return volume is not None and volume < 0
 
 
 #: How far (in uv units) a triangle's corner may lie outside [0, 1] unremarked: exporters

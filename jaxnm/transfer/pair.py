@@ -53,7 +53,7 @@ from ..frames import FRAMES
 from ..geometry import Mesh
 from ..shading import Material
 from ..textures import NormalMapOptions
-from ._meshes import check_mesh, prepare_low, warn_overlap, with_normals
+from ._meshes import check_mesh, inside_out, prepare_low, warn_overlap, with_normals
 from ._surfaces import directional_lights, facing, pair_mask, pair_tolerance, shade_lights, surface
 from ._texels import extend_margin, rasterize_uv
 from .evaluate import PairEvaluation, evaluate_maps
@@ -408,6 +408,10 @@ def _fit_stage(result: PairBake, high, low, clock: _Clock, stop, progress, names
     clock.start("targets", f"rendering {names[0]} from {len(plan.cameras)} views under "
                            f"{o.lights} lights ...")
     targets, result.tolerance = _fit_targets(high, low, plan, o)
+    if not targets and inside_out(*check_mesh(low, names[1])):
+        raise ValueError(f"{names[1]}: no view shows its front faces over {names[0]}: they "
+                         "wind inwards (a closed mesh of negative volume); reverse their "
+                         "winding")
     if not targets:
         raise ValueError(f"{names[0]} and {names[1]} do not overlap: no view shows both at "
                          "the same place; are both in the same space and units?")

@@ -470,7 +470,8 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
 
     **Returns:** a `RaycastBake`. Raises ValueError when no ray hits HIGH (the meshes do not
     overlap) and for unusable input; warns (`BakeWarning`) about missed texels, overlapping
-    uv islands and degenerate or non-manifold triangles."""
+    uv islands, uvs outside the unit square, degenerate or non-manifold triangles, a LOW
+    turned inside out, and HIGH facing away from LOW."""
     t0 = time.perf_counter()
     timings = {}
     lap = [t0]
@@ -504,16 +505,31 @@ def raycast_normal_map(high: Mesh, low: Mesh, size: int | tuple[int, int], *,
                           _workers(workers, len(chunks)),
                           dict(cage=cage, max_distance=max_distance, samples=samples), frame)
     tick("rays and frames")
-    if not hit.any():
-        raise ValueError(f"{high_name} and {low_name} do not overlap: none of the "
-                         f"{texels.size} rays from {low_name}'s texels hit {high_name} "
-                         f"({'the cage mesh' if cage_mesh is not None else f'cage {cage:.6g}'}"
-                         f", max distance {max_distance:g}); are both in the same space "
-                         "and units?")
+    _check_hits(hit, m, "the cage mesh" if cage_mesh is not None else f"cage {cage:.6g}",
+                max_distance, high_name, low_name)
     return _finish(cover, texels, hit, m, hw, margin, dict(
         cage=None if cage_mesh is not None else float(cage), cage_source=source,
         max_distance=float(max_distance), samples=int(samples), frame=frame,
         margin=int(margin)), (high_name, low_name), tick, timings, t0)
+
+
+def _check_hits(hit: np.ndarray, m: np.ndarray, start: str, max_distance: float,
+                high_name: str, low_name: str) -> None:
+    """A ValueError where no ray (from ``start``) hit HIGH; a `BakeWarning` where most hits
+    found HIGH facing away from LOW: the tangent-space ``z`` of HIGH's normal negative (more
+    than 90 degrees from LOW's), as where one mesh's faces wind the other way."""
+    if not hit.any():
+        raise ValueError(f"{high_name} and {low_name} do not overlap: none of the "
+                         f"{hit.size} rays from {low_name}'s texels hit {high_name} "
+                         f"({start}, max distance {max_distance:g}); are both in the same "
+                         "space and units?")
+    z = m[hit, 2]
+    k = int(np.sum(z < 0))
+    if 2 * k > z.size:
+        warnings.warn(f"{high_name} faces away from {low_name}: at {k} of {z.size} texels "
+                      f"whose ray hit it, its normal is more than 90 degrees from "
+                      f"{low_name}'s; do the two meshes' faces wind the same way?", BakeWarning,
+                      stacklevel=3)
 
 
 def _texels(low: Mesh, hw: tuple[int, int], name: str):
