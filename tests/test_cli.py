@@ -241,7 +241,9 @@ def test_warnings_are_one_line_naming_the_file(tmp_path, capsys):
     with warnings.catch_warnings():
         warnings.simplefilter("default")
         assert main(["fit", str(path), "-o", str(tmp_path / "out"), "--max-steps", "1"]) == 0
-    warned = [line for line in capsys.readouterr().err.splitlines() if ": warning: " in line]
+    said = capsys.readouterr()
+    assert "fit reached the step limit (1 step) after 1 step in " in said.out, said.out
+    warned = [line for line in said.err.splitlines() if ": warning: " in line]
     assert len(warned) == 1 and warned[0].startswith(f"jaxnm fit: warning: {path}: "), warned
     assert "no view has at least three lights" in warned[0]
 

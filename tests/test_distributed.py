@@ -276,3 +276,34 @@ def test_processes_refuse_another_count_or_another_fit_file_in_one_line(fit_file
         assert f"jaxnm fit --distributed: process 1 has {what}" in line, line
         assert "Traceback" not in err and err.count("jaxnm fit: error") == 1
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_a_process_that_cannot_reach_or_name_its_coordinator_stops_in_one_line(fit_file, cache,
+                                                                              tmp_path):
+    """Without process 0 listening, process 1 gives up after --timeout with one line (JAX's
+    own wait ended the process with a fatal error and a native stack trace); a malformed
+    address, a process count of 0, and --distributed with no cluster to detect are named
+    before anything starts."""
+    port = _port()  # nobody listens
+    scheduled = any(k.startswith(("SLURM_", "OMPI_", "PMI_")) for k in os.environ)
+    procs = [_start_cli(_cli(fit_file, port, 1, 2, timeout=2), tmp_path, cache),
+             _start_cli(_cli(fit_file, "x", 0, 2)[:3] + ["--coordinator", "nope",
+                                                         "--num-processes", "2",
+                                                         "--process-id", "0"], tmp_path, cache),
+             _start_cli(_cli(fit_file, port, 0, 0), tmp_path, cache)]
+    if not scheduled:  # (a scheduler's variables would be detected as a cluster)
+        procs.append(_start_cli(["fit", str(fit_file), "--distributed"], tmp_path, cache))
+    results = _finish(procs)
+    expected = [(1, f"could not reach the coordinator 127.0.0.1:{port} within 2 s ("),
+                (2, "--coordinator must be HOST:PORT (process 0's address and a free port, 1 "
+                    "to 65535), got 'nope'"),
+                (2, "--num-processes must be at least 1, got 0"),
+                (2, "--distributed: no cluster was detected to join (SLURM, Open MPI, a cloud "
+                    "cluster); give --coordinator HOST:PORT, --num-processes N and "
+                    "--process-id I")]
+    for (rc, _, err), (code, message) in zip(results, expected):
+        assert rc == code, err[-3000:]
+        assert _last_line(err).startswith(f"jaxnm fit: error: {message}"), err[-3000:]
+        assert "Traceback" not in err and "stack trace" not in err
+    assert not (tmp_path / "fit_out").exists()
+

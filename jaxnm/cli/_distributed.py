@@ -24,9 +24,13 @@ def _join(args) -> None:
         raise ValueError("--coordinator, --num-processes and --process-id need --distributed")
     if any(v is not None for v in explicit) and not all(v is not None for v in explicit):
         raise ValueError("--coordinator, --num-processes and --process-id go together")
+    if args.num_processes is not None and args.num_processes < 1:
+        raise ValueError(f"--num-processes must be at least 1, got {args.num_processes}")
     if args.num_processes is not None and not 0 <= args.process_id < args.num_processes:
         raise ValueError(f"--process-id must be 0 to {args.num_processes - 1}, got "
                          f"{args.process_id}")
+    if args.coordinator is not None:
+        _host_port(args.coordinator)
     timeout = DEFAULT_TIMEOUT if args.timeout is None else args.timeout
     if not (math.isfinite(timeout) and timeout >= 1):
         raise ValueError(f"--timeout must be a number of seconds >= 1, got {timeout}")
@@ -41,13 +45,50 @@ def _join(args) -> None:
     timeouts = {"initialization_timeout": t, "heartbeat_timeout_seconds": t}
     if "shutdown_timeout_seconds" in inspect.signature(jax.distributed.initialize).parameters:
         timeouts["shutdown_timeout_seconds"] = t  # (not in the oldest JAX jaxnm supports)
+    if args.coordinator is not None and args.process_id != 0:
+        _wait_for(args.coordinator, t)  # (process 0 serves it)
     try:
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id,
                                    **timeouts)
     except Exception as e:  # noqa: BLE001 (one line, whatever the runtime raised)
+        if args.coordinator is None and isinstance(e, ValueError):
+            raise ValueError(f"--distributed: no cluster was detected to join (SLURM, Open "
+                             f"MPI, a cloud cluster); give --coordinator HOST:PORT, "
+                             f"--num-processes N and --process-id I ({_first_line(e)})"
+                             ) from None
         where = args.coordinator or "the detected cluster"
         raise _Lost(f"could not join the other processes through {where} within {t} s: "
                     f"{_first_line(e)}") from None
+
+
+def _host_port(address: str) -> tuple[str, int]:
+    """``--coordinator``'s host and port, or a ValueError naming the flag."""
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"--coordinator must be HOST:PORT (process 0's address and a free "
+                         f"port, 1 to 65535), got {address!r}")
+    return host.strip("[]"), int(port)
+
+
+def _wait_for(address: str, seconds: float) -> None:
+    """Wait until process 0's coordinator at ``address`` takes a connection, for at most
+    ``seconds``; else `_Lost`. JAX's own wait for an unreachable coordinator ends the process
+    with a fatal error and a native stack trace, not an exception."""
+    import socket
+    import time
+
+    host, port = _host_port(address)
+    end = time.monotonic() + seconds
+    while True:
+        try:
+            with socket.create_connection((host, port), timeout=min(5.0, seconds)):
+                return
+        except OSError as e:
+            if time.monotonic() >= end:
+                raise _Lost(f"could not reach the coordinator {address} within "
+                            f"{seconds:g} s ({e.strerror or e}); is process 0 running "
+                            f"there?") from None
+        time.sleep(0.25)
 
 
 class _Lost(RuntimeError):

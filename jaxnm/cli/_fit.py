@@ -286,7 +286,9 @@ def _mark_checkpoint_removed(out: Path) -> None:
 
 def _summary(rep: dict) -> str:
     """The one line that says how the fit went."""
-    line = f"fit {rep['stopped_because']} after {rep['steps']} steps in {rep['fit_seconds']:.1f} s"
+    n = rep["steps"]
+    line = (f"fit {rep['stopped_because']} after {n} step{'' if n == 1 else 's'} in "
+            f"{rep['fit_seconds']:.1f} s")
     if rep["interrupted"] and rep.get("interrupted_phase") == "writing":
         line += " (Ctrl-C while writing: " + ", ".join(rep.get("skipped", [])) + " left out)"
     if "error" in rep:
