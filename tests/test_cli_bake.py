@@ -266,6 +266,8 @@ def test_the_summary_says_when_no_pixel_was_scored_and_when_images_are_identical
     (["{d}/hi.obj", "{d}/lo.obj", "--method", "raycast", "--views", "3"],
      "jaxnm bake: error: --views: an option of the fit, and --method raycast fits nothing"),
     (["{d}/hi.obj", "{d}/nope.obj"], "jaxnm bake: error: {d}/nope.obj: no such file"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--size", "2"],
+     "jaxnm bake: error: --size must be an integer >= 4, got 2"),
     (["{d}/hi.obj", "--decimate", "10", "--cage-mesh", "{d}/lo.obj"],
      "jaxnm bake: error: --cage-mesh: a cage has LOW's triangles, and --decimate makes new "
      "ones; give LOW and its cage, or --cage DIST"),

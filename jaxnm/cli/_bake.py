@@ -120,6 +120,8 @@ def _check_shape(args) -> None:
             raise ValueError(f"{flag} must be a finite distance >= 0, got {v}")
     if args.max_steps is not None and args.max_steps < 1:
         raise ValueError(f"--max-steps must be at least 1, got {args.max_steps}")
+    if args.size < 4:  # (the library takes a (height, width) pair too; the command a side)
+        raise ValueError(f"--size must be an integer >= 4, got {args.size}")
     if args.store == "bc5" and args.size % 4:
         raise ValueError(f"--store bc5: a BC5 map's side must be a multiple of 4, got "
                          f"--size {args.size}")
