@@ -656,7 +656,7 @@ def load_image_float(path: PathLike) -> tuple[np.ndarray, int]:
     """Like `load_texture` (all channels) but also reads OpenEXR (.exr), e.g. target images.
 
     EXR is read through the OpenEXR bindings (the ``exr`` extra:
-    ``pip install jaxnm[exr]``); without them an `ImportError` says so.
+    ``pip install -e ".[exr]"``); without them an `ImportError` says so.
     """
     p = _existing_file(path)
     ext = _check_extension(p, IMAGE_EXTENSIONS, "image")
@@ -721,7 +721,7 @@ def _read_exr(p: Path) -> np.ndarray:
         import OpenEXR
     except ImportError:
         raise ImportError(f"{p}: reading EXR images needs the OpenEXR bindings: "
-                          "pip install 'jaxnm[exr]'") from None
+                          'pip install -e ".[exr]"') from None
 
     src = str(p)
     try:
@@ -879,7 +879,7 @@ def save_json(path: PathLike, obj: Any) -> None:
 def save_loss_plot(path: PathLike, history: list[dict]) -> bool:
     """Plot the loss (log scale) and, when recorded, the mean angular error per iteration.
 
-    Needs matplotlib (the ``cli`` extra: ``pip install jaxnm[cli]``); returns False,
+    Needs matplotlib (the ``cli`` extra: ``pip install -e ".[cli]"``); returns False,
     writing nothing, when it is not installed. Written atomically (`atomic_write`), as a PNG
     (the name must end in ``.png``).
     """

@@ -54,7 +54,7 @@ palette the decoders read: interpolated entries truncated to 8 bits, as texture2
 Pillow decode them. It runs in JAX over all blocks at once (`encode_blocks` with
 ``encoder="angular"``; BC5 only).
 
-These need the ``storage`` extra: ``pip install jaxnm[storage]`` (Pillow, texture2ddecoder,
+These need the ``storage`` extra: ``pip install -e ".[storage]"`` (Pillow, texture2ddecoder,
 quicktex, etcpak).
 """
 
@@ -114,7 +114,7 @@ def require_module(module: str):
     try:
         return __import__(module)
     except ImportError:
-        raise ImportError(f"jaxnm.storage needs {module}: pip install 'jaxnm[storage]'") from None
+        raise ImportError(f'jaxnm.storage needs {module}: pip install -e ".[storage]"') from None
 
 
 def _check_option(func: str, name: str, value, valid) -> None:

@@ -289,6 +289,37 @@ def test_bad_input_is_one_line_naming_the_file(files, tmp_path, capsys, argv, me
     assert not out.exists()
 
 
+@pytest.mark.parametrize("argv,missing", [
+    (["{d}/hi.obj", "{d}/lo.obj", "--unwrap"], "embreex, xatlas and flip-evaluator"),
+    (["{d}/hi.obj", "{d}/lo.obj"], "embreex and flip-evaluator"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--method", "fit", "--eval-views", "0"], None),
+    (["{d}/hi.obj", "{d}/lo.obj", "--method", "fit", "--eval-views", "0", "--unwrap"],
+     "xatlas"),
+    (["{d}/hi.obj", "--decimate", "50", "--method", "fit", "--eval-views", "0"],
+     "xatlas and fast-simplification"),
+])
+def test_a_missing_bake_extra_is_named_before_the_meshes_are_read(files, tmp_path, capsys,
+                                                                   monkeypatch, argv, missing):
+    """Without the bake extra's packages (hidden here), the command names those this bake
+    needs and how to install them, before it reads a mesh (it said so only where each
+    package was first used, after minutes of work)."""
+    import importlib.util
+
+    import jaxnm.cli._bake as cli_bake
+
+    real = importlib.util.find_spec
+    hidden = ("embreex", "xatlas", "fast_simplification", "flip_evaluator")
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name in hidden else real(name, *a))
+    monkeypatch.setattr(cli_bake, "_meshes", lambda *a: pytest.fail("read") if missing else
+                        (_ for _ in ()).throw(ValueError("reached the meshes")))
+    rc = _bake("-o", tmp_path / "o", *[a.format(d=files) for a in argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    expected = (f'this bake needs {missing}, from the bake extra: pip install -e ".[bake]"'
+                if missing else "reached the meshes")
+    assert rc == 2 and err[-1] == f"jaxnm bake: error: {expected}", err
+
+
 def test_a_low_mesh_wound_inwards_is_named(files, tmp_path, capsys):
     """A closed LOW turned inside out: a warning names it, and the fit, which no view shows
     its front faces to, says why instead of "do not overlap"."""

@@ -145,6 +145,24 @@ def _check_shape(args) -> None:
                          f"non-coplanar directions determine a normal), got {args.lights}")
 
 
+def _check_extra(args) -> None:
+    """An ImportError naming the ``bake`` extra's packages that this bake needs and this
+    environment lacks: before any mesh is read, not where each is first used."""
+    import importlib.util
+
+    needs = [("embreex", "embreex", args.method != "fit"),
+             ("xatlas", "xatlas", args.unwrap or args.decimate is not None),
+             ("fast_simplification", "fast-simplification", args.decimate is not None),
+             ("flip_evaluator", "flip-evaluator", args.eval_views != 0)]
+    missing = [package for module, package, needed in needs
+               if needed and importlib.util.find_spec(module) is None]
+    if missing:
+        names = " and ".join([", ".join(missing[:-1]), missing[-1]] if len(missing) > 1
+                             else missing)
+        raise ImportError(f"this bake needs {names}, from the bake extra: "
+                          'pip install -e ".[bake]"')
+
+
 def _check_inputs(args) -> None:
     """A FileNotFoundError naming the first of HIGH, LOW and the cage mesh that is not a
     file: before any is read, so that a wrong name is not found after minutes of work."""
@@ -210,6 +228,7 @@ def run(args, ctrl_c: CtrlC) -> int:
         encode_blocks(np.zeros((4, 4, 2), np.uint8), format="bc5")  # the storage extra
     out = output_path("-o", args.output, folder=True)
     _check_inputs(args)
+    _check_extra(args)
     ctrl_c.output = out
     high, low, low_name, cage, made = _meshes(args, _say)
     ctrl_c.check()

@@ -5,8 +5,8 @@
         [--solver lm-texel] [--texel-sums auto] [--devices N]
 
 (from the repository root). The problem is `scripts.benchmarks.bench_problem` (its docstring
-defines it in full); Mitsuba's side is `scripts.benchmarks.bench_mitsuba` (``pip install
-'jaxnm[bench]'`` and a system libLLVM; without them its columns say why). jaxnm is measured
+defines it in full); Mitsuba's side is `scripts.benchmarks.bench_mitsuba` (``pip install -e
+'.[bench]'`` and a system libLLVM; without them its columns say why). jaxnm is measured
 as a user calls it: `jaxnm.render` and `jaxnm.fit` with JAX's defaults, no thread, allocator
 or XLA setting changed by the benchmark. Every figure is a median of ``--repeats`` runs on
 this machine (`scripts.benchmarks.timing`), and jaxnm's and Mitsuba's are measured in the

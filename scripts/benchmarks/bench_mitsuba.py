@@ -13,7 +13,7 @@ uses too. Mitsuba is imported lazily, so this module imports without it:
   `forward_times(problem)`: their timings.
 - `fit(problem, budget_s=...)`: the benchmark's Adam fit of the map.
 
-**Setup** (``pip install 'jaxnm[bench]'``, i.e. ``mitsuba==3.9.1 drjit==1.5.0``): Dr.Jit's
+**Setup** (``pip install -e '.[bench]'``, i.e. ``mitsuba==3.9.1 drjit==1.5.0``): Dr.Jit's
 LLVM backend loads the system's LLVM shared library (>= 15) from ``DRJIT_LIBLLVM_PATH``.
 If that is unset, this module sets it, before Mitsuba is imported, to the newest
 ``libLLVM`` it finds in the usual places (Debian: ``apt-get install libllvm19``). LLVM 15
@@ -85,7 +85,7 @@ VARIANT = "llvm_ad_rgb"
 #: Mitsuba's defaults are True; off, the radiance is the benchmark's 0.8 max(0, n'.l)
 FLIP_INVALID_NORMALS = False
 USE_SHADOWING_FUNCTION = False
-INSTALL_HINT = ("pip install 'jaxnm[bench]' (mitsuba==3.9.1 drjit==1.5.0) and a system libLLVM "
+INSTALL_HINT = ("pip install -e '.[bench]' (mitsuba==3.9.1 drjit==1.5.0) and a system libLLVM "
                 ">= 15 (Debian: apt-get install libllvm19), found via DRJIT_LIBLLVM_PATH")
 
 _LLVM_GLOBS = (
