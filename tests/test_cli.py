@@ -418,6 +418,22 @@ def test_the_checkpoint_goes_when_the_fit_ends_unless_asked_for(tmp_path, option
         assert _fit(path, "-o", out, "--no-progress", "--resume", *options) == 0
 
 
+def test_a_fit_without_matplotlib_says_why_there_is_no_loss_plot(tmp_path, capsys,
+                                                                   monkeypatch):
+    """Without the cli extra's matplotlib (`save_loss_plot` returns False), the report and
+    a line on stderr say why ``loss.png`` is missing; the other outputs are written."""
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # (an import of it then fails)
+    monkeypatch.setitem(sys.modules, "matplotlib.figure", None)
+    out = tmp_path / "out"
+    assert _fit(_fit_folder(tmp_path / "job"), "-o", out, "--no-progress", "--max-steps",
+                "1") == 0
+    report = json.loads((out / "report.json").read_text())
+    why = 'not drawn: matplotlib is not installed (the cli extra: pip install -e ".[cli]")'
+    assert report["loss_plot"] == why
+    assert f"no loss.png: {why}" in capsys.readouterr().err
+    assert not (out / "loss.png").exists() and (out / "normal_map.png").is_file()
+
+
 def test_every_key_of_the_report_is_documented(tmp_path):
     """Each key a fit's ``report.json`` holds is explained on the command-line page, and each
     key the page explains is one the code writes."""

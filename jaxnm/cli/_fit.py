@@ -15,6 +15,9 @@ from ._interrupt import CtrlC
 __all__ = ["add_parser", "run", "check_arguments", "read_job", "write_outputs",
            "CHECKPOINT_NAME", "DEFAULT_TIMEOUT", "OVERRIDES", "release_freed_memory"]
 
+#: Why ``jaxnm fit`` wrote no ``loss.png`` (``report.json``'s ``loss_plot``).
+_NO_PLOT = 'not drawn: matplotlib is not installed (the cli extra: pip install -e ".[cli]")'
+
 #: The checkpoint ``jaxnm fit`` keeps in its output folder (`jaxnm.fit.checkpoint`).
 CHECKPOINT_NAME = "checkpoint.npz"
 
@@ -235,6 +238,8 @@ def run(args, ctrl_c: CtrlC, *, process: tuple[int, int] = (0, 1), images=None) 
         written += _settle_checkpoint(args, out, rep["interrupted"])
     print(_summary(rep))
     print(f"outputs in {out}/ ({', '.join(written)})")
+    if "loss_plot" in rep:
+        say(f"no loss.png: {_NO_PLOT}")
     return 130 if rep["interrupted"] else 0
 
 
@@ -363,6 +368,8 @@ def write_outputs(out: Path, job, prep, result, prepare_seconds: float, held_out
             written += io.write_fit_renders(out, fit_renders(prep, result.normals))
         elif io.save_loss_plot(out / "loss.png", result.history):
             written.append("loss.png")
+        else:
+            report["loss_plot"] = _NO_PLOT
     del report["pending"]
     if skipped:
         report["skipped"] = skipped
