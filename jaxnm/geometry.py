@@ -177,11 +177,15 @@ def check_mesh_arrays(positions, faces, uv=None, normals=None, *, source: str = 
 
 def _check_values(positions, faces, uv, normals, num_vertices: int, source: str) -> None:
     """The value checks of `check_mesh_arrays`, on whichever arrays are concrete."""
-    if _is_concrete(positions):
-        bad = ~np.all(np.isfinite(np.asarray(positions)), axis=1)
+    for one, many, arr in (("vertex position", "vertex positions", positions),
+                           ("vertex uv", "vertex uvs", uv),
+                           ("vertex normal", "vertex normals", normals)):
+        if arr is None or not _is_concrete(arr):
+            continue
+        bad = ~np.all(np.isfinite(np.asarray(arr)), axis=1)
         if bad.any():
             n = int(bad.sum())
-            what = "1 vertex position is" if n == 1 else f"{n} vertex positions are"
+            what = f"1 {one} is" if n == 1 else f"{n} {many} are"
             raise ValueError(f"{source}: {what} NaN or infinite (the first: vertex "
                              f"{int(np.argmax(bad))}, counting from 0)")
     if _is_concrete(faces):
@@ -190,9 +194,6 @@ def _check_values(positions, faces, uv, normals, num_vertices: int, source: str)
         if lo < 0 or hi >= num_vertices:
             raise ValueError(f"{source}: face indices must be in [0, {num_vertices - 1}], "
                              f"found {lo if lo < 0 else hi}")
-    for name, arr in (("uv", uv), ("normals", normals)):
-        if arr is not None and _is_concrete(arr) and not np.all(np.isfinite(np.asarray(arr))):
-            raise ValueError(f"{source}: {name} contain NaN or infinite values")
 
 
 def _is_concrete(x) -> bool:

@@ -470,6 +470,14 @@ def test_value_checks_are_for_where_scenes_are_made():
         geometry.check_mesh_arrays(host, mesh.faces, mesh.uv, mesh.normals, source="m")
     with pytest.raises(ValueError, match=r"m: positions must have shape \(V, 3\)"):
         geometry.check_mesh_arrays(host[:, :2], mesh.faces, values=False, source="m")
+    uv, normals = np.array(mesh.uv), np.array(mesh.normals)
+    uv[2, 1], normals[[0, 3], 0] = np.nan, np.inf  # counted and named as positions are
+    with pytest.raises(ValueError, match=r"^m: 1 vertex uv is NaN or infinite \(the first: "
+                       r"vertex 2, counting from 0\)$"):
+        geometry.check_mesh_arrays(mesh.positions, mesh.faces, uv, mesh.normals, source="m")
+    with pytest.raises(ValueError, match=r"^m: 2 vertex normals are NaN or infinite \(the "
+                       r"first: vertex 0, counting from 0\)$"):
+        geometry.check_mesh_arrays(mesh.positions, mesh.faces, mesh.uv, normals, source="m")
 
 
 @pytest.mark.parametrize("size", [WHOLE, PACKED])  # the whole image; packed pixels
