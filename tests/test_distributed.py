@@ -287,9 +287,8 @@ def test_a_process_that_cannot_reach_or_name_its_coordinator_stops_in_one_line(f
     port = _port()  # nobody listens
     scheduled = any(k.startswith(("SLURM_", "OMPI_", "PMI_")) for k in os.environ)
     procs = [_start_cli(_cli(fit_file, port, 1, 2, timeout=2), tmp_path, cache),
-             _start_cli(_cli(fit_file, "x", 0, 2)[:3] + ["--coordinator", "nope",
-                                                         "--num-processes", "2",
-                                                         "--process-id", "0"], tmp_path, cache),
+             _start_cli(["fit", str(fit_file), "--distributed", "--coordinator", "nope",
+                         "--num-processes", "2", "--process-id", "0"], tmp_path, cache),
              _start_cli(_cli(fit_file, port, 0, 0), tmp_path, cache)]
     if not scheduled:  # (a scheduler's variables would be detected as a cluster)
         procs.append(_start_cli(["fit", str(fit_file), "--distributed"], tmp_path, cache))
