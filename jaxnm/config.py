@@ -278,6 +278,15 @@ def _map_options(spec: dict, known, where: str, **fixed) -> NormalMapOptions:
         raise ValueError(f"{where}{str(e).removeprefix('NormalMapOptions: ')}") from None
 
 
+def _reading(where: str, read, *args, **kwargs):
+    """``read(*args, **kwargs)``, a file reader whose ValueError (a file that is not what it
+    should be) then also names the scene or fit file and the field, ``where``."""
+    try:
+        return read(*args, **kwargs)
+    except ValueError as e:
+        raise ValueError(f"{where}{e}") from None
+
+
 #: The file formats each kind of input is read in (by its name's extension).
 _FORMATS = {"mesh": io.MESH_EXTENSIONS, "texture": io.TEXTURE_EXTENSIONS,
             "normal map": (*io.TEXTURE_EXTENSIONS, ".dds"), "image": io.IMAGE_EXTENSIONS}
@@ -329,7 +338,7 @@ def _normal_map_loader(spec: Any, *, base_dir=".", where: str = ""):
         def dds():
             from .storage import load_dds_normal_map
 
-            m = load_dds_normal_map(path)
+            m = _reading(w, load_dds_normal_map, path)
             return m.texels.astype(np.float32), m.options(opts)
         return dds
     if opts.encoding == "signed" and path.suffix.lower() in _INTEGER_IMAGES:
@@ -337,7 +346,7 @@ def _normal_map_loader(spec: Any, *, base_dir=".", where: str = ""):
                          "8/16-bit image stores unsigned values")
 
     def image():
-        raw, bits = io.load_texture(path, channels=opts.channels)
+        raw, bits = _reading(w, io.load_texture, path, channels=opts.channels)
         if opts.encoding == "signed" and bits in (8, 16):
             raise ValueError(f"{w}{ref!r}: encoding 'signed' needs float data (.npy/.npz); an "
                              "8/16-bit image stores unsigned values")
@@ -364,7 +373,7 @@ def _height_map_loader(spec: Any, *, base_dir=".", where: str = ""):
     path = _input_file(Path(base_dir), ref, "height_map", where, "texture")
 
     def load():
-        raw, _ = io.load_texture(path, channels=1)
+        raw, _ = _reading(w, io.load_texture, path, channels=1)
         d = np.array(height_to_derivative_map(raw[..., 0], scale=scale, wrap=opts.wrap))
         if opts.uv_origin == "top_left":  # v grows down the image: dh/dv changes sign
             d[..., 1] = -d[..., 1]
@@ -393,7 +402,7 @@ def _albedo_loader(spec: Any, base: Path, where: str):
     path = _input_file(base, spec["path"], "albedo", where, "texture")
 
     def load():
-        tex, _ = io.load_texture(path, channels=3)
+        tex, _ = _reading(f"{where}albedo: ", io.load_texture, path, channels=3)
         return np.asarray(srgb_to_linear(tex) if srgb else tex, np.float32)
     return load
 
@@ -410,7 +419,7 @@ def _mesh_loader(ref: Any, base: Path, where: str):
                              f"{', '.join(BUILTIN_MESHES)}")
         return lambda: builtin_mesh(name)
     path = _input_file(base, ref, "mesh", where, "mesh")
-    return lambda: io.load_mesh(path)
+    return lambda: _reading(f"{where}mesh: ", io.load_mesh, path)
 
 
 # --------------------------------------------------------------------------------------
@@ -512,7 +521,7 @@ def _scene_loader(data: Any, *, base_dir=".", source: str = "<dict>"):
 
 
 def _image(path: Path, color_space: str | None, where: str) -> np.ndarray:
-    img, bits = io.load_image_float(path)
+    img, bits = _reading(where, io.load_image_float, path)
     if img.ndim == 3 and img.shape[2] == 4:
         img = img[..., :3]
     if img.ndim != 3 or img.shape[2] != 3:
@@ -681,7 +690,7 @@ def _read_target(bare: FitTarget, image: Path, color_space, mask: Path | None,
     _check_size(img, bare.width, bare.height, f"image: {image}", where)
     m = None
     if mask is not None:
-        m = io.load_texture(mask)[0][..., 0] > 0.5
+        m = _reading(f"{where}mask: ", io.load_texture, mask)[0][..., 0] > 0.5
         _check_size(m, bare.width, bare.height, f"mask: {mask}", where)
     return dataclasses.replace(bare, image=img, mask=m)
 
@@ -697,7 +706,7 @@ def _ground_truth_loader(spec: Any, base: Path, map_size: tuple[int, int], where
     path = _input_file(base, spec["path"], "ground_truth", where, "texture")
 
     def load():
-        raw, bits = io.load_texture(path, channels=3)
+        raw, bits = _reading(w, io.load_texture, path, channels=3)
         if raw.shape[:2] != tuple(map_size):
             raise ValueError(f"{w}{path} is {raw.shape[1]}x{raw.shape[0]}, but the map is "
                              f"{map_size[1]}x{map_size[0]}")

@@ -293,6 +293,40 @@ def test_a_scene_file_is_checked_whole_before_any_file_is_read(tmp_path, monkeyp
     assert not read
 
 
+def test_a_file_that_does_not_read_names_the_scene_or_fit_file_and_its_field(tmp_path,
+                                                                             capsys):
+    """A named file that exists but does not read (not an image, NaN values, a broken OBJ)
+    is one line naming the scene or fit file and the field, as a missing one is (it named
+    the inner file alone)."""
+    path = _scene_folder(tmp_path)
+    (tmp_path / "map.png").write_text("not a png")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", io.JaxnmWarning)  # (the quad's normals, computed)
+        assert main(["render", str(path), "-o", str(tmp_path / "r.png")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"jaxnm render: error: {path}: normal_map: {tmp_path / 'map.png'}: "
+                          "not an image or unreadable"), err
+    (tmp_path / "quad.obj").write_text("v 0 0 0\nvn 0 0 1\nf 1//1 2//1 3//1\n")
+    assert main(["render", str(path), "-o", str(tmp_path / "r.png")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"jaxnm render: error: {path}: mesh: {tmp_path / 'quad.obj'}: line 3: "
+                          "a face refers to vertex 2"), err
+    fit = _fit_folder(tmp_path / "job")
+    data = json.loads(fit.read_text())
+    np.save(fit.parent / "t1.npy", np.full((24, 24, 3), np.nan, np.float32))
+    data["targets"][0]["mask"] = "scene.json.png"
+    (fit.parent / "scene.json.png").write_text("{}")
+    for target, field, problem in ((0, "mask", "not an image or unreadable"),
+                                   (1, "image", "the image contains NaN or infinite values")):
+        fit.write_text(json.dumps(data))
+        assert _fit(fit, "-o", tmp_path / "out") == 2
+        name = {"mask": "scene.json.png", "image": "t1.npy"}[field]
+        line = capsys.readouterr().err.strip().splitlines()[-1]
+        assert line.startswith(f"jaxnm fit: error: {fit}: targets[{target}]: {field}: "
+                               f"{fit.parent / name}: {problem}"), line
+        data["targets"][0].pop("mask", None)
+
+
 def test_a_fit_file_is_checked_whole_and_targets_against_their_view(tmp_path, monkeypatch,
                                                                     capsys):
     """A target image of the wrong size is reported when it is read, before the scene's mesh
