@@ -157,8 +157,7 @@ def _check_extra(args) -> None:
     missing = [package for module, package, needed in needs
                if needed and importlib.util.find_spec(module) is None]
     if missing:
-        names = " and ".join([", ".join(missing[:-1]), missing[-1]] if len(missing) > 1
-                             else missing)
+        names = (", ".join(missing[:-1]) + " and " if len(missing) > 1 else "") + missing[-1]
         raise ImportError(f"this bake needs {names}, from the bake extra: "
                           'pip install -e ".[bake]"')
 

@@ -106,7 +106,8 @@ def warn_outside_unit_square(uv: np.ndarray, f: np.ndarray, name: str) -> None:
     t = uv[f]
     out = ((t < -_UV_SLACK) | (t > 1 + _UV_SLACK)).any(axis=(1, 2))
     if out.any():
-        lo, hi = uv[f[out]].reshape(-1, 2).min(0), uv[f[out]].reshape(-1, 2).max(0)
+        corners = t[out].reshape(-1, 2)
+        lo, hi = corners.min(0), corners.max(0)
         warnings.warn(f"{name}: {int(out.sum())} of {len(f)} triangles reach outside the unit "
                       f"uv square (u {lo[0]:.3g} to {hi[0]:.3g}, v {lo[1]:.3g} to "
                       f"{hi[1]:.3g}; first: face {int(np.argmax(out))}); the map covers [0, 1] "
