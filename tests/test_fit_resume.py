@@ -24,6 +24,7 @@ from jaxnm import fit as F
 from jaxnm.cli import _interrupt as cli_interrupt
 from jaxnm.cli import main
 from jaxnm.cli._fit import CHECKPOINT_NAME as _CHECKPOINT_NAME
+from jaxnm.fit.report import stopped_in_words
 from jaxnm.fit.texel_lm import TexelLM
 from jaxnm.io import atomic_write, load_texture
 from jaxnm.procedural import default_problem
@@ -215,6 +216,21 @@ def test_resuming_with_more_steps_continues_the_fit(small, tmp_path):
     ref = F.fit_normal_map(problem, longer, prepared=prep, progress=False)
     assert _losses(res) == _losses(ref) and len(res.history) == 10
     np.testing.assert_array_equal(res.slopes, ref.slopes)
+
+
+def test_resuming_with_fewer_steps_returns_the_checkpoint_and_says_so(small, tmp_path):
+    """A checkpoint already past the step limit is the result, with no step taken, and the
+    words for its stop say so, not that it reached the limit."""
+    problem, _, prep = small
+    opts = F.FitOptions(max_steps=3, ftol=0.0)
+    ck = tmp_path / "fit.npz"
+    ref = F.fit_normal_map(problem, opts, prepared=prep, progress=False, checkpoint=ck)
+    fewer = dataclasses.replace(opts, max_steps=2)
+    res = F.fit_normal_map(problem, fewer, prepared=prep, progress=False, resume=ck)
+    np.testing.assert_array_equal(res.slopes, ref.slopes)
+    assert _losses(res) == _losses(ref)
+    assert stopped_in_words(res, fewer) == "was resumed past the step limit (2 steps)"
+    assert stopped_in_words(ref, opts) == "reached the step limit (3 steps)"
 
 
 def test_no_checkpoint_unless_asked(small, tmp_path, monkeypatch):

@@ -90,9 +90,13 @@ def fit_renders(prep: Prepared, normals: np.ndarray) -> list:
 
 def stopped_in_words(result: FitResult, options) -> str:
     """Why a fit stopped, for people: ``"reached the step limit"`` for ``"max_steps"``,
-    and so on (``report.json``'s ``"stopped_because"``)."""
+    and so on (``report.json``'s ``"stopped_because"``). A fit resumed from a checkpoint
+    already past ``options.max_steps`` (no step taken) says so."""
     n = options.max_steps
     limit = f"{n} step{'' if n == 1 else 's'}{' a level' if options.coarse_to_fine else ''}"
+    last = result.history[-1] if result.history else {"step": 0}
+    if result.stopped == "max_steps" and last["step"] > n:
+        return f"was resumed past the step limit ({limit})"
     words = {
         "converged": "converged",
         "max_steps": f"reached the step limit ({limit})",

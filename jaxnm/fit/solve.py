@@ -350,14 +350,14 @@ class _Progress:
     def __init__(self, total: int, mode: bool | str, done: int = 0):
         self.bar = None
         self.enabled = bool(mode)
-        self.total = total
+        self.total = max(total, done)  # a checkpoint past the step limit: nothing left
         self.count = done
         if mode is True:
             try:
                 from tqdm import tqdm
             except ImportError:
                 return
-            self.bar = tqdm(total=total, initial=done, desc="fit", unit="step",
+            self.bar = tqdm(total=self.total, initial=done, desc="fit", unit="step",
                             dynamic_ncols=True)
 
     def update(self, rec: dict) -> None:
