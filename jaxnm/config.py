@@ -350,6 +350,9 @@ def _normal_map_loader(spec: Any, *, base_dir=".", where: str = ""):
         if opts.encoding == "signed" and bits in (8, 16):
             raise ValueError(f"{w}{ref!r}: encoding 'signed' needs float data (.npy/.npz); an "
                              "8/16-bit image stores unsigned values")
+        if opts.space == "tangent":
+            io.check_tangent_normal_map(raw, encoding=opts.encoding, channels=opts.channels,
+                                        source=f"{w}{ref}")
         return raw.astype(np.float32), dataclasses.replace(
             opts, bits=bits if bits in (8, 16) else opts.bits)
     return image
@@ -710,6 +713,7 @@ def _ground_truth_loader(spec: Any, base: Path, map_size: tuple[int, int], where
         if raw.shape[:2] != tuple(map_size):
             raise ValueError(f"{w}{path} is {raw.shape[1]}x{raw.shape[0]}, but the map is "
                              f"{map_size[1]}x{map_size[0]}")
+        io.check_tangent_normal_map(raw, encoding=opts.encoding, source=f"{w}{spec['path']}")
         gt = np.asarray(decode_normal_map(jnp.asarray(raw), encoding=opts.encoding,
                                           green=opts.green, bits=bits if bits in (8, 16)
                                           else 8), np.float64)

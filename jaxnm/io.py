@@ -52,7 +52,7 @@ __all__ = [
     "load_aovs", "load_json", "save_json", "save_loss_plot", "write_fit_outputs",
     "write_fit_renders", "atomic_write", "writable", "unfinished_writes", "PathLike",
     "MESH_EXTENSIONS", "TEXTURE_EXTENSIONS", "IMAGE_EXTENSIONS", "save_obj", "save_normal_map_npz",
-    "save_figure_grid"
+    "save_figure_grid", "check_tangent_normal_map", "INWARD_Z", "INWARD_SHARE"
 ]
 
 PathLike = str | os.PathLike
@@ -650,6 +650,39 @@ def load_texture(path: PathLike, *, channels: int | None = None) -> tuple[np.nda
     ext = _check_extension(p, TEXTURE_EXTENSIONS, "texture")
     image, bits = _read_image(p, ext)
     return _select_channels(image, channels, str(p)), bits
+
+
+#: Decoded z below which a texel of a tangent-space map points into the surface.
+INWARD_Z = -0.05
+#: The share of a tangent-space map's texels (black ones left out) that may point into the
+#: surface before `check_tangent_normal_map` warns.
+INWARD_SHARE = 0.05
+
+
+def check_tangent_normal_map(raw, *, encoding: str = "unsigned", channels: int = 3,
+                             source: str = "normal map") -> None:
+    """Warn (`JaxnmWarning`) when ``raw``, a 3-channel tangent-space normal map as stored
+    (float ``(H, W, 3)``, ``encoding`` as `jaxnm.textures.NormalMapOptions`), looks like
+    another kind of map: every texel black, or more than `INWARD_SHARE` of the others
+    pointing into the surface (decoded z below `INWARD_Z`). A tangent-space map's normals
+    point out of the surface (z > 0); an object-space map's point every way, so about half
+    of them have z < 0. Black texels (0 in every channel) are a baker's background and are
+    not counted. Two-channel maps rebuild z >= 0 and are not checked."""
+    if channels != 3:
+        return
+    raw = np.asarray(raw, np.float32)
+    black = np.all(raw == 0, axis=-1)
+    if black.all():
+        warnings.warn(f"{source}: every texel is black (0, 0, 0), which is no normal",
+                      JaxnmWarning, stacklevel=2)
+        return
+    z = raw[..., 2] if encoding == "signed" else 2 * raw[..., 2] - 1
+    share = float(np.count_nonzero((z < INWARD_Z) & ~black) / np.count_nonzero(~black))
+    if share > INWARD_SHARE:
+        warnings.warn(f"{source}: {share:.0%} of its texels point into the surface (z < 0 "
+                      "once decoded), where a tangent-space map's point out of it; is it an "
+                      "object-space map? (a scene file's normal_map takes \"space\": "
+                      "\"object\")", JaxnmWarning, stacklevel=2)
 
 
 def load_image_float(path: PathLike) -> tuple[np.ndarray, int]:

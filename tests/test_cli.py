@@ -248,6 +248,32 @@ def test_warnings_are_one_line_naming_the_file(tmp_path, capsys):
     assert "no view has at least three lights" in warned[0]
 
 
+def test_an_object_space_map_given_as_tangent_space_warns(tmp_path, capsys):
+    """A normal map half of whose texels point into the surface is named as a likely
+    object-space map, from a scene file (with its field) and from ``--normal-map``; the
+    same map declared ``"space": "object"`` is not."""
+    u, v = np.meshgrid((np.arange(16) + 0.5) / 16, (np.arange(8) + 0.5) / 8)
+    n = np.stack([np.sin(np.pi * v) * np.cos(2 * np.pi * u),
+                  np.sin(np.pi * v) * np.sin(2 * np.pi * u), np.cos(np.pi * v)], -1)
+    scene = _scene_folder(tmp_path, mesh="builtin:torus")
+    io.save_png(tmp_path / "map.png", (n * 0.5 + 0.5).astype(np.float32))
+    out = str(tmp_path / "r.png")
+    for args, name in (([str(scene)], f"{scene}: normal_map: map.png"),
+                       (["--normal-map", str(tmp_path / "map.png")], str(tmp_path / "map.png"))):
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")
+            assert main(["render", *args, "-o", out]) == 0
+        err = capsys.readouterr().err.splitlines()
+        assert err == [f"jaxnm render: warning: {name}: 50% of its texels point into the "
+                       "surface (z < 0 once decoded), where a tangent-space map's point out of "
+                       "it; is it an object-space map? (a scene file's normal_map takes "
+                       "\"space\": \"object\")"], err
+    _scene_folder(tmp_path, mesh="builtin:torus",
+                  normal_map={"path": "map.png", "space": "object"})
+    io.save_png(tmp_path / "map.png", (n * 0.5 + 0.5).astype(np.float32))
+    assert main(["render", str(scene), "-o", out]) == 0  # (warnings are errors here)
+
+
 def _scene_folder(tmp_path: Path, **changes) -> Path:
     _quad_obj(tmp_path / "quad.obj")
     io.save_png(tmp_path / "map.png", np.full((8, 8, 3), 0.5, np.float32))

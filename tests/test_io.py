@@ -22,6 +22,7 @@ from PIL import Image
 from jaxnm.geometry import vertex_normals
 from jaxnm.io import (
     JaxnmWarning,
+    check_tangent_normal_map,
     load_aovs,
     load_image_float,
     load_json,
@@ -30,6 +31,7 @@ from jaxnm.io import (
     save_aovs,
     save_png,
 )
+from jaxnm.procedural import default_normal_map_texels
 
 DATA = Path(__file__).parent / "data"
 
@@ -844,3 +846,44 @@ def test_gltf_tangent_attribute_is_used_as_the_vertex_frame(tmp_path):
                                atol=1e-5)
     np.testing.assert_allclose(np.asarray(o["bitangent"])[m], np.tile([0, 1, 0], (m.sum(), 1)),
                                atol=1e-5)
+
+
+def _sphere_normals(h: int, w: int) -> np.ndarray:
+    """Unit normals of a sphere over a latitude-longitude grid: an object-space map's."""
+    u, v = np.meshgrid((np.arange(w) + 0.5) / w, (np.arange(h) + 0.5) / h)
+    theta, phi = 2 * np.pi * u, np.pi * v
+    return np.stack([np.sin(phi) * np.cos(theta), np.sin(phi) * np.sin(theta),
+                     np.cos(phi)], -1).astype(np.float32)
+
+
+def _warned(raw, **kw) -> list[str]:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_tangent_normal_map(raw, source="m.png", **kw)
+    assert all(issubclass(w.category, JaxnmWarning) for w in caught)
+    return [str(w.message) for w in caught]
+
+
+def test_a_map_of_another_kind_given_as_tangent_space_is_named():
+    """An object-space map (half its normals have z < 0) or a black image warns; tangent-space
+    maps do not, with a black background around their islands, and nor does a map with a
+    few texels tilted past the horizon."""
+    sphere = _sphere_normals(32, 64)
+    said = _warned(sphere * 0.5 + 0.5)
+    share = np.mean(sphere[..., 2] < -0.05)  # the 15 rows of 32 below the equator's band
+    assert said == [f"m.png: {share:.0%} of its texels point into the surface (z < 0 once "
+                    "decoded), where a tangent-space map's point out of it; is it an "
+                    "object-space map? (a scene file's normal_map takes \"space\": "
+                    "\"object\")"], said
+    assert len(_warned(sphere, encoding="signed")) == 1
+    assert _warned(np.zeros((4, 4, 3), np.float32)) == [
+        "m.png: every texel is black (0, 0, 0), which is no normal"]
+    rivets = np.asarray(default_normal_map_texels(64), np.float32)
+    assert _warned(rivets) == []
+    islands = rivets.copy()
+    islands[:, 40:] = 0.0  # a baker's black background
+    assert _warned(islands) == []
+    tilted = rivets.copy()
+    tilted[0, :8] = [1.0, 0.5, 0.3]  # 8 of 4,096 texels point inwards (z = -0.4)
+    assert _warned(tilted) == []
+    assert _warned(sphere[..., :2] * 0.5 + 0.5, channels=2) == []  # z rebuilt, >= 0

@@ -156,6 +156,7 @@ def _scene(args):
             m.options(scene.normal_map_options), green="up"))
     elif args.normal_map:
         raw, bits = io.load_texture(args.normal_map, channels=3)
+        io.check_tangent_normal_map(raw, source=args.normal_map)
         changes.update(normal_map=raw, normal_map_options=dataclasses.replace(
             scene.normal_map_options, encoding="unsigned", channels=3, green="up",
             space="tangent", bits=bits if bits in (8, 16) else 8))
