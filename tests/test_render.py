@@ -189,6 +189,10 @@ def test_cli_errors_are_one_line_and_exit_2(tmp_path, capsys):
                               "name must end in .npz"),
     (["--aov-list", "uv"], "--aov-list names the arrays that --aovs writes: give --aovs "
                            "OUT.npz too"),
+    (["--aovs", "{d}/a.npz", "--aov-list", " ,"],
+     "--aov-list names no array; name at least one of mask, triangle_id, depth, front_facing, "
+     "position, view, uv, normal, dpdx, dpdy, duvdx, duvdy, tangent, bitangent, "
+     "perturbed_normal, color"),
     (["--height-scale", "0.1"], "--height-scale scales the map --height-map reads: give "
                                 "--height-map PATH too"),
     (["--height-map", "{d}/h.png", "--height-scale", "inf"],

@@ -112,7 +112,9 @@ def _aov_names(args) -> tuple[str, ...]:
         return tuple(OUTPUTS)
     asked = tuple(dict.fromkeys(n.strip() for n in args.aov_list.split(",") if n.strip()))
     bad = [n for n in asked if n not in OUTPUTS]
-    if bad or not asked:
+    if not asked:
+        raise ValueError(f"--aov-list names no array; name at least one of {', '.join(OUTPUTS)}")
+    if bad:
         raise ValueError(f"--aov-list: unknown AOV names {bad}; known: {', '.join(OUTPUTS)}")
     return asked
 
