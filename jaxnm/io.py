@@ -212,7 +212,9 @@ def load_mesh(path: PathLike, *, require_uv: bool = False,
       (renormalised; zero-length or non-finite ones are replaced by computed
       ones with a `JaxnmWarning`) and computes angle-weighted normals with a
       `JaxnmWarning` where the file has none. ``"angle"`` or ``"area"`` always
-      recompute them with `jaxnm.geometry.vertex_normals`.
+      recompute them with `jaxnm.geometry.vertex_normals`. Computed normals are those
+      of the surface with the vertices at one position joined, so that an STL's
+      separate triangles or an OBJ's uv seams are shaded smoothly, not creased.
 
     **Tangents.** A glTF primitive's ``TANGENT`` attribute (``xyz`` and the sign
     ``w``, the bitangent being ``w * cross(N, T)``, pointing to the top of the
@@ -424,14 +426,14 @@ def _resolve_normals(pos: np.ndarray, faces: np.ndarray, file_n: np.ndarray,
     """Final (V, 3) float32 unit normals: the file's where ``has_n`` (and usable).
     ``partial``: `_clean_obj`'s words for an OBJ whose faces had normals in part only."""
     if mode != "file_or_angle":
-        return _vertex_normals(pos, faces, mode).astype(np.float32)
+        return _welded_normals(pos, faces, mode).astype(np.float32)
     absent = ~has_n
     length = np.linalg.norm(file_n, axis=1)
     bad = ~absent & ~(np.isfinite(length) & (length > 1e-12))
     out = file_n / np.where(absent | bad, 1.0, length)[:, None]
     fill = absent | bad
     if fill.any():
-        computed = _vertex_normals(pos, faces, "angle").astype(np.float64)
+        computed = _welded_normals(pos, faces, "angle").astype(np.float64)
         out[fill] = computed[fill]
     if absent.all():
         why = f"{partial}, which were dropped" if partial else "no vertex normals in the file"
@@ -446,6 +448,15 @@ def _resolve_normals(pos: np.ndarray, faces: np.ndarray, file_n: np.ndarray,
                       f"not finite (first: vertex {int(np.argmax(bad))}); replaced them by "
                       f"computed angle-weighted normals", JaxnmWarning, stacklevel=3)
     return out.astype(np.float32)
+
+
+def _welded_normals(pos: np.ndarray, faces: np.ndarray, weighting: str) -> np.ndarray:
+    """`vertex_normals` of the surface with the vertices at one position joined, given to
+    each of them: a mesh split at uv seams (OBJ corners) or into separate triangles (an STL
+    file) is shaded as the one surface it is, not creased along its splits."""
+    unique, inverse = np.unique(pos, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    return _vertex_normals(unique, inverse[faces], weighting)[inverse]
 
 
 def _vertex_normals(pos: np.ndarray, faces: np.ndarray, weighting: str) -> np.ndarray:

@@ -345,6 +345,34 @@ def test_stl_and_off(tmp_path):
         load_mesh(stl, require_uv=True)
 
 
+def test_computed_normals_join_the_vertices_at_one_position(tmp_path):
+    """An STL's triangles each have their own vertices, and an OBJ's uv seam splits its
+    vertices: normals computed for them are the surface's, not each triangle's. On an
+    icosphere every vertex normal then lies within a degree of the radius (a face's normal
+    is 10 degrees off on average); across a seam on a roof's ridge, both copies of a ridge
+    vertex get the mean of the two slopes' normals."""
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    sphere.export(tmp_path / "sphere.stl")
+    with pytest.warns(JaxnmWarning, match="no vertex normals"):
+        m = load_mesh(tmp_path / "sphere.stl")
+    assert m.num_vertices == 3 * m.num_faces  # still unmerged
+    p, n = np.asarray(m.positions, np.float64), np.asarray(m.normals, np.float64)
+    radial = p / np.linalg.norm(p, axis=1, keepdims=True)
+    angle = np.degrees(np.arctan2(np.linalg.norm(np.cross(n, radial), axis=1),
+                                  np.sum(n * radial, axis=1)))
+    assert angle.max() < 1.0, angle.max()
+    # a roof: two slopes at 45 degrees meeting along the ridge x = 0, uvs split at the ridge
+    text = ("v -1 0 0\nv 0 0 1\nv 0 1 1\nv -1 1 0\nv 1 0 0\nv 1 1 0\n"
+            "vt 0 0\nvt 0.5 0\nvt 0.5 1\nvt 0 1\nvt 0.6 0\nvt 0.6 1\nvt 1 0\nvt 1 1\n"
+            "f 1/1 2/2 3/3\nf 1/1 3/3 4/4\nf 2/5 5/7 6/8\nf 2/5 6/8 3/6\n")
+    with pytest.warns(JaxnmWarning, match="no vertex normals"):
+        roof = load_mesh(_write(tmp_path / "roof.obj", text))
+    p, n = np.asarray(roof.positions), np.asarray(roof.normals)
+    on_ridge = p[:, 0] == 0
+    assert on_ridge.sum() == 4  # two ridge vertices, each split in two by the uvs
+    np.testing.assert_allclose(n[on_ridge], np.tile([0, 0, 1], (4, 1)), atol=1e-6)
+
+
 # ============================================================================ glTF
 
 
