@@ -172,7 +172,7 @@ def _angle(a, b):
 @pytest.mark.parametrize("unwrap", [(), ("--unwrap",)], ids=["decimate", "decimate-unwrap"])
 def test_decimate_writes_the_low_poly_mesh_with_uvs(files, tmp_path, capsys, unwrap):
     """``--decimate N`` makes LOW and unwraps it (it has no uvs otherwise); ``--unwrap``
-    beside it changes nothing."""
+    beside it changes nothing. With no scores and no fit, the output is one line."""
     out = tmp_path / "o"
     assert _bake(files / "torus.obj", "--decimate", "300", *unwrap, "--method", "raycast",
                  "--eval-views", "0", "--size", "32", "-o", out) == 0
@@ -183,6 +183,8 @@ def test_decimate_writes_the_low_poly_mesh_with_uvs(files, tmp_path, capsys, unw
     assert "low.obj" in rep["files"] and not (out / "fit").exists()
     n = np.load(out / "raycast" / "normal_map.npz")["normals"]
     assert n.shape == (32, 32, 3)
+    said = capsys.readouterr().out.splitlines()  # no scores, no fit: no summary, no blank line
+    assert said == [f"outputs in {out}/ ({', '.join(rep['files'])})"], said
 
 
 def test_a_cage_mesh_without_uvs_with_an_unwrapped_low(files, tmp_path):

@@ -251,7 +251,9 @@ def run(args, ctrl_c: CtrlC) -> int:
     _say(f"writing outputs to {out}/ ...")
     report = _write(out, bake, args, ctrl_c, low_written=made,
                     read_seconds=time.perf_counter() - t0 - bake.seconds)
-    print(_summary(report))
+    summary = _summary(report)
+    if summary:  # (no scores and no fit: nothing to sum up)
+        print(summary)
     print(f"outputs in {out}/ ({', '.join(report['files'])})")
     return 130 if report["interrupted"] else 0
 
@@ -276,7 +278,8 @@ def _summary(report: dict) -> str:
                      f"{s['angle_mean_deg']:.2f} deg")
     if "fit" in report:
         f = report["fit"]
-        lines.append(f"fit {f['stopped_because']} after {f['steps']} steps; "
+        lines.append(f"fit {f['stopped_because']} after {f['steps']} "
+                     f"step{'' if f['steps'] == 1 else 's'}; "
                      f"{f['unseen_texels']} of {f['chart_texels']} chart texels seen by fewer "
                      f"than 2 views")
     if "raycast" in report and report["raycast"]["texels_missed"]:
