@@ -233,6 +233,25 @@ def test_lbfgs_baseline_decreases_loss_and_is_deterministic(small):
     assert a.history[-1]["loss"] < 0.5 * a.history[0]["loss"]
 
 
+@pytest.mark.parametrize("solver", ["lm-texel", "lm", "gn", "lbfgs"])
+def test_a_fit_with_64_bit_types_on_is_the_float32_fit(small, solver):
+    """With ``jax_enable_x64`` on (a notebook that checks against float64), every solver
+    fits, in float32, the map it fits with it off: the G-buffer is then rasterized in
+    float64 and kept in float32, so the two differ by float32 rounding. (Every solver
+    failed with 64-bit types on: float64 step sizes beside float32 maps.)"""
+    problem, _, _, prep, _ = small
+    opts = F.FitOptions(solver=solver, max_steps=2)
+    ref = F.fit_normal_map(problem, opts, prepared=prep, progress=False)
+    with jax.enable_x64(True):
+        wide = F.prepare(problem)
+        res = F.fit_normal_map(problem, opts, prepared=wide, progress=False)
+        assert jnp.zeros(()).dtype == jnp.float64  # the caller's setting, left as it was
+    assert res.normals.dtype == np.float32 and len(res.history) == len(ref.history)
+    np.testing.assert_allclose([h["loss"] for h in res.history],
+                               [h["loss"] for h in ref.history], rtol=1e-3)
+    np.testing.assert_allclose(res.normals, ref.normals, atol=2e-3)
+
+
 def test_time_limit_keeps_best_so_far(small):
     problem, gt, _, prep, _ = small
     res = F.fit_normal_map(problem, F.FitOptions(max_steps=50), prepared=prep, progress=False,

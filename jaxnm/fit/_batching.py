@@ -38,8 +38,12 @@ def check_chunk(chunk) -> None:
 
 
 def host(tree):
-    """``tree`` with every leaf a NumPy array (a host copy, or a view on the CPU)."""
-    return jax.tree_util.tree_map(np.asarray, tree)
+    """``tree`` with every leaf a NumPy array (a host copy, or a view on the CPU), float64
+    ones in float32: a fit's arithmetic, with ``jax_enable_x64`` on or off."""
+    def leaf(x):
+        x = np.asarray(x)
+        return x.astype(np.float32) if x.dtype == np.float64 else x
+    return jax.tree_util.tree_map(leaf, tree)
 
 
 def map_pixels(gb: GBuffer, fn, eye=lambda x: x) -> GBuffer:

@@ -341,7 +341,7 @@ def assemble(views: list[View], options: tuple[RenderOptions, ...],
         del leaves
         batches.append(ViewBatch(**stacked, views=tuple(members), targets=targets,
                                  split=ka if eight else 0, chunks=(na, nb)))
-    return Prepared(tuple(batches), material, options, chunk)
+    return Prepared(tuple(batches), host(material), options, chunk)
 
 
 def with_map_size(prep: Prepared, size) -> Prepared:

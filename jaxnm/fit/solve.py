@@ -29,6 +29,7 @@ limit, ``should_stop``, when to checkpoint).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import sys
@@ -395,6 +396,19 @@ def _level_args(prep: Prepared, size: tuple[int, int], options: FitOptions,
     return args, scale_host
 
 
+def _float32(fn):
+    """``fn`` run with JAX's 64-bit types off. A fit's arithmetic is float32; a caller's
+    ``jax_enable_x64`` would otherwise make the solvers' own scalars (optimistix's step
+    sizes and damping) float64 beside float32 maps, which their programs refuse. The setting
+    is thread-local and restored when ``fn`` returns."""
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        with jax.enable_x64(False):
+            return fn(*args, **kwargs)
+    return run
+
+
+@_float32
 def compile_fit(problem: FitProblem, options: FitOptions = FitOptions(), *,
                 prepared: Prepared | None = None, strength: float = 1.0) -> float:
     """Compile the solver step of `fit_normal_map`'s first level ahead of time, without
@@ -480,6 +494,7 @@ class StepResult(NamedTuple):
     predicted: Array
 
 
+@_float32
 def fit_step(args: ModelArgs, solver, z: Array, state) -> StepResult:
     """One step of ``solver`` on the fit's model ``args``: state in, state out.
 
@@ -493,6 +508,7 @@ def fit_step(args: ModelArgs, solver, z: Array, state) -> StepResult:
     return StepResult(z, state, done, result, loss_value, slopes, *move)
 
 
+@_float32
 def start_state(args: ModelArgs, solver, z: Array):
     """``solver``'s state before its first step from ``z`` on the model ``args`` (for
     `fit_step`), in buffers of its own."""
@@ -746,6 +762,7 @@ def _result(run: _Run, setup: _Setup) -> FitResult:
                      noise_floor=start_floor)
 
 
+@_float32
 def fit_normal_map(problem: FitProblem, options: FitOptions = FitOptions(), *,
                    ground_truth: np.ndarray | None = None, progress: bool | str = True,
                    prepared: Prepared | None = None, strength: float = 1.0,
