@@ -453,10 +453,18 @@ def _resolve_normals(pos: np.ndarray, faces: np.ndarray, file_n: np.ndarray,
 def _welded_normals(pos: np.ndarray, faces: np.ndarray, weighting: str) -> np.ndarray:
     """`vertex_normals` of the surface with the vertices at one position joined, given to
     each of them: a mesh split at uv seams (OBJ corners) or into separate triangles (an STL
-    file) is shaded as the one surface it is, not creased along its splits."""
-    unique, inverse = np.unique(pos, axis=0, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    return _vertex_normals(unique, inverse[faces], weighting)[inverse]
+    file) is shaded as the one surface it is, not creased along its splits. Positions are
+    joined where their float32 bits agree (-0 as +0), found by a sort on two integer keys
+    (several times faster than ``np.unique(axis=0)`` on a large STL)."""
+    key = np.ascontiguousarray(np.asarray(pos, np.float32) + np.float32(0)).view(np.uint32)
+    xy = (key[:, 0].astype(np.uint64) << np.uint64(32)) | key[:, 1]
+    order = np.lexsort((key[:, 2], xy))
+    ordered = key[order]
+    first = np.ones(len(order), bool)  # the first vertex of each position, in sorted order
+    first[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
+    inverse = np.empty(len(order), np.int64)
+    inverse[order] = np.cumsum(first) - 1
+    return _vertex_normals(pos[order[first]], inverse[faces], weighting)[inverse]
 
 
 def _vertex_normals(pos: np.ndarray, faces: np.ndarray, weighting: str) -> np.ndarray:
