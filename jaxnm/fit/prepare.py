@@ -341,7 +341,8 @@ def assemble(views: list[View], options: tuple[RenderOptions, ...],
         del leaves
         batches.append(ViewBatch(**stacked, views=tuple(members), targets=targets,
                                  split=ka if eight else 0, chunks=(na, nb)))
-    return Prepared(tuple(batches), host(material), options, chunk)
+    # on the device once (a step then moves nothing to it), in float32 as the rest
+    return Prepared(tuple(batches), jax.device_put(host(material)), options, chunk)
 
 
 def with_map_size(prep: Prepared, size) -> Prepared:
