@@ -186,6 +186,13 @@ def check_scene_shapes(scene: Scene) -> None:
     if len(a_shape) == 3 and m.uv is None:
         raise ValueError(f"{src}: the scene has an albedo texture but the mesh has no texture "
                          "coordinates (uv)")
+    if scene.lights is not None and not isinstance(scene.lights, Lights):
+        raise TypeError(f"{src}: lights must be a jaxnm.shading.Lights (directional_light(...), "
+                        "or Lights(directional=stack_lights([...]), point=...)), got "
+                        f"{type(scene.lights).__name__}")
+    if scene.material is not None and not isinstance(scene.material, Material):
+        raise TypeError(f"{src}: material must be a jaxnm.shading.Material, got "
+                        f"{type(scene.material).__name__}")
     if scene.lights is not None and scene.lights.directional is None and (
             scene.lights.point is None):
         raise ValueError(f"{src}: the scene has no lights")

@@ -20,7 +20,14 @@ from jaxnm.maps import height_to_normal_map
 from jaxnm.procedural import default_scene
 from jaxnm.render import render
 from jaxnm.scene import Scene, default_lights, default_material, validate_scene
-from jaxnm.shading import DirectionalLight, Lights, Material, PointLight, stack_lights
+from jaxnm.shading import (
+    DirectionalLight,
+    Lights,
+    Material,
+    PointLight,
+    directional_light,
+    stack_lights,
+)
 
 EXAMPLE = (Path(__file__).resolve().parents[1] / "scripts" / "examples" / "scenes" / "torus"
            / "scene.json")
@@ -443,6 +450,20 @@ def test_render_names_the_scene_and_the_field_of_an_array_of_the_wrong_shape(fie
         render(sc)
     with pytest.raises(ValueError, match=f"^my scene: {message}"):
         jax.jit(lambda s: render(s)["color"])(sc)
+
+
+@pytest.mark.parametrize("field,value,message", [
+    ("lights", [directional_light((0, 0, 1))],
+     r"lights must be a jaxnm.shading.Lights \(directional_light\(...\), or "
+     r"Lights\(directional=stack_lights\(\[...\]\), point=...\)\), got list$"),
+    ("material", {"diffuse": (1, 1, 1)}, "material must be a jaxnm.shading.Material, got dict$"),
+])
+def test_render_names_lights_or_a_material_of_the_wrong_type(field, value, message):
+    """A list of lights (which the shading functions take) or a dict for a material is
+    named in one line, not met as an AttributeError deep in the shading."""
+    sc = default_scene(width=16, height=16).replace(source="my scene", **{field: value})
+    with pytest.raises(TypeError, match=f"^my scene: {message}"):
+        render(sc)
 
 
 def test_one_output_may_be_named_alone():
