@@ -73,7 +73,18 @@ class Camera:
         return jnp.matmul(self.projection, self.view, precision=_HIGHEST)
 
 
+def _concrete(values: dict, where: str) -> None:
+    """Refuse traced values in a constructor that computes on the host in float64."""
+    for name, v in values.items():
+        if isinstance(v, jax.core.Tracer):
+            raise TypeError(f"camera: {where} builds a camera on the host in float64 and "
+                            f"takes concrete values, but `{name}` is traced (jax.jit, grad or "
+                            "vmap); to trace a camera, trace the arrays of a Camera(view=..., "
+                            "projection=..., eye=...) made outside the traced function")
+
+
 def _as_matrix(m, name: str) -> np.ndarray:
+    _concrete({name: m}, "from_matrices")
     m = np.asarray(m, dtype=np.float64)
     if m.shape != (4, 4):
         raise ValueError(f"camera: `{name}` must be a 4x4 matrix, got shape {m.shape}")
@@ -84,6 +95,7 @@ def _as_matrix(m, name: str) -> np.ndarray:
 
 def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
     """World-to-eye matrix (float64) of a camera at ``eye`` looking at ``target`` (gluLookAt)."""
+    _concrete({"eye": eye, "target": target, "up": up}, "look_at")
     eye, target, up = (np.asarray(v, np.float64).reshape(3) for v in (eye, target, up))
     for name, v in (("eye", eye), ("target", target), ("up", up)):
         if not np.all(np.isfinite(v)):

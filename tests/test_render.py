@@ -466,6 +466,22 @@ def test_render_names_lights_or_a_material_of_the_wrong_type(field, value, messa
         render(sc)
 
 
+def test_a_camera_built_from_traced_values_is_named_and_a_traced_camera_renders():
+    """`Camera.look_at` and `Camera.from_matrices` compute on the host in float64: a traced
+    eye is refused in one line that says what to trace instead, and tracing the arrays
+    of a ready camera renders what the concrete camera renders."""
+    sc = default_scene(width=16, height=16)
+    eye = jnp.asarray(sc.camera.eye, jnp.float32)
+    with pytest.raises(TypeError, match=r"^camera: look_at builds a camera on the host in "
+                       r"float64 and takes concrete values, but `eye` is traced"):
+        jax.jit(lambda e: jaxnm.Camera.look_at(e, (0, 0, 0), (0, 0, 1)))(eye)
+    with pytest.raises(TypeError, match="^camera: from_matrices .* `view` is traced"):
+        jax.jit(lambda v: jaxnm.Camera.from_matrices(v, sc.camera.projection))(
+            sc.camera.view)
+    traced = jax.jit(lambda c: render(sc.replace(camera=c))["color"])(sc.camera)
+    np.testing.assert_allclose(traced, render(sc)["color"], atol=1e-5)
+
+
 def test_one_output_may_be_named_alone():
     sc = default_scene(width=16, height=16)
     alone, listed = render(sc, outputs="mask"), render(sc, outputs=("mask",))
