@@ -237,8 +237,9 @@ def test_lbfgs_baseline_decreases_loss_and_is_deterministic(small):
 def test_a_fit_with_64_bit_types_on_is_the_float32_fit(small, solver):
     """With ``jax_enable_x64`` on (a notebook that checks against float64), every solver
     fits, in float32, the map it fits with it off: the G-buffer is then rasterized in
-    float64 and kept in float32, so the two differ by float32 rounding. (Every solver
-    failed with 64-bit types on: float64 step sizes beside float32 maps.)"""
+    float64 and kept in float32, so the two differ by float32 rounding. (With 64-bit
+    types on inside the step, the solvers' float64 step sizes beside float32 maps would be
+    refused by their programs.)"""
     problem, _, _, prep, _ = small
     opts = F.FitOptions(solver=solver, max_steps=2)
     ref = F.fit_normal_map(problem, opts, prepared=prep, progress=False)
