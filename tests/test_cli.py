@@ -529,6 +529,26 @@ def test_help_names_every_command_and_explains_every_option(capsys):
     assert not silent, silent
 
 
+def test_version_and_python_dash_m(capsys):
+    """``jaxnm --version`` says which jaxnm and JAX run, and ``python -m jaxnm`` is the
+    ``jaxnm`` command."""
+    import jax
+
+    import jaxnm
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out.strip() == f"jaxnm {jaxnm.__version__} (JAX {jax.__version__})"
+    r = subprocess.run([sys.executable, "-m", "jaxnm", "--version"], capture_output=True,
+                       text=True, timeout=120)
+    assert (r.returncode, r.stdout.strip()) == (0, f"jaxnm {jaxnm.__version__} "
+                                                   f"(JAX {jax.__version__})"), r.stderr
+    r = subprocess.run([sys.executable, "-m", "jaxnm", "bogus"], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.startswith("jaxnm: error: argument command"), r.stderr
+
+
 def test_the_command_line_page_names_every_frame_and_alias():
     from jaxnm.frames import FRAME_ALIASES, FRAMES
 

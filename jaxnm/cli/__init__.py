@@ -113,6 +113,8 @@ def _parser() -> argparse.ArgumentParser:
     from . import _bake, _fit, _render
 
     parser = _Parser(prog="jaxnm", description=_DESCRIPTION)
+    parser.add_argument("--version", action="version", version=_version(),
+                        help="print jaxnm's version and JAX's, and exit")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _render.add_parser(sub)
     _fit.add_parser(sub)
@@ -125,6 +127,15 @@ def _parser() -> argparse.ArgumentParser:
                        help="allow run-to-run differences on a GPU (faster scatter-adds); "
                        "by default results are reproducible on every backend")
     return parser
+
+
+def _version() -> str:
+    """What ``jaxnm --version`` prints: jaxnm's version and the JAX it runs on."""
+    import jax
+
+    from jaxnm import __version__
+
+    return f"jaxnm {__version__} (JAX {jax.__version__})"
 
 
 def main(argv=None, *, sigint=None) -> int:
