@@ -147,13 +147,19 @@ def vertex_normals(positions: Float[ArrayLike, "V 3"], faces: Integer[ArrayLike,
 
 def check_mesh_arrays(positions, faces, uv=None, normals=None, *, source: str = "mesh",
                       values: bool = True) -> None:
-    """Raise ``ValueError`` naming ``source`` if the mesh arrays are unusable.
+    """Raise ``ValueError`` naming ``source`` if the mesh arrays are unusable (a
+    ``TypeError`` for what is not an array: a list, say).
 
     Checks shapes and dtypes (always), and, with ``values``, for concrete (not traced)
     arrays, finite values and face indices in range (a pass over the arrays on the host,
     which copies device arrays there first). Degenerate (zero-area) triangles are allowed:
     they cover no pixel.
     """
+    for name, arr, dtype in (("positions", positions, "float32"), ("faces", faces, "int32"),
+                             ("uv", uv, "float32"), ("normals", normals, "float32")):
+        if arr is not None and not (hasattr(arr, "shape") and hasattr(arr, "dtype")):
+            raise TypeError(f"{source}: {name} must be an array (np.asarray({name}, "
+                            f"np.{dtype}), say), got a {type(arr).__name__}")
     shape = jnp.shape(positions)
     fshape = jnp.shape(faces)
     if len(shape) != 2 or shape[1] != 3:

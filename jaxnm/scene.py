@@ -162,11 +162,12 @@ def check_scene_shapes(scene: Scene) -> None:
         raise TypeError(f"expected a jaxnm Scene (jaxnm.config.load_scene, "
                         f"jaxnm.procedural.default_scene), got {type(scene).__name__}")
     src = scene.source
+    _check_types(scene, src)
     m = scene.mesh
     check_mesh_arrays(m.positions, m.faces, m.uv, m.normals, source=src, values=False)
     opts = scene.normal_map_options
     if scene.normal_map is not None:
-        shape = jnp.shape(scene.normal_map)
+        shape = np.shape(scene.normal_map)
         if len(shape) != 3 or shape[2] < opts.channels or min(shape[:2]) < 1:
             raise ValueError(f"{src}: the normal map must have shape (H, W, C) with C >= "
                              f"{opts.channels} (normal_map_options.channels), got {shape}")
@@ -177,25 +178,44 @@ def check_scene_shapes(scene: Scene) -> None:
         if opts.space in ("tangent", "derivative") and m.uv is None:
             raise ValueError(f"{src}: the scene has a {opts.space}-space map but the mesh has "
                              "no texture coordinates (uv)")
-    if scene.model is not None and jnp.shape(scene.model) != (4, 4):
-        raise ValueError(f"{src}: the model matrix must be 4x4, got {jnp.shape(scene.model)}")
-    a_shape = jnp.shape(scene.albedo)
+    if scene.model is not None and np.shape(scene.model) != (4, 4):
+        raise ValueError(f"{src}: the model matrix must be 4x4, got {np.shape(scene.model)}")
+    a_shape = np.shape(scene.albedo)
     if a_shape != (3,) and not (len(a_shape) == 3 and a_shape[2] == 3):
         raise ValueError(f"{src}: the albedo must be an RGB constant (3,) or an RGB texture "
                          f"(H, W, 3), got shape {a_shape}")
     if len(a_shape) == 3 and m.uv is None:
         raise ValueError(f"{src}: the scene has an albedo texture but the mesh has no texture "
                          "coordinates (uv)")
-    if scene.lights is not None and not isinstance(scene.lights, Lights):
-        raise TypeError(f"{src}: lights must be a jaxnm.shading.Lights (directional_light(...), "
-                        "or Lights(directional=stack_lights([...]), point=...)), got "
-                        f"{type(scene.lights).__name__}")
-    if scene.material is not None and not isinstance(scene.material, Material):
-        raise TypeError(f"{src}: material must be a jaxnm.shading.Material, got "
-                        f"{type(scene.material).__name__}")
     if scene.lights is not None and scene.lights.directional is None and (
             scene.lights.point is None):
         raise ValueError(f"{src}: the scene has no lights")
+
+
+def _check_types(scene: Scene, src: str) -> None:
+    """A `TypeError` naming the field of ``scene`` that holds the wrong kind of object."""
+    kinds = (("mesh", Mesh, "jaxnm.io.load_mesh(path), or jaxnm.Mesh(positions, faces, "
+              "uv=..., normals=...)"),
+             ("camera", Camera, "jaxnm.Camera.look_at(eye, target, up), or "
+              "Camera.from_matrices(view, projection)"),
+             ("lights", Lights, "directional_light(...), or Lights(directional="
+              "stack_lights([...]), point=...)"),
+             ("material", Material, "jaxnm.shading.Material(...)"))
+    for name, kind, how in kinds:
+        value = getattr(scene, name)
+        if not isinstance(value, kind) and (value is not None or name in ("mesh", "camera")):
+            raise TypeError(f"{src}: {name} must be a jaxnm.{kind.__name__} ({how}), got "
+                            f"{type(value).__name__}")
+    for name in ("normal_map", "albedo", "model"):
+        value = getattr(scene, name)
+        try:
+            np.shape(value)  # (which reads a traced array's shape too)
+        except (TypeError, ValueError):
+            hint = (" (jaxnm.io.load_texture returns (image, bits))"
+                    if isinstance(value, tuple) and len(value) == 2
+                    and isinstance(value[1], int) else "")
+            raise TypeError(f"{src}: {name} must be an array, got a {type(value).__name__} "
+                            f"whose items do not form one{hint}") from None
 
 
 def validate_scene(scene: Scene) -> Scene:

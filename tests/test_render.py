@@ -454,13 +454,35 @@ def test_render_names_the_scene_and_the_field_of_an_array_of_the_wrong_shape(fie
 
 @pytest.mark.parametrize("field,value,message", [
     ("lights", [directional_light((0, 0, 1))],
-     r"lights must be a jaxnm.shading.Lights \(directional_light\(...\), or "
+     r"lights must be a jaxnm.Lights \(directional_light\(...\), or "
      r"Lights\(directional=stack_lights\(\[...\]\), point=...\)\), got list$"),
-    ("material", {"diffuse": (1, 1, 1)}, "material must be a jaxnm.shading.Material, got dict$"),
+    ("material", {"diffuse": (1, 1, 1)}, r"material must be a jaxnm.Material \(.*\), got dict$"),
+    ("mesh", "trimesh", r"mesh must be a jaxnm.Mesh \(jaxnm.io.load_mesh\(path\), or "
+     r"jaxnm.Mesh\(positions, faces, uv=..., normals=...\)\), got Trimesh$"),
+    ("mesh", "lists", r"positions must be an array \(np.asarray\(positions, np.float32\), "
+     r"say\), got a list$"),
+    ("camera", None, r"camera must be a jaxnm.Camera \(jaxnm.Camera.look_at\(eye, target, "
+     r"up\), or Camera.from_matrices\(view, projection\)\), got NoneType$"),
+    ("camera", np.eye(4), r"camera must be a jaxnm.Camera \(.*\), got ndarray$"),
+    ("normal_map", "texture", r"normal_map must be an array, got a tuple whose items do not "
+     r"form one \(jaxnm.io.load_texture returns \(image, bits\)\)$"),
+    ("albedo", ([0.5, 0.5], 0.5), r"albedo must be an array, got a tuple whose items do not "
+     r"form one$"),
 ])
-def test_render_names_lights_or_a_material_of_the_wrong_type(field, value, message):
-    """A list of lights (which the shading functions take) or a dict for a material is
-    named in one line, not met as an AttributeError deep in the shading."""
+def test_render_names_a_field_of_the_wrong_type(field, value, message):
+    """A list of lights (which the shading functions take), a dict for a material, a trimesh
+    mesh or a `Mesh` of lists, a camera that is none or a matrix, or what `load_texture`
+    returns (an image and its bit depth) for a map is named in one line, not met as an
+    AttributeError or NumPy's ragged-array error deep in the renderer."""
+    import trimesh
+
+    from jaxnm.io import load_texture
+
+    if isinstance(value, str) and value == "lists":
+        value = jaxnm.Mesh(positions=[[0, 0, 0], [1, 0, 0], [0, 1, 0]], faces=[[0, 1, 2]])
+    elif isinstance(value, str):
+        value = trimesh.creation.icosahedron() if value == "trimesh" else load_texture(
+            Path(__file__).parents[1] / "scripts" / "examples" / "scenes" / "torus" / "rivets.png")
     sc = default_scene(width=16, height=16).replace(source="my scene", **{field: value})
     with pytest.raises(TypeError, match=f"^my scene: {message}"):
         render(sc)
