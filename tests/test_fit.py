@@ -17,6 +17,7 @@ from jaxnm.cli import main
 from jaxnm.config import load_fit
 from jaxnm.io import save_png
 from jaxnm.procedural import default_problem
+from jaxnm.scene import default_material
 from jaxnm.shading import Lights, directional_light
 from jaxnm.textures import linear_to_srgb
 
@@ -114,6 +115,9 @@ def test_problem_from_scene_refuses_what_is_not_a_scene_or_a_size(small):
             F.problem_from_scene(scene, problem.targets, size)
     # (a size of 31.5 was truncated to 31; now kept, and refused by prepare, above)
     assert F.problem_from_scene(scene, problem.targets, np.array([16, 32])).map_size == (16, 32)
+    # a scene without a material is fitted with the one it renders with, not None
+    bare = F.problem_from_scene(scene.replace(material=None), problem.targets, (32, 32))
+    jax.tree.map(np.testing.assert_array_equal, bare.material, default_material())
 
 
 def test_render_with_map_refuses_a_map_or_lights_the_problem_does_not_have(small):
@@ -304,6 +308,12 @@ def _bad(problem, **target_changes):
      "target 0 must be a FitTarget, got ndarray$"),
     (lambda p: dataclasses.replace(p, map_size=(31.5, 32)),
      r"the map size must be two integers >= 2, got \(31.5, 32\)$"),
+    (lambda p: dataclasses.replace(p, material=None), r"the material must be a jaxnm Material "
+     r"\(jaxnm.scene.default_material\(\) is the built-in scene's\), got NoneType$"),
+    (lambda p: _bad(p, lights=[directional_light((0, 0, 1))]), r"view0_light0: lights must be "
+     r"a jaxnm Lights \(jaxnm.directional_light\(...\)\), got list$"),
+    (lambda p: dataclasses.replace(p, mesh=p.mesh.positions), "the mesh must be a jaxnm Mesh "
+     r"\(jaxnm.io.load_mesh\), got ArrayImpl$"),
 ])
 def test_bad_input_is_refused_before_compiling(small, change, match):
     with pytest.raises(ValueError, match=match):

@@ -12,7 +12,7 @@ from ..camera import Camera
 from ..frames import check_frame
 from ..geometry import Mesh
 from ..interpolate import check_derivatives, check_precision, require_x64
-from ..scene import Scene
+from ..scene import Scene, default_material
 from ..shading import Lights, Material, check_shading_model
 from ..textures import NormalMapOptions
 
@@ -77,7 +77,8 @@ class FitProblem:
 def problem_from_scene(scene, targets, map_size, *, source: str | None = None) -> FitProblem:
     """The `FitProblem` of fitting ``scene``'s normal map (its mesh, material, albedo, frame,
     derivative mode and map sampling options) to ``targets``. The scene's model matrix is
-    applied to the mesh (the fit works in world space). The scene's ``precision`` is the
+    applied to the mesh (the fit works in world space); a scene without a material has the
+    one it renders with (`jaxnm.scene.default_material`). The scene's ``precision`` is the
     shader arithmetic the map is fitted for (the frame and the perturbation; the solver
     itself works in float32)."""
     if not isinstance(scene, Scene):
@@ -87,7 +88,8 @@ def problem_from_scene(scene, targets, map_size, *, source: str | None = None) -
     if isinstance(map_size, (str, bytes)) or not np.iterable(map_size):
         raise ValueError(f"{src}: the map size must be two integers >= 2, got {map_size!r}")
     mesh = scene.mesh if scene.model is None else scene.mesh.transformed(scene.model)
-    return FitProblem(mesh=mesh, material=scene.material, targets=tuple(targets),
+    material = default_material() if scene.material is None else scene.material
+    return FitProblem(mesh=mesh, material=material, targets=tuple(targets),
                       map_size=tuple(int(s) if isinstance(s, np.integer) else s
                                      for s in map_size), albedo=scene.albedo,
                       shading=scene.shading, frame=scene.frame, derivatives=scene.derivatives,
@@ -210,6 +212,13 @@ def validate_problem(problem: FitProblem) -> None:
     """Raise a clear `ValueError` (naming ``problem.source``) for unusable input, before
     anything is compiled."""
     src = problem.source
+    if not isinstance(problem.mesh, Mesh):
+        raise ValueError(f"{src}: the mesh must be a jaxnm Mesh (jaxnm.io.load_mesh), got "
+                         f"{type(problem.mesh).__name__}")
+    if not isinstance(problem.material, Material):
+        raise ValueError(f"{src}: the material must be a jaxnm Material "
+                         f"(jaxnm.scene.default_material() is the built-in scene's), got "
+                         f"{type(problem.material).__name__}")
     if problem.mesh.uv is None:
         raise ValueError(f"{src}: the mesh has no texture coordinates (uv); a normal map cannot "
                          "be fitted")
@@ -258,6 +267,9 @@ def validate_problem(problem: FitProblem) -> None:
                              f"its camera renders {t.width}x{t.height}")
         if not np.all(np.isfinite(img)):
             raise ValueError(f"{src}: {name}: the target has NaN or infinite values")
+        if t.lights is not None and not isinstance(t.lights, Lights):
+            raise ValueError(f"{src}: {name}: lights must be a jaxnm Lights "
+                             f"(jaxnm.directional_light(...)), got {type(t.lights).__name__}")
         if t.lights is None or (t.lights.directional is None and t.lights.point is None):
             raise ValueError(f"{src}: {name}: no lights")
         if t.mask is not None:
