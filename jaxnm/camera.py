@@ -63,7 +63,10 @@ class Camera:
     @staticmethod
     def look_at(eye, target, up=(0.0, 1.0, 0.0), *, fov_y_deg=45.0, aspect=1.0, near=0.1,
                 far=100.0) -> Camera:
-        """A perspective camera at ``eye`` looking at ``target`` (see `look_at`, `perspective`)."""
+        """A perspective camera at ``eye`` looking at ``target`` (see `look_at`, `perspective`).
+        ``aspect`` is the image's width / height: the default, 1, suits a square image, and
+        a scene of another shape renders stretched unless it is given (scene files set it
+        from their width and height)."""
         return Camera.from_matrices(look_at(eye, target, up),
                                     perspective(fov_y_deg, aspect, near, far))
 
@@ -116,7 +119,8 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
 
 
 def perspective(fov_y_deg: float, aspect: float, near: float, far: float) -> np.ndarray:
-    """OpenGL perspective projection (gluPerspective), float64; NDC z in [-1, 1]."""
+    """OpenGL perspective projection (gluPerspective), float64; NDC z in [-1, 1].
+    ``fov_y_deg`` is the vertical field of view; ``aspect`` the image's width / height."""
     if not (0.0 < fov_y_deg < 180.0):
         raise ValueError(f"camera: `fov_y_deg` must be in (0, 180), got {fov_y_deg}")
     if not (aspect > 0.0 and math.isfinite(aspect)):
