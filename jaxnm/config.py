@@ -154,6 +154,15 @@ def _vector(v: Any, n: int, key: str, where: str) -> np.ndarray:
     return a
 
 
+def _colour(v: Any, key: str, where: str) -> np.ndarray:
+    """An RGB list of finite numbers >= 0 (a colour, a reflectance or an albedo)."""
+    a = _vector(v, 3, key, where)
+    if np.any(a < 0):
+        raise ValueError(f"{where}'{key}' must not be negative (light and reflectance are "
+                         f">= 0), got {v!r}")
+    return a
+
+
 def _matrix(v: Any, key: str, where: str) -> np.ndarray:
     try:
         a = np.asarray(v, np.float64)
@@ -225,8 +234,11 @@ def _parse_lights(spec: Any, *, where: str = "") -> Lights:
         w = f"{where}lights[{i}]: "
         if not isinstance(light, dict) or light.get("type") not in ("directional", "point"):
             raise ValueError(f"{w}must be an object with type 'directional' or 'point'")
-        color = jnp.asarray(_vector(light.get("color", [1, 1, 1]), 3, "color", w), jnp.float32)
-        intensity = jnp.asarray(_field(light, "intensity", float, 1.0, w), jnp.float32)
+        color = jnp.asarray(_colour(light.get("color", [1, 1, 1]), "color", w), jnp.float32)
+        intensity = _field(light, "intensity", float, 1.0, w)
+        if intensity < 0:
+            raise ValueError(f"{w}'intensity' must be >= 0, got {intensity!r}")
+        intensity = jnp.asarray(intensity, jnp.float32)
         if light["type"] == "directional":
             _keys(light, ("type", "direction", "color", "intensity"), w)
             d = _vector(light.get("direction"), 3, "direction", w)
@@ -257,7 +269,7 @@ def _parse_material(spec: Any, *, where: str = "") -> tuple[Material, str]:
         raise ValueError(f"{where}'material' must be an object")
     _keys(spec, ("model", "diffuse", "specular", "shininess", "ambient"), w)
     base = default_material()
-    vals = {k: (jnp.asarray(_vector(spec[k], 3, k, w), jnp.float32) if k in spec
+    vals = {k: (jnp.asarray(_colour(spec[k], k, w), jnp.float32) if k in spec
                 else getattr(base, k)) for k in ("diffuse", "specular", "ambient")}
     shin = _field(spec, "shininess", float, float(base.shininess), w)
     if shin < 0:
@@ -395,7 +407,7 @@ def _albedo_loader(spec: Any, base: Path, where: str):
     """Check a scene's ``albedo`` (an RGB list, a path or ``{"path", "srgb"}``); returns a
     function giving the linear albedo (RGB, or an (h, w, 3) texture)."""
     if isinstance(spec, (list, tuple)):
-        rgb = _vector(spec, 3, "albedo", where).astype(np.float32)
+        rgb = _colour(spec, "albedo", where).astype(np.float32)
         return lambda: rgb
     if not isinstance(spec, (str, dict)):
         raise ValueError(f"{where}'albedo' must be an RGB list, a path or {{'path', 'srgb'}}")

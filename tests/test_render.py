@@ -128,6 +128,13 @@ def _scene_dict(**over):
     (dict(lights=[{"type": "spot"}]), "lights\\[0\\]"),
     (dict(lights=[{"type": "directional", "direction": [0, 0, 0]}]), "direction"),
     (dict(material={"shininess": -1}), "shininess"),
+    (dict(material={"diffuse": [0.5, -0.1, 0.5]}), r"^bad.json: material: 'diffuse' must not "
+     r"be negative \(light and reflectance are >= 0\), got \[0.5, -0.1, 0.5\]$"),
+    (dict(albedo=[-0.8, 0.8, 0.8]), r"^bad.json: 'albedo' must not be negative"),
+    (dict(lights=[{"type": "point", "position": [0, 0, 2], "color": [1, 1, -1]}]),
+     r"^bad.json: lights\[0\]: 'color' must not be negative"),
+    (dict(lights=[{"type": "directional", "direction": [0, 0, 1], "intensity": -2}]),
+     r"^bad.json: lights\[0\]: 'intensity' must be >= 0, got -2.0$"),
     (dict(normal_map={"path": "builtin:rivets", "green": "sideways"}), "green"),
     (dict(model=[[1, 0, 0], [0, 1, 0]]), "model"),
 ])
