@@ -89,8 +89,12 @@ from .textures import NormalMapOptions, decode_normal_map, srgb_to_linear
 
 __all__ = [
     "load_scene", "scene_from_dict", "load_fit", "fit_from_dict", "SCENE_KEYS", "FIT_KEYS",
-    "TANGENT_MODES", "load_height_map"
+    "TANGENT_MODES", "load_height_map", "OBJECT_SPACE_HINT"
 ]
+
+#: How a scene file names an object-space map (the end of the warning that a map given as a
+#: tangent-space one looks like one, `jaxnm.io.check_tangent_normal_map`).
+OBJECT_SPACE_HINT = "a scene file's normal_map takes \"space\": \"object\""
 
 SCENE_KEYS = ("mesh", "model", "camera", "width", "height", "normal_map", "height_map",
               "albedo", "lights", "material", "frame", "derivatives", "precision", "double_sided",
@@ -364,7 +368,7 @@ def _normal_map_loader(spec: Any, *, base_dir=".", where: str = ""):
                              "8/16-bit image stores unsigned values")
         if opts.space == "tangent":
             io.check_tangent_normal_map(raw, encoding=opts.encoding, channels=opts.channels,
-                                        source=f"{w}{ref}")
+                                        source=f"{w}{ref}", hint=OBJECT_SPACE_HINT)
         return raw.astype(np.float32), dataclasses.replace(
             opts, bits=bits if bits in (8, 16) else opts.bits)
     return image
@@ -725,7 +729,8 @@ def _ground_truth_loader(spec: Any, base: Path, map_size: tuple[int, int], where
         if raw.shape[:2] != tuple(map_size):
             raise ValueError(f"{w}{path} is {raw.shape[1]}x{raw.shape[0]}, but the map is "
                              f"{map_size[1]}x{map_size[0]}")
-        io.check_tangent_normal_map(raw, encoding=opts.encoding, source=f"{w}{spec['path']}")
+        io.check_tangent_normal_map(raw, encoding=opts.encoding, source=f"{w}{spec['path']}",
+                                    hint="a fit's ground truth is a tangent-space map")
         gt = np.asarray(decode_normal_map(jnp.asarray(raw), encoding=opts.encoding,
                                           green=opts.green, bits=bits if bits in (8, 16)
                                           else 8), np.float64)

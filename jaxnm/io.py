@@ -679,14 +679,15 @@ INWARD_SHARE = 0.05
 
 
 def check_tangent_normal_map(raw, *, encoding: str = "unsigned", channels: int = 3,
-                             source: str = "normal map") -> None:
+                             source: str = "normal map", hint: str = "") -> None:
     """Warn (`JaxnmWarning`) when ``raw``, a 3-channel tangent-space normal map as stored
     (float ``(H, W, 3)``, ``encoding`` as `jaxnm.textures.NormalMapOptions`), looks like
     another kind of map: every texel black, or more than `INWARD_SHARE` of the others
     pointing into the surface (decoded z below `INWARD_Z`). A tangent-space map's normals
     point out of the surface (z > 0); an object-space map's point every way, so about half
     of them have z < 0. Black texels (0 in every channel) are a baker's background and are
-    not counted. Two-channel maps rebuild z >= 0 and are not checked."""
+    not counted. Two-channel maps rebuild z >= 0 and are not checked. ``hint``, if given,
+    ends the object-space warning: how the caller's input names an object-space map."""
     if channels != 3:
         return
     raw = np.asarray(raw, np.float32)
@@ -700,8 +701,8 @@ def check_tangent_normal_map(raw, *, encoding: str = "unsigned", channels: int =
     if share > INWARD_SHARE:
         warnings.warn(f"{source}: {share:.0%} of its texels point into the surface (z < 0 "
                       "once decoded), where a tangent-space map's point out of it; is it an "
-                      "object-space map? (a scene file's normal_map takes \"space\": "
-                      "\"object\")", JaxnmWarning, stacklevel=2)
+                      f"object-space map?{f' ({hint})' if hint else ''}", JaxnmWarning,
+                      stacklevel=2)
 
 
 def load_image_float(path: PathLike) -> tuple[np.ndarray, int]:

@@ -15,7 +15,7 @@ from jaxnm import fit as F
 from jaxnm.camera import eye_to_world
 from jaxnm.cli import main
 from jaxnm.config import load_fit
-from jaxnm.io import save_png
+from jaxnm.io import JaxnmWarning, save_png
 from jaxnm.procedural import default_problem
 from jaxnm.scene import default_material
 from jaxnm.shading import Lights, directional_light
@@ -385,6 +385,28 @@ def test_example_fit_script_writes_the_built_in_problem(tmp_path, small):
     assert len(job.held_out) == 1 and job.options.solver == "lm-texel"
     np.testing.assert_allclose(np.asarray(loaded.material.shininess),
                                np.asarray(problem.material.shininess))
+
+
+def test_an_object_space_ground_truth_warns_without_the_scene_files_remedy(tmp_path):
+    """A fit file's ground truth that looks like an object-space map warns, saying that a
+    ground truth is a tangent-space map (it takes no "space" key, as a scene's map does)."""
+    u, v = np.meshgrid((np.arange(8) + 0.5) / 8, (np.arange(8) + 0.5) / 8)
+    n = np.stack([np.sin(np.pi * v) * np.cos(2 * np.pi * u),
+                  np.sin(np.pi * v) * np.sin(2 * np.pi * u), np.cos(np.pi * v)], -1)
+    save_png(tmp_path / "gt.png", (n * 0.5 + 0.5).astype(np.float32))
+    save_png(tmp_path / "t.png", np.full((16, 16, 3), 0.5, np.float32))
+    (tmp_path / "scene.json").write_text(json.dumps({
+        "mesh": "builtin:torus", "width": 16, "height": 16,
+        "camera": {"eye": [0.0, -2.35, 1.75], "target": [0, 0, 0], "up": [0, 0, 1]}}))
+    (tmp_path / "fit.json").write_text(json.dumps({
+        "scene": "scene.json", "map": {"size": [8, 8]}, "ground_truth": {"path": "gt.png"},
+        "targets": [{"view": 0, "image": "t.png", "lights": [
+            {"type": "directional", "direction": [0, 0, 1]}]}]}))
+    with pytest.warns(JaxnmWarning) as caught:
+        load_fit(tmp_path / "fit.json")
+    said = [str(w.message) for w in caught]
+    assert len(said) == 1 and said[0].endswith(
+        "is it an object-space map? (a fit's ground truth is a tangent-space map)"), said
 
 
 def test_fit_file_errors_name_the_file(tmp_path):

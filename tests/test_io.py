@@ -885,6 +885,7 @@ def _sphere_normals(h: int, w: int) -> np.ndarray:
 
 
 def _warned(raw, **kw) -> list[str]:
+    kw.setdefault("hint", 'a scene file\'s normal_map takes "space": "object"')
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         check_tangent_normal_map(raw, source="m.png", **kw)
@@ -904,6 +905,7 @@ def test_a_map_of_another_kind_given_as_tangent_space_is_named():
                     "object-space map? (a scene file's normal_map takes \"space\": "
                     "\"object\")"], said
     assert len(_warned(sphere, encoding="signed")) == 1
+    assert _warned(sphere * 0.5 + 0.5, hint="")[0].endswith("is it an object-space map?")
     assert _warned(np.zeros((4, 4, 3), np.float32)) == [
         "m.png: every texel is black (0, 0, 0), which is no normal"]
     rivets = np.asarray(default_normal_map_texels(64), np.float32)

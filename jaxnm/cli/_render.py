@@ -138,7 +138,7 @@ def _check_map_options(args) -> None:
 def _scene(args):
     """The scene of ``args``: the file's or the built-in one, with the options applied."""
     from .. import io
-    from ..config import load_height_map, load_scene
+    from ..config import OBJECT_SPACE_HINT, load_height_map, load_scene
     from ..procedural import default_scene
 
     if args.scene:
@@ -158,7 +158,7 @@ def _scene(args):
             m.options(scene.normal_map_options), green="up"))
     elif args.normal_map:
         raw, bits = io.load_texture(args.normal_map, channels=3)
-        io.check_tangent_normal_map(raw, source=args.normal_map)
+        io.check_tangent_normal_map(raw, source=args.normal_map, hint=OBJECT_SPACE_HINT)
         changes.update(normal_map=raw, normal_map_options=dataclasses.replace(
             scene.normal_map_options, encoding="unsigned", channels=3, green="up",
             space="tangent", bits=bits if bits in (8, 16) else 8))
