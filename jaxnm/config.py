@@ -64,7 +64,9 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import json
 import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -643,6 +645,7 @@ def fit_from_dict(data: dict, *, base_dir=".", source: str = "<dict>",
     views = _views(data.get("views", []), scene_of, where)
     specs = {key: [_target_spec(t, i, key, views, base, where)
                    for i, t in enumerate(data.get(key, []))] for key in ("targets", "held_out")}
+    _warn_repeats(data, base, where)
     truth_of = (_ground_truth_loader(data["ground_truth"], base, map_size, where)
                 if "ground_truth" in data else None)
 
@@ -700,6 +703,24 @@ def _target_spec(t: Any, i: int, key: str, views: list, base: Path, where: str):
     cam, width, height = views[vi]
     bare = FitTarget(cam, width, height, lights, None, None, name=f"{key}[{i}] ({t['image']})")
     return bare, image, color_space, mask, w
+
+
+def _warn_repeats(data: dict, base: Path, where: str) -> None:
+    """Warn for a target listed twice (the same view, image, mask, colour space and lights:
+    it counts twice in the fit), or held out and fitted both (its score is no held-out one)."""
+    seen = {}
+    for key in ("targets", "held_out"):
+        for i, t in enumerate(data.get(key, [])):
+            same = {k: v for k, v in t.items() if k not in ("image", "mask", "view")}
+            same.update(view=t.get("view", 0), image=str((base / t["image"]).resolve()),
+                        mask=str((base / t["mask"]).resolve()) if "mask" in t else None)
+            first = seen.setdefault(json.dumps(same, sort_keys=True), f"{key}[{i}]")
+            if first != f"{key}[{i}]":
+                why = ("so it counts twice in the fit" if key == "targets" else
+                       "so its score is not a held-out one" if first.startswith("targets")
+                       else "so it is scored twice")
+                warnings.warn(f"{where}{key}[{i}] repeats {first} (the same view, image and "
+                              f"lights), {why}", io.JaxnmWarning, stacklevel=2)
 
 
 def _read_target(bare: FitTarget, image: Path, color_space, mask: Path | None,

@@ -409,6 +409,31 @@ def test_an_object_space_ground_truth_warns_without_the_scene_files_remedy(tmp_p
         "is it an object-space map? (a fit's ground truth is a tangent-space map)"), said
 
 
+def test_a_target_listed_twice_or_fitted_and_held_out_warns(tmp_path):
+    """A fit file's target repeated (its keys in another order, the image by another path)
+    counts twice and warns, as does a held-out target that is also fitted; the same image
+    under other lights does not."""
+    save_png(tmp_path / "t.png", np.full((16, 16, 3), 0.5, np.float32))
+    (tmp_path / "scene.json").write_text(json.dumps({
+        "mesh": "builtin:torus", "width": 16, "height": 16,
+        "camera": {"eye": [0.0, -2.35, 1.75], "target": [0, 0, 0], "up": [0, 0, 1]}}))
+    light = {"type": "directional", "direction": [0, 0, 1]}
+    (tmp_path / "fit.json").write_text(json.dumps({
+        "scene": "scene.json", "map": {"size": [8, 8]},
+        "targets": [{"view": 0, "image": "t.png", "lights": [light]},
+                    {"image": "t.png", "lights": [{**light, "direction": [1, 0, 1]}]},
+                    {"lights": [dict(reversed(light.items()))], "image": "./t.png"}],
+        "held_out": [{"image": "t.png", "lights": [light]}]}))
+    with pytest.warns(JaxnmWarning) as caught:
+        load_fit(tmp_path / "fit.json")
+    where = f"{tmp_path / 'fit.json'}: "
+    assert [str(w.message) for w in caught] == [
+        f"{where}targets[2] repeats targets[0] (the same view, image and lights), so it counts "
+        "twice in the fit",
+        f"{where}held_out[0] repeats targets[0] (the same view, image and lights), so its "
+        "score is not a held-out one"]
+
+
 def test_fit_file_errors_name_the_file(tmp_path):
     cfg = tmp_path / "fit.json"
     cfg.write_text(json.dumps({"targets": []}))
