@@ -208,6 +208,21 @@ def test_a_cage_mesh_without_uvs_with_an_unwrapped_low(files, tmp_path):
     assert np.abs(maps[0][..., :2]).max() > 0.05  # HIGH's normals tilt: the rays found them
 
 
+def test_a_map_of_another_width_and_height(files, tmp_path):
+    """``--size 32x16`` bakes a map 32 texels wide and 16 high (LOW's uv is its xy, origin
+    at the bottom left): each texel holds HIGH's normal at its centre, in image layout."""
+    out = tmp_path / "o"
+    assert _bake(files / "hi.obj", files / "lo.obj", "--method", "raycast", "--eval-views", "0",
+                 "--size", "32x16", "-o", out) == 0
+    assert json.loads((out / "report.json").read_text())["map_size"] == [16, 32]
+    n = np.load(out / "raycast" / "normal_map.npz")["normals"]
+    assert n.shape == (16, 32, 3) and io.load_texture(out / "raycast" / "normal_map.png")[
+        0].shape == (16, 32, 3)
+    u, v = np.meshgrid((np.arange(32) + 0.5) / 32, 1 - (np.arange(16) + 0.5) / 16)
+    err = _angle(n, _normal(u, v))
+    assert np.median(err) < 0.5 and np.percentile(err, 99) < 2.0, (np.median(err), err.max())
+
+
 def test_held_out_views_of_an_open_surface_score_its_front(files, tmp_path):
     """LOW and HIGH are one-sided grids: a held-out view from the spiral alone would see the
     single view's grid edge-on and score no pixel (no PSNR); the views face the grid."""
@@ -254,10 +269,24 @@ def test_the_summary_says_when_no_pixel_was_scored_and_when_images_are_identical
     (["{d}/hi.obj", "{d}/lo.obj", "--lights", "2"],
      "jaxnm bake: error: --lights: a fit needs at least 3 lights per view"),
     (["{d}/hi.obj", "{d}/lo.obj", "--store", "bc5", "--size", "30"],
-     "jaxnm bake: error: --store bc5: a BC5 map's side must be a multiple of 4, got --size 30"),
+     "jaxnm bake: error: --store bc5: a BC5 map's sides must be multiples of 4, got --size 30"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--store", "bc5", "--size", "32x30"],
+     "jaxnm bake: error: --store bc5: a BC5 map's sides must be multiples of 4, got --size "
+     "32x30"),
+    (["{d}/hi.obj", "--decimate", "10", "--size", "32x16"],
+     "jaxnm bake: error: --size 32x16: xatlas packs a square atlas, so --decimate takes one "
+     "side"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--unwrap", "--size", "16x32"],
+     "jaxnm bake: error: --size 16x32: xatlas packs a square atlas, so --unwrap takes one side"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--size", "32x16x2"],
+     "jaxnm bake: error: argument --size: give the map's side N or its width and height WxH, "
+     "each an integer >= 4, got '32x16x2'"),
     (["{d}/hi.obj", "{d}/lo.obj", "--size", "8"],
      "jaxnm bake: error: --size 8: without a --render-size, each view's image takes the map's "
      "larger side, which must then be 16 to 8192 pixels"),
+    (["{d}/hi.obj", "{d}/lo.obj", "--size", "8x12"],
+     "jaxnm bake: error: --size 8x12: without a --render-size, each view's image takes the "
+     "map's larger side, which must then be 16 to 8192 pixels"),
     (["{d}/hi.obj", "{d}/lo.obj", "--size", "8", "--render-size", "12"],
      "jaxnm bake: error: --render-size must be 16 to 8192 pixels, got 12"),
     (["{d}/hi.obj", "{d}/lo.obj", "--method", "fit", "--cage", "0.1"],
@@ -269,7 +298,8 @@ def test_the_summary_says_when_no_pixel_was_scored_and_when_images_are_identical
      "jaxnm bake: error: --views: an option of the fit, and --method raycast fits nothing"),
     (["{d}/hi.obj", "{d}/nope.obj"], "jaxnm bake: error: {d}/nope.obj: no such file"),
     (["{d}/hi.obj", "{d}/lo.obj", "--size", "2"],
-     "jaxnm bake: error: --size must be an integer >= 4, got 2"),
+     "jaxnm bake: error: argument --size: give the map's side N or its width and height WxH, "
+     "each an integer >= 4, got '2'"),
     (["{d}/hi.obj", "--decimate", "10", "--cage-mesh", "{d}/lo.obj"],
      "jaxnm bake: error: --cage-mesh: a cage has LOW's triangles, and --decimate makes new "
      "ones; give LOW and its cage, or --cage DIST"),
@@ -284,7 +314,10 @@ def test_the_summary_says_when_no_pixel_was_scored_and_when_images_are_identical
 ])
 def test_bad_input_is_one_line_naming_the_file(files, tmp_path, capsys, argv, message):
     out = tmp_path / "o"
-    rc = _bake("-o", out, "--size", "16", *[a.format(d=files) for a in argv])
+    try:
+        rc = _bake("-o", out, "--size", "16", *[a.format(d=files) for a in argv])
+    except SystemExit as e:  # (argparse's errors: the same one line)
+        rc = e.code
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and err[-1].startswith(message.format(d=files)), err
     assert [line for line in err if ": error: " in line] == [err[-1]]
@@ -444,7 +477,9 @@ def test_the_help_states_the_library_defaults(capsys):
                         ("--margin PX texels filled around the uv islands", o.margin),
                         ("--samples K ray-cast samples per texel", o.samples),
                         ("--eval-views E held-out views that score the maps, 2 lights each",
-                         o.eval_views), ("--size N the map's side", o.size)):
+                         o.eval_views),
+                        ("--size N|WxH the map's side, or its width and height, in texels",
+                         o.size)):
         assert f"{flag} (default: {value}" in text, flag
     assert o.eval_lights == 2 and o.frame == "vertex" and o.method == "both"
 

@@ -19,6 +19,7 @@ the maps first):
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import math
 import sys
@@ -51,8 +52,9 @@ def add_parser(sub) -> None:
     p.add_argument("--method", choices=("raycast", "fit", "both"), default="both",
                    help="cast rays, fit the map to HIGH's shading from a flat start, or fit "
                    "from the ray-cast map (default: %(default)s)")
-    p.add_argument("--size", type=int, default=512, metavar="N", help="the map's side "
-                   "(default: %(default)s)")
+    p.add_argument("--size", type=_map_size, default=512, metavar="N|WxH",
+                   help="the map's side, or its width and height, in texels (default: "
+                   "%(default)s)")
     p.add_argument("--frame", type=frame_name, default="vertex", metavar="FRAME",
                    help="the tangent frame the map is for (default: vertex, i.e. MikkTSpace); "
                    "ray casting bakes for vertex or cotangent, --method fit for any")
@@ -102,6 +104,24 @@ _OPTIONS = ("method", "size", "frame", "cage", "max_distance", "samples", "margi
             "lights", "render_size", "eval_views")
 
 
+def _map_size(text: str) -> int | tuple[int, int]:
+    """``--size``: ``N`` (a square map) or ``WxH``, each side at least 4; a
+    ``(height, width)`` pair for `PairBakeOptions.size`."""
+    try:
+        sides = [int(part) for part in text.lower().split("x")]
+    except ValueError:
+        sides = []
+    if len(sides) not in (1, 2) or min(sides) < 4:
+        raise argparse.ArgumentTypeError(f"give the map's side N or its width and height WxH, "
+                                         f"each an integer >= 4, got {text!r}")
+    return sides[0] if len(sides) == 1 else (sides[1], sides[0])
+
+
+def _size_words(size: int | tuple[int, int]) -> str:
+    """``--size`` as it was given: ``N`` or ``WxH``."""
+    return str(size) if isinstance(size, int) else f"{size[1]}x{size[0]}"
+
+
 def _check_shape(args) -> None:
     """One-line errors for the arguments' shape (which meshes, options the method uses) and
     plain ranges."""
@@ -120,11 +140,13 @@ def _check_shape(args) -> None:
             raise ValueError(f"{flag} must be a finite distance >= 0, got {v}")
     if args.max_steps is not None and args.max_steps < 1:
         raise ValueError(f"--max-steps must be at least 1, got {args.max_steps}")
-    if args.size < 4:  # (the library takes a (height, width) pair too; the command a side)
-        raise ValueError(f"--size must be an integer >= 4, got {args.size}")
-    if args.store == "bc5" and args.size % 4:
-        raise ValueError(f"--store bc5: a BC5 map's side must be a multiple of 4, got "
-                         f"--size {args.size}")
+    sides = (args.size,) * 2 if isinstance(args.size, int) else args.size
+    if args.store == "bc5" and any(side % 4 for side in sides):
+        raise ValueError(f"--store bc5: a BC5 map's sides must be multiples of 4, got "
+                         f"--size {_size_words(args.size)}")
+    if sides[0] != sides[1] and (args.unwrap or args.decimate is not None):
+        raise ValueError(f"--size {_size_words(args.size)}: xatlas packs a square atlas, so "
+                         f"{'--unwrap' if args.unwrap else '--decimate'} takes one side")
     leaves_out = {"fit": ("ray casting", "casts no rays", (
                       ("--cage", args.cage), ("--cage-mesh", args.cage_mesh),
                       ("--max-distance", args.max_distance), ("--samples", args.samples))),
@@ -182,7 +204,9 @@ def _options(args):
     try:
         return PairBakeOptions(**given)
     except ValueError as e:
-        raise ValueError(as_flags(str(e).removeprefix("PairBakeOptions: "), _OPTIONS)) from None
+        said = str(e).removeprefix("PairBakeOptions: ")
+        said = said.replace(f"size {args.size!r}", f"size {_size_words(args.size)}")
+        raise ValueError(as_flags(said, _OPTIONS)) from None
 
 
 def _meshes(args, say):
