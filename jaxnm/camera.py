@@ -70,6 +70,37 @@ class Camera:
         return Camera.from_matrices(look_at(eye, target, up),
                                     perspective(fov_y_deg, aspect, near, far))
 
+    @staticmethod
+    def framing(centre, radius: float, direction, *, up=None, fov_y_deg: float = 30.0,
+                aspect: float = 1.0, margin: float = 1.02) -> Camera:
+        """A perspective camera that sees the whole sphere of ``radius`` about ``centre``:
+        on the ray from ``centre`` along ``direction``, looking at ``centre``, at the
+        distance where the sphere, enlarged by ``margin``, touches the narrower side of the
+        view (``aspect`` is the image's width / height); its near and far planes enclose
+        the sphere. ``up`` None takes the world axis least along the view.
+        `jaxnm.geometry.bounding_sphere` gives a mesh's centre and radius."""
+        _concrete({"centre": centre, "radius": radius, "direction": direction}, "framing")
+        c = np.asarray(centre, np.float64)
+        d = np.asarray(direction, np.float64)
+        if c.shape != (3,) or d.shape != (3,) or not np.all(np.isfinite(np.r_[c, d])):
+            raise ValueError(f"camera: framing takes a finite centre and direction of 3 "
+                             f"numbers each, got {centre!r} and {direction!r}")
+        if not (radius > 0 and math.isfinite(radius)) or not margin >= 1:
+            raise ValueError(f"camera: framing needs a radius > 0 and a margin >= 1, got "
+                             f"{radius!r} and {margin!r}")
+        if not np.linalg.norm(d) > 0:
+            raise ValueError("camera: framing's direction must not be zero")
+        d = d / np.linalg.norm(d)
+        half = math.radians(fov_y_deg) / 2
+        if aspect < 1:  # the horizontal side is the narrower
+            half = math.atan(aspect * math.tan(half))
+        dist = margin * radius / math.sin(half)
+        if up is None:
+            up = np.eye(3)[int(np.argmin(np.abs(d)))]
+        return Camera.look_at(c + dist * d, c, up, fov_y_deg=fov_y_deg, aspect=aspect,
+                              near=max(dist - 1.1 * radius, 1e-3 * radius),
+                              far=dist + 1.1 * radius)
+
     @property
     def view_projection(self) -> Array:
         """``projection @ view``."""

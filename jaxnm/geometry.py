@@ -20,7 +20,7 @@ from jaxtyping import ArrayLike, Float, Integer
 from .numerics import angle_between, safe_normalize
 from .numerics import cross as _cross
 
-__all__ = ["Mesh", "face_normals", "vertex_normals", "check_mesh_arrays"]
+__all__ = ["Mesh", "face_normals", "vertex_normals", "check_mesh_arrays", "bounding_sphere"]
 
 _HIGHEST = jax.lax.Precision.HIGHEST
 
@@ -143,6 +143,15 @@ def vertex_normals(positions: Float[ArrayLike, "V 3"], faces: Integer[ArrayLike,
         raise ValueError(f"vertex_normals: unknown weighting {weighting!r}; use 'angle' or 'area'")
     acc = jnp.zeros_like(positions).at[faces.reshape(-1)].add(w.reshape(-1, 3))
     return safe_normalize(acc)
+
+
+def bounding_sphere(*meshes: Mesh) -> tuple[np.ndarray, float]:
+    """The centre of the meshes' joint bounding box (float64, on the host) and the radius
+    about it that holds every vertex (at least 1e-12)."""
+    points = [np.asarray(m.positions, np.float64) for m in meshes]
+    centre = (np.min([p.min(0) for p in points], 0) + np.max([p.max(0) for p in points], 0)) / 2
+    radius = max(float(np.sqrt(((p - centre) ** 2).sum(1).max())) for p in points)
+    return centre, max(radius, 1e-12)
 
 
 def check_mesh_arrays(positions, faces, uv=None, normals=None, *, source: str = "mesh",

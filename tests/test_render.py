@@ -495,6 +495,36 @@ def test_render_names_a_field_of_the_wrong_type(field, value, message):
         render(sc)
 
 
+@pytest.mark.parametrize("aspect", [0.5, 1.0, 2.0])
+def test_framing_sees_the_whole_sphere_and_touches_the_narrower_side(aspect):
+    """`Camera.framing`: every point of the sphere (enlarged by the margin) projects inside
+    the view, the sphere itself lies between the near and far planes, and the enlarged
+    sphere touches the view's narrower side (|NDC| reaches 1 there, to the sampling's
+    resolution); the eye is on the ray from the centre along the direction."""
+    from jaxnm.camera import Camera
+
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(20000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    c, r, margin = np.array([3.0, -2.0, 7.0]), 2.5, 1.1
+    for d in ([0.3, -1.0, 0.4], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]):
+        cam = Camera.framing(c, r, d, aspect=aspect, margin=margin, fov_y_deg=40.0)
+        m = np.asarray(cam.projection, np.float64) @ np.asarray(cam.view, np.float64)
+
+        def ndc(p):
+            clip = np.c_[p, np.ones(len(p))] @ m.T
+            assert (clip[:, 3] > 0).all()
+            return clip[:, :3] / clip[:, 3:]
+
+        outer, inner = ndc(c + r * margin * u), ndc(c + r * u)
+        assert np.abs(outer[:, :2]).max() < 1 + 1e-5
+        assert np.abs(outer[:, 0 if aspect < 1 else 1]).max() > 0.995
+        assert np.abs(inner[:, 2]).max() < 1
+        to_eye = np.asarray(cam.eye) - c
+        assert np.linalg.norm(np.cross(to_eye, d)) < 1e-9 * np.linalg.norm(to_eye)
+        assert to_eye @ np.asarray(d) > 0
+
+
 def test_a_camera_built_from_traced_values_is_named_and_a_traced_camera_renders():
     """`Camera.look_at` and `Camera.from_matrices` compute on the host in float64: a traced
     eye is refused in one line that says what to trace instead, and tracing the arrays

@@ -50,7 +50,7 @@ from ..fit import (
     seen_texels,
 )
 from ..frames import FRAMES
-from ..geometry import Mesh
+from ..geometry import Mesh, bounding_sphere
 from ..shading import Material
 from ..textures import NormalMapOptions
 from ._meshes import check_mesh, inside_out, prepare_low, warn_overlap, with_normals
@@ -58,7 +58,7 @@ from ._surfaces import directional_lights, facing, pair_mask, pair_tolerance, sh
 from ._texels import extend_margin, rasterize_uv
 from .evaluate import PairEvaluation, evaluate_maps
 from .raycast import RAYCAST_FRAMES, RaycastBake, raycast_normal_map
-from .views import ViewPlan, bounding_sphere, held_out_views, plan_views
+from .views import ViewPlan, held_out_views, plan_views
 
 __all__ = ["METHODS", "PairBakeOptions", "PairBake", "bake_mesh_pair", "bake_material",
            "pair_fit_problem", "fit_pair_map", "fit_start", "START_MAX_TILT_DEG",

@@ -36,13 +36,13 @@ import time
 
 import numpy as np
 
-from ..camera import Camera, eye_to_world, look_at, perspective
-from ..geometry import Mesh
+from ..camera import Camera, eye_to_world
+from ..geometry import Mesh, bounding_sphere
 from ._surfaces import facing, surface
 from ._texels import rasterize_uv
 
 __all__ = ["ViewPlan", "plan_views", "held_out_views", "front_area", "framing_camera",
-           "fibonacci_sphere", "view_lights", "texels_seen", "bounding_sphere",
+           "fibonacci_sphere", "view_lights", "texels_seen",
            "FIELD_OF_VIEW_DEG"]
 
 #: The vertical (and horizontal) field of view of every planned camera.
@@ -121,18 +121,10 @@ def _facing_views(low: Mesh, dirs: np.ndarray, used: np.ndarray) -> np.ndarray:
 
 
 def framing_camera(centre, radius: float, direction) -> Camera:
-    """A perspective camera (`FIELD_OF_VIEW_DEG`, square) on the ray from ``centre`` along
-    the unit ``direction``, looking at ``centre``, far enough that the sphere of ``radius``
-    fills its view; its near and far planes enclose the sphere."""
-    d = np.asarray(direction, np.float64)
-    d = d / np.linalg.norm(d)
-    half = math.radians(FIELD_OF_VIEW_DEG) / 2
-    dist = 1.02 * radius / math.sin(half)
-    up = np.eye(3)[int(np.argmin(np.abs(d)))]  # the axis least along the view
-    centre = np.asarray(centre, np.float64)
-    near = max(dist - 1.1 * radius, 1e-3 * radius)
-    return Camera.from_matrices(look_at(centre + dist * d, centre, up),
-                                perspective(FIELD_OF_VIEW_DEG, 1.0, near, dist + 1.1 * radius))
+    """A square perspective camera (`FIELD_OF_VIEW_DEG`) on the ray from ``centre`` along
+    ``direction``, looking at ``centre``, far enough that the sphere of ``radius`` fills its
+    view (`jaxnm.camera.Camera.framing`)."""
+    return Camera.framing(centre, radius, direction, fov_y_deg=FIELD_OF_VIEW_DEG)
 
 
 def view_lights(camera: Camera, count: int, index: int) -> np.ndarray:
@@ -146,17 +138,6 @@ def view_lights(camera: Camera, count: int, index: int) -> np.ndarray:
         out.append(eye_to_world(camera, (math.sin(polar) * math.cos(az),
                                          math.sin(polar) * math.sin(az), math.cos(polar))))
     return np.asarray(out)
-
-
-def bounding_sphere(*meshes: Mesh) -> tuple[np.ndarray, float]:
-    """The centre of the meshes' joint bounding box and the radius about it that holds
-    every vertex."""
-    lo = np.min([np.asarray(m.positions, np.float64).min(0) for m in meshes], axis=0)
-    hi = np.max([np.asarray(m.positions, np.float64).max(0) for m in meshes], axis=0)
-    centre = (lo + hi) / 2
-    r = max(float(np.sqrt(((np.asarray(m.positions, np.float64) - centre) ** 2).sum(1).max()))
-            for m in meshes)
-    return centre, max(r, 1e-12)
 
 
 def texels_seen(low: Mesh, camera: Camera, render_size: int, map_size: tuple[int, int], *,
