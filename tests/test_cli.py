@@ -451,6 +451,66 @@ def test_one_image_per_light_and_a_fit_file_naming_them(tmp_path):
     assert _fit(out.parent / "t_targets.json", "-o", tmp_path / "fit") == 0
 
 
+@pytest.mark.parametrize("source", ["built-in", "mesh file", "scene file, --frame vertex"])
+def test_the_targets_fit_file_names_the_scene_the_images_were_rendered_from(tmp_path, source):
+    """``--light`` with the built-in scene, a mesh file, or a scene file whose frame the
+    command changed: the fit file names a scene file (written beside it where the scene has
+    none, or a copy whose files are named from its new folder) whose fit model, given the
+    map the images were rendered with, renders those images again (to their 8-bit sRGB
+    rounding), so that a fit of them fits the map that made them."""
+    out = tmp_path / "targets" / "t.png"
+    lights = ["--light", "0,0,1", "--light", "1,-1,1", "--light=-1,-1,1"]
+    size, truth = ["--width", "24", "--height", "20"], jaxnm.procedural.default_normal_map(256)
+    if source == "mesh file":
+        io.save_obj(tmp_path / "m.obj", jaxnm.procedural.torus(1.0, 0.4, 24, 12))
+        argv = [str(tmp_path / "m.obj"), *size]
+        truth = np.broadcast_to(np.float32([0, 0, 1]), truth.shape)  # (no map: flat)
+    elif source == "built-in":
+        argv = size
+    else:
+        (tmp_path / "in").mkdir()
+        io.save_png(tmp_path / "in" / "albedo.png", np.float32([[[0.9, 0.3, 0.2]]]))
+        (tmp_path / "in" / "scene.json").write_text(json.dumps({
+            "mesh": "builtin:torus", "width": 24, "height": 20, "normal_map": "builtin:rivets",
+            "albedo": {"path": "albedo.png", "srgb": False},
+            "camera": {"eye": [0, -2.3, 1.7], "target": [0, 0, 0], "up": [0, 0, 1]}}))
+        argv = [str(tmp_path / "in" / "scene.json"), "--frame", "vertex"]
+    assert main(["render", *argv, "-o", str(out), *lights]) == 0
+    fit = json.loads((out.parent / "t_targets.json").read_text())
+    assert fit["scene"] == "t_scene.json"
+    if source.startswith("scene file"):
+        written = json.loads((out.parent / "t_scene.json").read_text())
+        assert written["frame"] == "vertex" and written["albedo"]["path"] == "../in/albedo.png"
+    job = jaxnm.load_fit(out.parent / "t_targets.json")
+    prep = F.prepare(job.problem)
+    again = F.render_with_map(prep, np.asarray(truth, np.float32))[0]
+    for i in range(3):
+        got = np.asarray(jaxnm.shading.to_display(again[i]))
+        png, _ = io.load_image_float(out.parent / f"t_{i:02d}.png")
+        assert np.abs(got - png)[prep.target_mask(0)].max() < 3 / 255, (source, i)
+
+
+def test_a_mesh_file_is_rendered_whole_and_exposure_is_refused_beside_light(tmp_path, capsys):
+    """``jaxnm render MESH``: the whole mesh in view (no covered pixel on the image's border),
+    filling most of its narrower side; ``--exposure`` with ``--light`` is refused, as the fit
+    file could not describe the scaled images."""
+    moved = np.eye(4)
+    moved[:3, 3] = (5.0, -2.0, 1.0)  # far from the origin, which the view must not assume
+    io.save_obj(tmp_path / "m.obj", jaxnm.procedural.uv_sphere(3.0, 16, 8).transformed(moved))
+    aovs = tmp_path / "a.npz"
+    assert main(["render", str(tmp_path / "m.obj"), "-o", str(tmp_path / "m.png"), "--width",
+                 "40", "--height", "24", "--aovs", str(aovs), "--aov-list", "mask"]) == 0
+    mask = io.load_aovs(aovs)["mask"][..., 0] > 0
+    assert mask.shape == (24, 40) and not (mask[[0, -1]].any() or mask[:, [0, -1]].any())
+    assert mask.any(1).sum() > 0.75 * 24
+    capsys.readouterr()
+    assert main(["render", "-o", str(tmp_path / "x.png"), "--light", "0,0,1", "--exposure",
+                 "2"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "jaxnm render: error: --exposure scales the images, and the fit file --light writes "
+        "beside them could not say so: leave one of them out")
+
+
 def test_aovs_are_the_ones_asked_for(tmp_path, capsys):
     out = tmp_path / "a.npz"
     assert main(["render", "-o", str(tmp_path / "r.png"), "--width", "16", "--height", "16",

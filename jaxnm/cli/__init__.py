@@ -1,6 +1,6 @@
 """Command line: ``jaxnm render``, ``jaxnm fit`` and ``jaxnm bake``.
 
-    jaxnm render [SCENE.json] [-o out.png] [--aovs out.npz] [--derivatives MODE]
+    jaxnm render [SCENE.json | MESH] [-o out.png] [--aovs out.npz] [--derivatives MODE]
                  [--frame FRAME] [--light X,Y,Z ...] [--normal-map PATH] [--width W --height H]
     jaxnm fit [FIT.json] [-o OUTDIR] [--checkpoint-every SECONDS] [--resume] ...
     jaxnm fit FIT.json --distributed [--coordinator HOST:PORT --num-processes N

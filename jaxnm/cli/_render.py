@@ -1,5 +1,5 @@
-"""``jaxnm render``: a scene file (or the built-in scene) to a PNG, its AOVs, and with
-``--light`` one image per light beside a fit file that names them."""
+"""``jaxnm render``: a scene file, a mesh file or the built-in scene to a PNG, its AOVs, and
+with ``--light`` one image per light beside a fit file that names them."""
 
 from __future__ import annotations
 
@@ -12,10 +12,17 @@ from pathlib import Path
 from ._flags import output_path
 from ._interrupt import CtrlC
 
-__all__ = ["add_parser", "run", "frame_name", "TARGETS_SUFFIX"]
+__all__ = ["add_parser", "run", "frame_name", "TARGETS_SUFFIX", "SCENE_SUFFIX", "MESH_VIEW"]
 
 #: With ``--light``, the fit file written beside the images: ``OUT_STEM`` + this.
 TARGETS_SUFFIX = "_targets.json"
+#: With ``--light`` and a mesh file or the built-in scene (or a scene file with ``--frame``,
+#: ``--derivatives`` or ``--precision``), the scene file the fit file names: ``OUT_STEM`` +
+#: this.
+SCENE_SUFFIX = "_scene.json"
+#: Where ``jaxnm render MESH`` looks from: the front (+z, with y up, as in glTF and most OBJ
+#: exporters), a little from the right and from above.
+MESH_VIEW = (0.4, 0.3, 1.0)
 # world units per unit of a --height-map image, without --height-scale
 _HEIGHT_SCALE = 0.02
 
@@ -50,8 +57,10 @@ def add_parser(sub) -> None:
     from ..render import OUTPUTS
 
     p = sub.add_parser("render", help="render a scene to a PNG (and optional AOVs)",
-                       description="Render SCENE.json (or the built-in default scene) to a PNG.")
-    p.add_argument("scene", nargs="?", help="scene JSON file (default: the built-in scene)")
+                       description="Render SCENE.json, a mesh file seen whole from the front, "
+                       "or the built-in default scene to a PNG.")
+    p.add_argument("scene", nargs="?", help="scene JSON file, or a mesh file (OBJ, PLY, glTF, "
+                   "STL, OFF) seen whole from the front, y up (default: the built-in scene)")
     p.add_argument("-o", "--output", default="render.png", help="output PNG (default: %(default)s)")
     p.add_argument("--aovs", metavar="OUT.npz",
                    help="also write per-pixel arrays to an .npz: " + ", ".join(OUTPUTS)
@@ -141,7 +150,9 @@ def _scene(args):
     from ..config import OBJECT_SPACE_HINT, load_height_map, load_scene
     from ..procedural import default_scene
 
-    if args.scene:
+    if args.scene and Path(args.scene).suffix.lower() in io.MESH_EXTENSIONS:
+        scene = _mesh_scene(args.scene, args.width or 512, args.height or 512)
+    elif args.scene:
         scene = load_scene(args.scene)
     else:
         scene = default_scene(width=args.width or 512, height=args.height or 512)
@@ -174,15 +185,94 @@ def _scene(args):
     return scene, frame
 
 
+def _mesh_scene(path: str, width: int, height: int):
+    """The scene of a mesh file alone: the whole mesh seen from `MESH_VIEW` (y up, a 40-degree
+    view), grey Blinn-Phong lit from the camera's upper left, as a scene file that names only
+    the mesh and a camera."""
+    from .. import io
+    from ..camera import Camera
+    from ..geometry import bounding_sphere
+    from ..scene import Scene, back_faces_hidden, check_scene_options, validate_scene
+
+    check_scene_options(width=width, height=height, source=path)
+    mesh = io.load_mesh(path)
+    centre, radius = bounding_sphere(mesh)
+    camera = Camera.framing(centre, radius, MESH_VIEW, up=(0.0, 1.0, 0.0), fov_y_deg=40.0,
+                            aspect=width / height, margin=1.05)
+    return validate_scene(Scene(mesh=mesh, camera=camera, width=width, height=height,
+                                cull_back=back_faces_hidden(mesh, camera), source=path))
+
+
 def _numbered(path: str, i: int, count: int) -> Path:
     """``path`` itself for one image, else ``STEM_NN.EXT``."""
     p = Path(path)
     return p if count == 1 else p.with_name(f"{p.stem}_{i:02d}{p.suffix}")
 
 
-def _targets_file(args, scene, images: list[Path]) -> Path:
-    """With ``--light``: a fit file naming the scene, its view and each image with its light,
-    beside the images (``OUT_STEM`` + `TARGETS_SUFFIX`); paths relative to it."""
+def _targets_scene(args, scene, path: Path) -> Path | None:
+    """None where a targets fit file can name the scene file given; else ``path``, a scene
+    file written there that describes the scene the images were rendered from (a mesh
+    file's or the built-in scene, or the scene file given with the frame, derivatives or
+    precision the options changed)."""
+    import json
+
+    import numpy as np
+
+    from .. import io
+
+    def rel(p) -> str:
+        return os.path.relpath(Path(p).resolve(), path.parent.resolve())
+
+    changed = {k: v for k, v in (("frame", args.frame), ("derivatives", args.derivatives),
+                                 ("precision", args.precision))
+               if v is not None and v != getattr(scene, k)}
+    mesh_file = args.scene and Path(args.scene).suffix.lower() in io.MESH_EXTENSIONS
+    if args.scene and not mesh_file:
+        if not changed:
+            return None
+        spec = _rebased(json.loads(Path(args.scene).read_text()), Path(args.scene).parent, rel)
+    else:
+        m = scene.material
+        spec = {"mesh": rel(args.scene) if mesh_file else "builtin:torus",
+                "width": scene.width, "height": scene.height,
+                "camera": {k: np.asarray(getattr(scene.camera, k), np.float64).tolist()
+                           for k in ("view", "projection")},
+                "albedo": _shortest(scene.albedo),
+                "material": {"model": scene.shading, "shininess": _shortest(m.shininess)[0],
+                             **{k: _shortest(getattr(m, k))
+                                for k in ("diffuse", "specular", "ambient")}},
+                "frame": scene.frame, "derivatives": scene.derivatives,
+                "precision": scene.precision, "double_sided": scene.double_sided}
+    io.save_json(path, {**spec, **changed})
+    return path
+
+
+def _shortest(values) -> list[float]:
+    """float32 ``values`` as the shortest decimals that read back as them (0.85, not
+    0.8500000238418579)."""
+    import numpy as np
+
+    return [float(str(v)) for v in np.asarray(values, np.float32).reshape(-1)]
+
+
+def _rebased(spec: dict, base: Path, rel) -> dict:
+    """A scene file's object with the files it names (relative to ``base``) named by
+    ``rel``, for a copy of it elsewhere."""
+    def moved(ref):
+        if isinstance(ref, dict) and isinstance(ref.get("path"), str):
+            return {**ref, "path": moved(ref["path"])}
+        if isinstance(ref, str) and not ref.startswith("builtin:"):
+            return rel(base / ref)
+        return ref
+
+    return {k: moved(v) if k in ("mesh", "normal_map", "height_map", "albedo") else v
+            for k, v in spec.items()}
+
+
+def _targets_file(args, scene, images: list[Path]) -> list[Path]:
+    """With ``--light``: a fit file naming the scene (`_targets_scene`), its view and each
+    image with its light, beside the images (``OUT_STEM`` + `TARGETS_SUFFIX`); paths
+    relative to it. Returns the files written: the scene file, if any, and the fit file."""
     import numpy as np
 
     from .. import io
@@ -190,9 +280,8 @@ def _targets_file(args, scene, images: list[Path]) -> Path:
     out = Path(args.output)
     path = out.with_name(out.stem + TARGETS_SUFFIX)
     folder = path.parent.resolve()
-    fit = {}
-    if args.scene:
-        fit["scene"] = os.path.relpath(Path(args.scene).resolve(), folder)
+    written = _targets_scene(args, scene, out.with_name(out.stem + SCENE_SUFFIX))
+    fit = {"scene": os.path.relpath(Path(written or args.scene).resolve(), folder)}
     fit["views"] = [{"camera": {"view": np.asarray(scene.camera.view, np.float64).tolist(),
                                 "projection": np.asarray(scene.camera.projection,
                                                          np.float64).tolist()},
@@ -201,7 +290,7 @@ def _targets_file(args, scene, images: list[Path]) -> Path:
                        "lights": [{"type": "directional", "direction": list(d)}]}
                       for img, d in zip(images, args.light, strict=True)]
     io.save_json(path, fit)
-    return path
+    return [p for p in (written, path) if p is not None]
 
 
 def run(args, ctrl_c: CtrlC) -> int:
@@ -220,6 +309,9 @@ def run(args, ctrl_c: CtrlC) -> int:
             raise ValueError(f"{flag} must be 1 to {MAX_IMAGE_SIZE} pixels, got {v}")
     if not 0 < args.exposure < float("inf"):
         raise ValueError(f"--exposure must be a positive finite scale, got {args.exposure}")
+    if args.light and args.exposure != 1:
+        raise ValueError("--exposure scales the images, and the fit file --light writes beside "
+                         "them could not say so: leave one of them out")
     if Path(args.output).suffix.lower() != ".png":
         raise ValueError(f"-o {args.output}: jaxnm render writes PNG images; the name must end "
                          "in .png")
@@ -249,7 +341,7 @@ def run(args, ctrl_c: CtrlC) -> int:
             io.save_aovs(npz, {k: result[k] for k in aovs})
             written.append(npz)
     if args.light:
-        written.append(_targets_file(args, scene, written[::2 if aovs else 1]))
+        written += _targets_file(args, scene, written[::2 if aovs else 1])
     what = f"{scene.width}x{scene.height}, frame {frame}"
     if frame == "vertex":
         what += f", tangents: {scene.mesh.tangent_source}"
