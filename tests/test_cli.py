@@ -511,6 +511,29 @@ def test_a_mesh_file_is_rendered_whole_and_exposure_is_refused_beside_light(tmp_
         "beside them could not say so: leave one of them out")
 
 
+@pytest.mark.parametrize("command,file,message", [
+    ("fit", "m.obj", "a mesh file, not a fit file (JSON): 'jaxnm render {f} --light X,Y,Z "
+                     "...' renders targets of it and writes their fit file, and 'jaxnm bake' "
+                     "fits a map to a high-poly mesh"),
+    ("fit", "t.png", "an image, not a fit file (JSON), which names its target images, views "
+                     "and lights"),
+    ("render", "t.png", "an image, not a scene file (JSON) or a mesh file; a map goes to "
+                        "--normal-map or --height-map"),
+])
+def test_a_file_of_another_kind_is_named_for_what_it_is(tmp_path, capsys, command, file,
+                                                        message):
+    """A mesh or an image where a fit or scene file goes is named as what it is, with the
+    command that takes it, not met as "invalid JSON" or "not UTF-8 text"; nothing is
+    written."""
+    f = tmp_path / file
+    f.write_bytes(b"\x89PNG\r\n" if file.endswith(".png") else b"v 0 0 0\n")
+    out = tmp_path / "out"
+    assert main([command, str(f), "-o", str(out / "r.png" if command == "render" else out)]) == 2
+    assert capsys.readouterr().err.strip() == f"jaxnm {command}: error: {f}: " + message.format(
+        f=f)
+    assert not out.exists()
+
+
 def test_aovs_are_the_ones_asked_for(tmp_path, capsys):
     out = tmp_path / "a.npz"
     assert main(["render", "-o", str(tmp_path / "r.png"), "--width", "16", "--height", "16",

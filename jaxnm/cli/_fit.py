@@ -127,7 +127,18 @@ def _say(enabled: bool = True):
 
 
 def check_arguments(args) -> dict:
-    """The numeric options checked; returns the solver options the command line overrides."""
+    """The fit file's kind and the numeric options checked; returns the solver options the
+    command line overrides."""
+    from ..io import IMAGE_EXTENSIONS, MESH_EXTENSIONS
+
+    kind = Path(args.config or "").suffix.lower()
+    if kind in MESH_EXTENSIONS:
+        raise ValueError(f"{args.config}: a mesh file, not a fit file (JSON): 'jaxnm render "
+                         f"{args.config} --light X,Y,Z ...' renders targets of it and writes "
+                         f"their fit file, and 'jaxnm bake' fits a map to a high-poly mesh")
+    if kind in IMAGE_EXTENSIONS:
+        raise ValueError(f"{args.config}: an image, not a fit file (JSON), which names its "
+                         f"target images, views and lights")
     if args.time_limit is not None and not args.time_limit > 0:
         raise ValueError(f"--time-limit must be a positive number of seconds, got "
                          f"{args.time_limit}")

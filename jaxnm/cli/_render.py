@@ -316,6 +316,9 @@ def run(args, ctrl_c: CtrlC) -> int:
         raise ValueError(f"-o {args.output}: jaxnm render writes PNG images; the name must end "
                          "in .png")
     _check_map_options(args)
+    if args.scene and Path(args.scene).suffix.lower() in io.IMAGE_EXTENSIONS:
+        raise ValueError(f"{args.scene}: an image, not a scene file (JSON) or a mesh file; a "
+                         f"map goes to --normal-map or --height-map")
     output_path("-o", args.output)
     if args.aovs is not None:
         output_path("--aovs", args.aovs)
