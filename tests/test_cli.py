@@ -259,7 +259,8 @@ def test_an_object_space_map_given_as_tangent_space_warns(tmp_path, capsys):
     io.save_png(tmp_path / "map.png", (n * 0.5 + 0.5).astype(np.float32))
     out = str(tmp_path / "r.png")
     for args, name in (([str(scene)], f"{scene}: normal_map: map.png"),
-                       (["--normal-map", str(tmp_path / "map.png")], str(tmp_path / "map.png"))):
+                       (["--normal-map", str(tmp_path / "map.png"), "--width", "16", "--height",
+                         "16"], str(tmp_path / "map.png"))):
         with warnings.catch_warnings():
             warnings.simplefilter("default")
             assert main(["render", *args, "-o", out]) == 0
