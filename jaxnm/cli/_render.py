@@ -214,8 +214,6 @@ def _targets_scene(args, scene, path: Path) -> Path | None:
     file written there that describes the scene the images were rendered from (a mesh
     file's or the built-in scene, or the scene file given with the frame, derivatives or
     precision the options changed)."""
-    import json
-
     import numpy as np
 
     from .. import io
@@ -230,7 +228,7 @@ def _targets_scene(args, scene, path: Path) -> Path | None:
     if args.scene and not mesh_file:
         if not changed:
             return None
-        spec = _rebased(json.loads(Path(args.scene).read_text()), Path(args.scene).parent, rel)
+        spec = _rebased(io.load_json(args.scene), Path(args.scene).parent, rel)
     else:
         m = scene.material
         spec = {"mesh": rel(args.scene) if mesh_file else "builtin:torus",
