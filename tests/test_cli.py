@@ -512,6 +512,33 @@ def test_a_mesh_file_is_rendered_whole_and_exposure_is_refused_beside_light(tmp_
         "beside them could not say so: leave one of them out")
 
 
+def test_up_z_shows_a_z_up_mesh_upright_from_its_front(tmp_path, capsys):
+    """``--up z`` (Blender's, most STL and CAD files' axis): a sphere stretched twice along z
+    stands upright in the image, seen from -y, Blender's front; with the default y up the
+    same mesh lies along the view and is no taller than wide. ``--up`` beside a scene file
+    or the built-in scene is refused."""
+    from jaxnm.cli._render import _mesh_scene
+
+    tall = np.diag([1.0, 1.0, 2.0, 1.0])
+    io.save_obj(tmp_path / "m.obj", jaxnm.procedural.uv_sphere(3.0, 16, 8).transformed(tall))
+    extents = {}
+    for up in ("y", "z"):
+        aovs = tmp_path / f"{up}.npz"
+        assert main(["render", str(tmp_path / "m.obj"), "--up", up, "-o", str(tmp_path / "m.png"),
+                     "--width", "40", "--height", "24", "--aovs", str(aovs), "--aov-list",
+                     "mask"]) == 0
+        mask = io.load_aovs(aovs)["mask"][..., 0] > 0
+        extents[up] = mask.any(1).sum(), mask.any(0).sum()  # rows, columns covered
+    assert extents["z"][0] > 1.5 * extents["z"][1]
+    assert extents["y"][0] <= extents["y"][1]
+    view = np.asarray(_mesh_scene(str(tmp_path / "m.obj"), 40, 24, "z").camera.view, np.float64)
+    eye = -view[:3, :3].T @ view[:3, 3]
+    assert eye[1] < -abs(eye[0]) and eye[1] < -abs(eye[2])  # mostly from -y
+    capsys.readouterr()
+    assert main(["render", "--up", "z", "-o", str(tmp_path / "x.png")]) == 2
+    assert "--up is a mesh file's up axis" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("command,file,message", [
     ("fit", "m.obj", "a mesh file, not a fit file (JSON): 'jaxnm render {f} --light X,Y,Z "
                      "...' renders targets of it and writes their fit file, and 'jaxnm bake' "

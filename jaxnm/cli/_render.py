@@ -12,7 +12,8 @@ from pathlib import Path
 from ._flags import output_path
 from ._interrupt import CtrlC
 
-__all__ = ["add_parser", "run", "frame_name", "TARGETS_SUFFIX", "SCENE_SUFFIX", "MESH_VIEW"]
+__all__ = ["add_parser", "run", "frame_name", "TARGETS_SUFFIX", "SCENE_SUFFIX", "MESH_VIEW",
+           "MESH_UP"]
 
 #: With ``--light``, the fit file written beside the images: ``OUT_STEM`` + this.
 TARGETS_SUFFIX = "_targets.json"
@@ -23,6 +24,9 @@ SCENE_SUFFIX = "_scene.json"
 #: Where ``jaxnm render MESH`` looks from: the front (+z, with y up, as in glTF and most OBJ
 #: exporters), a little from the right and from above.
 MESH_VIEW = (0.4, 0.3, 1.0)
+#: ``--up``'s axes: a y-up direction (as `MESH_VIEW`) in a mesh whose up axis is this one.
+#: With z up (Blender, most STL and CAD files) the front is -y, as Blender's front view.
+MESH_UP = {"y": lambda x, y, z: (x, y, z), "z": lambda x, y, z: (x, -z, y)}
 # world units per unit of a --height-map image, without --height-scale
 _HEIGHT_SCALE = 0.02
 
@@ -60,7 +64,10 @@ def add_parser(sub) -> None:
                        description="Render SCENE.json, a mesh file seen whole from the front, "
                        "or the built-in default scene to a PNG.")
     p.add_argument("scene", nargs="?", help="scene JSON file, or a mesh file (OBJ, PLY, glTF, "
-                   "STL, OFF) seen whole from the front, y up (default: the built-in scene)")
+                   "STL, OFF) seen whole from the front (default: the built-in scene)")
+    p.add_argument("--up", choices=tuple(MESH_UP),
+                   help="a mesh file's up axis (default: y; z for Blender's, most STL and CAD "
+                   "files): the mesh is seen from its front, upright")
     p.add_argument("-o", "--output", default="render.png", help="output PNG (default: %(default)s)")
     p.add_argument("--aovs", metavar="OUT.npz",
                    help="also write per-pixel arrays to an .npz: " + ", ".join(OUTPUTS)
@@ -151,7 +158,10 @@ def _scene(args):
     from ..procedural import default_scene
 
     if args.scene and Path(args.scene).suffix.lower() in io.MESH_EXTENSIONS:
-        scene = _mesh_scene(args.scene, args.width or 512, args.height or 512)
+        scene = _mesh_scene(args.scene, args.width or 512, args.height or 512, args.up or "y")
+    elif args.up:
+        raise ValueError("--up is a mesh file's up axis; a scene file has its camera, and the "
+                         "built-in scene its own")
     elif args.scene:
         scene = load_scene(args.scene)
     else:
@@ -185,10 +195,10 @@ def _scene(args):
     return scene, frame
 
 
-def _mesh_scene(path: str, width: int, height: int):
-    """The scene of a mesh file alone: the whole mesh seen from `MESH_VIEW` (y up, a 40-degree
-    view), grey Blinn-Phong lit from the camera's upper left, as a scene file that names only
-    the mesh and a camera."""
+def _mesh_scene(path: str, width: int, height: int, up: str = "y"):
+    """The scene of a mesh file alone: the whole mesh seen from `MESH_VIEW`, turned for the
+    mesh's ``up`` axis (`MESH_UP`), through a 40-degree view; grey Blinn-Phong lit from the
+    camera's upper left, as a scene file that names only the mesh and a camera."""
     from .. import io
     from ..camera import Camera
     from ..geometry import bounding_sphere
@@ -197,8 +207,9 @@ def _mesh_scene(path: str, width: int, height: int):
     check_scene_options(width=width, height=height, source=path)
     mesh = io.load_mesh(path)
     centre, radius = bounding_sphere(mesh)
-    camera = Camera.framing(centre, radius, MESH_VIEW, up=(0.0, 1.0, 0.0), fov_y_deg=40.0,
-                            aspect=width / height, margin=1.05)
+    turn = MESH_UP[up]
+    camera = Camera.framing(centre, radius, turn(*MESH_VIEW), up=turn(0.0, 1.0, 0.0),
+                            fov_y_deg=40.0, aspect=width / height, margin=1.05)
     return validate_scene(Scene(mesh=mesh, camera=camera, width=width, height=height,
                                 cull_back=back_faces_hidden(mesh, camera), source=path))
 
