@@ -395,8 +395,8 @@ print("DETERMINISTIC", "--xla_gpu_deterministic_ops=true" in os.environ.get("XLA
 @pytest.mark.slow
 def test_cli_uses_the_persistent_compilation_cache(tmp_path):
     """A second `jaxnm render` loads its programs from the cache the first one filled;
-    `--no-compile-cache` and JAXNM_COMPILATION_CACHE=off turn it off. The CLI also asks XLA
-    for deterministic GPU ops unless told `--nondeterministic`."""
+    `--no-compile-cache` turns it off (as JAXNM_COMPILATION_CACHE=off does: below). The CLI
+    also asks XLA for deterministic GPU ops unless told `--nondeterministic`."""
     import os
     import subprocess
     import sys
@@ -424,8 +424,25 @@ def test_cli_uses_the_persistent_compilation_cache(tmp_path):
     assert hits >= first_misses
     # (the two flags are independent: one run checks both)
     assert run("--no-compile-cache", "--nondeterministic") == (0, 0)
-    assert run(env=dict(env, JAXNM_COMPILATION_CACHE="off")) == (0, 0)
-    assert deterministic == [True, True, False, True]
+    assert deterministic == [True, True, False]
+
+
+def test_the_compilation_cache_folder_follows_the_environment(monkeypatch, tmp_path):
+    """JAXNM_COMPILATION_CACHE names the folder, or turns the cache off; unset, the cache is
+    under XDG_CACHE_HOME, else ~/.cache."""
+    from jaxnm.cli import _compilation_cache_dir
+
+    for off in ("off", "OFF", "", " ", "0", "false", "no"):
+        monkeypatch.setenv("JAXNM_COMPILATION_CACHE", off)
+        assert _compilation_cache_dir() is None, off
+    monkeypatch.setenv("JAXNM_COMPILATION_CACHE", str(tmp_path / "c"))
+    assert _compilation_cache_dir() == tmp_path / "c"
+    monkeypatch.delenv("JAXNM_COMPILATION_CACHE")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "x"))
+    assert _compilation_cache_dir() == tmp_path / "x" / "jaxnm" / "xla"
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "h"))
+    assert _compilation_cache_dir() == tmp_path / "h" / ".cache" / "jaxnm" / "xla"
 
 
 @pytest.mark.parametrize("outputs", [None, (), []])
