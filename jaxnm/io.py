@@ -22,6 +22,7 @@ Conventions:
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import copy
 import io
@@ -31,6 +32,7 @@ import os
 import re
 import struct
 import tempfile
+import urllib.parse
 import warnings
 import zlib
 from pathlib import Path
@@ -52,7 +54,8 @@ __all__ = [
     "load_aovs", "load_json", "save_json", "save_loss_plot", "write_fit_outputs",
     "write_fit_renders", "atomic_write", "writable", "unfinished_writes", "PathLike",
     "MESH_EXTENSIONS", "TEXTURE_EXTENSIONS", "IMAGE_EXTENSIONS", "save_obj", "save_normal_map_npz",
-    "save_figure_grid", "check_tangent_normal_map", "INWARD_Z", "INWARD_SHARE"
+    "save_figure_grid", "check_tangent_normal_map", "INWARD_Z", "INWARD_SHARE",
+    "load_gltf_normal_map",
 ]
 
 PathLike = str | os.PathLike
@@ -646,6 +649,119 @@ def _glb_for_geometry(data: bytes, src: str) -> bytes:
     return struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body
 
 
+def load_gltf_normal_map(path: PathLike) -> tuple[np.ndarray, int, float] | None:
+    """The tangent-space normal map of a glTF or GLB file's materials, or None if no
+    primitive's material has one.
+
+    glTF stores it unsigned, +green towards the image's top, in the MikkTSpace frame of the
+    vertex normals and uvs (or of the file's ``TANGENT`` attribute): `NormalMapOptions`
+    ``encoding="unsigned"``, ``green="up"``, read with `load_mesh`'s uvs (origin at the
+    bottom left) and ``frame="vertex"``. jaxnm renders a scene with one map: a file whose
+    primitives name different normal textures, or leave some without one, gives None with a
+    `JaxnmWarning`, as does a map read through a ``texCoord`` other than 0.
+
+    **Returns:** ``(image, bits, scale)``: the texture as `load_texture` gives it (float32
+    ``(H, W, 3)`` in [0, 1], row 0 at the top; bits 8 or 16) and the material's
+    ``normalTexture.scale``, which scales the decoded x and y (`NormalMapOptions.strength`).
+
+    **Raises:** `ValueError` naming the file for a texture that cannot be found or read.
+    """
+    p = _existing_file(path)
+    ext = _check_extension(p, (".gltf", ".glb"), "glTF")
+    src = str(p)
+    tree, binary = _gltf_parts(p.read_bytes(), ext, src)
+    used = _gltf_normal_textures(tree, src)
+    if not used:
+        return None
+    if len(used) > 1:
+        warnings.warn(f"{src}: its primitives use {len(used)} normal textures (or some none); "
+                      "jaxnm renders a scene with one map, so none is used", JaxnmWarning,
+                      stacklevel=2)
+        return None
+    (ref,) = used
+    if ref.get("texCoord", 0) != 0:
+        warnings.warn(f"{src}: the normal texture is read through TEXCOORD_{ref['texCoord']}; "
+                      "jaxnm reads TEXCOORD_0 only, so it is not used", JaxnmWarning,
+                      stacklevel=2)
+        return None
+    try:
+        image = tree["images"][tree["textures"][ref["index"]]["source"]]
+        data, kind = _gltf_image_bytes(tree, image, binary, p)
+    except (KeyError, IndexError, TypeError) as e:
+        raise ValueError(f"{src}: malformed glTF normal texture ({type(e).__name__}: "
+                         f"{e})") from None
+    where = f"{src}: normal texture {image.get('uri') or image.get('name') or ''}".rstrip()
+    texels, bits = _decode_image(data, kind, where)
+    texels = _select_channels(texels, 3, where)
+    scale = ref.get("scale", 1.0)
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not abs(scale) < np.inf:
+        raise ValueError(f"{src}: normalTexture.scale must be a finite number, got {scale!r}")
+    return texels, bits, float(scale)
+
+
+def _gltf_parts(data: bytes, ext: str, src: str) -> tuple[dict, bytes | None]:
+    """A glTF file's JSON tree and, for a GLB, its binary chunk (None if it has none)."""
+    if ext == ".gltf":
+        tree = _parse_json_text(data, src)
+        binary = None
+    else:
+        if len(data) < 20 or data[:4] != b"glTF":
+            raise ValueError(f"{src}: not a GLB file (it does not start with 'glTF')")
+        json_len = struct.unpack_from("<I", data, 12)[0]
+        tree = _parse_json_text(data[20:20 + json_len], src)
+        rest = 20 + json_len
+        binary = None
+        if len(data) >= rest + 8 and data[rest + 4:rest + 8] == b"BIN\0":
+            n = struct.unpack_from("<I", data, rest)[0]
+            binary = data[rest + 8:rest + 8 + n]
+    if not isinstance(tree, dict):
+        raise ValueError(f"{src}: not a glTF file (the JSON is not an object)")
+    return tree, binary
+
+
+def _gltf_normal_textures(tree: dict, src: str) -> list[dict]:
+    """The distinct ``normalTexture`` references of the materials the primitives use, with
+    an empty one for a primitive without (so that a partly mapped mesh counts as two)."""
+    refs = []
+    materials = tree.get("materials", [])
+    try:
+        for mesh in tree.get("meshes", []):
+            for prim in mesh.get("primitives", []):
+                m = prim.get("material")
+                ref = materials[m].get("normalTexture", {}) if m is not None else {}
+                if ref not in refs:
+                    refs.append(ref)
+    except (AttributeError, TypeError, IndexError) as e:
+        raise ValueError(f"{src}: malformed glTF materials ({type(e).__name__}: {e})") from None
+    return [] if refs in ([], [{}]) else refs
+
+
+def _gltf_image_bytes(tree: dict, image: dict, binary: bytes | None,
+                      p: Path) -> tuple[bytes, str]:
+    """An image's encoded bytes (from a data URI, a file beside ``p`` or a buffer view)
+    and its extension."""
+    kinds = {"image/png": ".png", "image/jpeg": ".jpg"}
+    uri = image.get("uri")
+    if uri is not None:
+        if uri.startswith("data:"):
+            head, _, body = uri.partition(",")
+            return base64.b64decode(body), kinds.get(head[5:].split(";")[0], ".png")
+        file = p.parent / urllib.parse.unquote(uri)
+        if not file.is_file():
+            raise ValueError(f"{p}: the normal texture {uri!r} is not beside it ({file})")
+        return file.read_bytes(), file.suffix.lower()
+    view = tree["bufferViews"][image["bufferView"]]
+    buffer = tree["buffers"][view["buffer"]]
+    if "uri" in buffer:
+        blob, _ = _gltf_image_bytes(tree, {"uri": buffer["uri"]}, binary, p)
+    elif binary is not None:
+        blob = binary
+    else:
+        raise ValueError(f"{p}: the normal texture's buffer has no data")
+    start = view.get("byteOffset", 0)
+    return blob[start:start + view["byteLength"]], kinds.get(image.get("mimeType"), ".png")
+
+
 # ----------------------------------------------------------------------------- images
 
 
@@ -724,13 +840,18 @@ def _read_image(p: Path, ext: str) -> tuple[np.ndarray, int]:
     elif ext == ".exr":
         raw = _read_exr(p)
     else:
-        data = p.read_bytes()
-        if not data:
-            raise ValueError(f"{src}: empty file")
-        if data[:8] == _PNG_SIGNATURE and len(data) > 24 and data[24] == 16:
-            raw = _decode_png16(data, src)  # IHDR bit depth is byte 24
-        else:
-            raw = _read_pillow(data, ext, src)
+        return _decode_image(p.read_bytes(), ext, src)
+    return _image_to_float(raw, src)
+
+
+def _decode_image(data: bytes, ext: str, src: str) -> tuple[np.ndarray, int]:
+    """(float32 (H, W, C), bits) of a PNG or JPEG file's bytes."""
+    if not data:
+        raise ValueError(f"{src}: empty file")
+    if data[:8] == _PNG_SIGNATURE and len(data) > 24 and data[24] == 16:
+        raw = _decode_png16(data, src)  # IHDR bit depth is byte 24
+    else:
+        raw = _read_pillow(data, ext, src)
     return _image_to_float(raw, src)
 
 

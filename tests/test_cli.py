@@ -539,6 +539,78 @@ def test_up_z_shows_a_z_up_mesh_upright_from_its_front(tmp_path, capsys):
     assert "--up is a mesh file's up axis" in capsys.readouterr().err
 
 
+def _quad_gltf(path, *, scale=0.5, texture=True):
+    """A glTF quad in z = 0, facing +z, written by hand as the glTF 2.0 specification says
+    (uv (0, 0) at the image's top left, world (-1, 1); data URIs), with an 8x8 normal map whose
+    top rows tilt towards +green (the image's top) and bottom rows towards +red."""
+    import base64
+    from io import BytesIO
+
+    from PIL import Image
+
+    pos = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32)
+    nrm = np.tile(np.array([0, 0, 1], np.float32), (4, 1))
+    uv = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], np.float32)
+    idx = np.array([0, 1, 2, 0, 2, 3], np.uint16)
+    blob = pos.tobytes() + nrm.tobytes() + uv.tobytes() + idx.tobytes()
+    img = np.zeros((8, 8, 3), np.uint8)
+    img[:4], img[4:] = (128, 191, 238), (191, 128, 238)  # (0, .5, .866), (.5, 0, .866)
+    buf = BytesIO()
+    Image.fromarray(img).save(buf, format="PNG")
+    uri = "data:application/octet-stream;base64," + base64.b64encode(blob).decode()
+    views = [dict(buffer=0, byteOffset=o, byteLength=n) for o, n in
+             ((0, 48), (48, 48), (96, 32), (128, 12))]
+    acc = [dict(bufferView=0, componentType=5126, count=4, type="VEC3",
+                min=[-1, -1, 0], max=[1, 1, 0]),
+           dict(bufferView=1, componentType=5126, count=4, type="VEC3"),
+           dict(bufferView=2, componentType=5126, count=4, type="VEC2"),
+           dict(bufferView=3, componentType=5123, count=6, type="SCALAR")]
+    material = {"normalTexture": {"index": 0, "scale": scale}} if texture else {}
+    tree = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+            "nodes": [{"mesh": 0}], "buffers": [{"byteLength": len(blob), "uri": uri}],
+            "bufferViews": views, "accessors": acc, "materials": [material],
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1,
+                                                       "TEXCOORD_0": 2},
+                                        "indices": 3, "material": 0}]}],
+            "textures": [{"source": 0}],
+            "images": [{"uri": "data:image/png;base64,"
+                        + base64.b64encode(buf.getvalue()).decode()}]}
+    path.write_text(json.dumps(tree))
+    return path
+
+
+def test_a_gltf_files_own_normal_map_renders_as_gltf_says(tmp_path):
+    """``jaxnm render FILE.gltf`` uses the file's normal map, decoded as the glTF
+    specification says (uv origin at the image's top left, +green towards the image's top,
+    MikkTSpace, ``normalTexture.scale`` scaling x and y): on a flat quad the perturbed normal
+    is the decoded texel in world axes, the top rows' tilt towards world +y, the bottom
+    rows' towards +x. ``--normal-map`` replaces it."""
+    quad = _quad_gltf(tmp_path / "q.gltf", scale=0.5)
+    aovs = tmp_path / "a.npz"
+    assert main(["render", str(quad), "-o", str(tmp_path / "q.png"), "--width", "32", "--height",
+                 "32", "--aovs", str(aovs), "--aov-list", "mask,position,perturbed_normal"]) == 0
+    out = io.load_aovs(aovs)
+    m = out["mask"][..., 0] > 0
+    y = out["position"][..., 1]
+    n = out["perturbed_normal"]
+    # (away from the middle row and the top and bottom edges, where bilinear filtering and
+    # glTF's default repeat wrap blend the two halves)
+    for region, tilt in ((m & (y > 0.3) & (y < 0.7), [0.0, 0.5, 0.866]),
+                         (m & (y < -0.3) & (y > -0.7), [0.5, 0.0, 0.866])):
+        t = np.array(tilt) * [0.5, 0.5, 1]  # the scale: x and y halved
+        t /= np.linalg.norm(t)
+        assert region.sum() > 20
+        np.testing.assert_allclose(n[region], np.broadcast_to(t, n[region].shape), atol=0.01)
+    # the map given on the command line replaces the file's
+    flat = tmp_path / "flat.png"
+    io.save_png(flat, np.full((4, 4, 3), [0.5, 0.5, 1.0], np.float32), bits=8)
+    assert main(["render", str(quad), "-o", str(tmp_path / "f.png"), "--width", "32", "--height",
+                 "32", "--normal-map", str(flat), "--aovs", str(aovs), "--aov-list",
+                 "mask,perturbed_normal"]) == 0
+    out = io.load_aovs(aovs)
+    assert np.abs(out["perturbed_normal"][out["mask"][..., 0] > 0] - [0, 0, 1]).max() < 0.01
+
+
 @pytest.mark.parametrize("command,file,message", [
     ("fit", "m.obj", "a mesh file, not a fit file (JSON): 'jaxnm render {f} --light X,Y,Z "
                      "...' renders targets of it and writes their fit file, and 'jaxnm bake' "

@@ -24,6 +24,7 @@ from jaxnm.io import (
     JaxnmWarning,
     check_tangent_normal_map,
     load_aovs,
+    load_gltf_normal_map,
     load_image_float,
     load_json,
     load_mesh,
@@ -917,3 +918,61 @@ def test_a_map_of_another_kind_given_as_tangent_space_is_named():
     tilted[0, :8] = [1.0, 0.5, 0.3]  # 8 of 4,096 texels point inwards (z = -0.4)
     assert _warned(tilted) == []
     assert _warned(sphere[..., :2] * 0.5 + 0.5, channels=2) == []  # z rebuilt, >= 0
+
+
+def _glb_with_normal_texture(path, images):
+    """A GLB of one box per image, each with a material whose normal texture is that image
+    (written by trimesh: the images in the binary chunk, through buffer views)."""
+    from trimesh.visual import TextureVisuals
+    from trimesh.visual.material import PBRMaterial
+
+    scene = trimesh.Scene()
+    for k, img in enumerate(images):
+        box = trimesh.creation.box()
+        uv = np.random.default_rng(k).random((len(box.vertices), 2))
+        box.visual = TextureVisuals(uv=uv, material=PBRMaterial(
+            normalTexture=None if img is None else Image.fromarray(img)))
+        scene.add_geometry(box, geom_name=f"box{k}")
+    scene.export(path)
+    return path
+
+
+def test_a_glb_files_normal_map_is_read_from_its_binary_chunk(tmp_path):
+    img = np.random.default_rng(0).integers(0, 256, (6, 10, 3), dtype=np.uint8)
+    texels, bits, scale = load_gltf_normal_map(_glb_with_normal_texture(tmp_path / "b.glb",
+                                                                        [img]))
+    assert bits == 8 and scale == 1.0
+    np.testing.assert_array_equal(texels, img / np.float32(255))
+
+
+@pytest.mark.parametrize("images,why", [
+    ("two", "its primitives use 2 normal textures (or some none)"),
+    ("one and none", "its primitives use 2 normal textures (or some none)"),
+])
+def test_a_glb_whose_primitives_differ_in_normal_map_has_none(tmp_path, images, why):
+    """jaxnm renders a scene with one map: several, or a map on part of the mesh, give None
+    and say why."""
+    rng = np.random.default_rng(1)
+    a, b = (rng.integers(0, 256, (4, 4, 3), dtype=np.uint8) for _ in range(2))
+    path = _glb_with_normal_texture(tmp_path / "m.glb", [a, b] if images == "two" else [a, None])
+    with pytest.warns(JaxnmWarning, match=re.escape(f"{path}: {why}; jaxnm renders a scene "
+                                                    "with one map, so none is used")):
+        assert load_gltf_normal_map(path) is None
+
+
+def test_a_gltf_normal_map_through_another_uv_set_or_missing_is_named(tmp_path):
+    tree = {"asset": {"version": "2.0"}, "materials": [{"normalTexture": {"index": 0}}],
+            "meshes": [{"primitives": [{"attributes": {}, "material": 0}]}],
+            "textures": [{"source": 0}], "images": [{"uri": "n.png"}]}
+    path = tmp_path / "m.gltf"
+    path.write_text(json.dumps(tree))
+    with pytest.raises(ValueError, match=re.escape(f"{path}: the normal texture 'n.png' is not "
+                                                   f"beside it ({tmp_path / 'n.png'})")):
+        load_gltf_normal_map(path)
+    tree["materials"][0]["normalTexture"]["texCoord"] = 1
+    path.write_text(json.dumps(tree))
+    with pytest.warns(JaxnmWarning, match="read through TEXCOORD_1; jaxnm reads TEXCOORD_0 only"):
+        assert load_gltf_normal_map(path) is None
+    tree["materials"] = [{}]
+    path.write_text(json.dumps(tree))
+    assert load_gltf_normal_map(path) is None

@@ -158,7 +158,8 @@ def _scene(args):
     from ..procedural import default_scene
 
     if args.scene and Path(args.scene).suffix.lower() in io.MESH_EXTENSIONS:
-        scene = _mesh_scene(args.scene, args.width or 512, args.height or 512, args.up or "y")
+        scene = _mesh_scene(args.scene, args.width or 512, args.height or 512, args.up or "y",
+                            own_map=not (args.normal_map or args.height_map))
     elif args.up:
         raise ValueError("--up is a mesh file's up axis; a scene file has its camera, and the "
                          "built-in scene its own")
@@ -195,14 +196,17 @@ def _scene(args):
     return scene, frame
 
 
-def _mesh_scene(path: str, width: int, height: int, up: str = "y"):
+def _mesh_scene(path: str, width: int, height: int, up: str = "y", *, own_map: bool = True):
     """The scene of a mesh file alone: the whole mesh seen from `MESH_VIEW`, turned for the
     mesh's ``up`` axis (`MESH_UP`), through a 40-degree view; grey Blinn-Phong lit from the
-    camera's upper left, as a scene file that names only the mesh and a camera."""
+    camera's upper left, as a scene file that names only the mesh and a camera. With
+    ``own_map``, a glTF file's own normal map (`jaxnm.io.load_gltf_normal_map`), decoded as
+    glTF prescribes: the "vertex" frame (MikkTSpace, or the file's tangents)."""
     from .. import io
     from ..camera import Camera
     from ..geometry import bounding_sphere
     from ..scene import Scene, back_faces_hidden, check_scene_options, validate_scene
+    from ..textures import NormalMapOptions
 
     check_scene_options(width=width, height=height, source=path)
     mesh = io.load_mesh(path)
@@ -210,8 +214,16 @@ def _mesh_scene(path: str, width: int, height: int, up: str = "y"):
     turn = MESH_UP[up]
     camera = Camera.framing(centre, radius, turn(*MESH_VIEW), up=turn(0.0, 1.0, 0.0),
                             fov_y_deg=40.0, aspect=width / height, margin=1.05)
-    return validate_scene(Scene(mesh=mesh, camera=camera, width=width, height=height,
-                                cull_back=back_faces_hidden(mesh, camera), source=path))
+    scene = Scene(mesh=mesh, camera=camera, width=width, height=height,
+                  cull_back=back_faces_hidden(mesh, camera), source=path)
+    own = own_map and Path(path).suffix.lower() in (".gltf", ".glb")
+    found = io.load_gltf_normal_map(path) if own and mesh.uv is not None else None
+    if found is not None:
+        texels, bits, scale = found
+        scene = scene.replace(normal_map=texels, frame="vertex", normal_map_options=(
+            NormalMapOptions(encoding="unsigned", channels=3, green="up", strength=scale,
+                             bits=bits if bits in (8, 16) else 8)))
+    return validate_scene(scene)
 
 
 def _numbered(path: str, i: int, count: int) -> Path:
