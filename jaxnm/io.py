@@ -226,6 +226,8 @@ def load_mesh(path: PathLike, *, require_uv: bool = False,
     computes MikkTSpace tangents. The sign needs no change for the flipped uvs:
     glTF defines it against the image's "up", which is jaxnm's +v.
 
+    **Materials** are not read; `load_gltf_normal_map` reads a glTF file's normal map.
+
     **Returns:** a `Mesh` of jax arrays; ``uv`` is None if the file has none.
 
     **Raises:** `FileNotFoundError` for a missing file; `ValueError` (message
