@@ -636,7 +636,9 @@ def _gltf_for_geometry(data: bytes, src: str) -> bytes:
     return json.dumps(tree).encode()
 
 
-def _glb_for_geometry(data: bytes, src: str) -> bytes:
+def _glb_chunks(data: bytes, src: str) -> tuple[bytes, bytes]:
+    """A GLB file's JSON chunk and the bytes after it (the binary chunk, if any, with its
+    header)."""
     if len(data) < 20 or data[:4] != b"glTF":
         raise ValueError(f"{src}: not a GLB file (it does not start with 'glTF')")
     version, _ = struct.unpack_from("<II", data, 4)
@@ -644,10 +646,15 @@ def _glb_for_geometry(data: bytes, src: str) -> bytes:
     if version != 2 or json_type != b"JSON" or 20 + json_len > len(data):
         raise ValueError(f"{src}: not a valid glTF 2.0 binary (version {version}, first chunk "
                          f"{json_type!r} of {json_len} bytes)")
-    tree = _gltf_tree_for_geometry(_parse_json_text(data[20:20 + json_len], src), src)
+    return data[20:20 + json_len], data[20 + json_len:]
+
+
+def _glb_for_geometry(data: bytes, src: str) -> bytes:
+    text, rest = _glb_chunks(data, src)
+    tree = _gltf_tree_for_geometry(_parse_json_text(text, src), src)
     chunk = json.dumps(tree).encode()
     chunk += b" " * (-len(chunk) % 4)  # chunks are 4-byte aligned, JSON padded with spaces
-    body = struct.pack("<I4s", len(chunk), b"JSON") + chunk + data[20 + json_len:]
+    body = struct.pack("<I4s", len(chunk), b"JSON") + chunk + rest
     return struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body
 
 
@@ -666,7 +673,8 @@ def load_gltf_normal_map(path: PathLike) -> tuple[np.ndarray, int, float] | None
     ``(H, W, 3)`` in [0, 1], row 0 at the top; bits 8 or 16) and the material's
     ``normalTexture.scale``, which scales the decoded x and y (`NormalMapOptions.strength`).
 
-    **Raises:** `ValueError` naming the file for a texture that cannot be found or read.
+    **Raises:** `ValueError` naming the file for a texture that cannot be found or read
+    (PNG and JPEG images are read; KTX2 and WebP, through their extensions, are not).
     """
     p = _existing_file(path)
     ext = _check_extension(p, (".gltf", ".glb"), "glTF")
@@ -687,7 +695,12 @@ def load_gltf_normal_map(path: PathLike) -> tuple[np.ndarray, int, float] | None
                       stacklevel=2)
         return None
     try:
-        image = tree["images"][tree["textures"][ref["index"]]["source"]]
+        texture = tree["textures"][ref["index"]]
+        if "source" not in texture:
+            raise ValueError(f"{src}: the normal texture is stored only through the extensions "
+                             f"{sorted(texture.get('extensions', {}))}; jaxnm reads PNG and "
+                             "JPEG images")
+        image = tree["images"][texture["source"]]
         data, kind = _gltf_image_bytes(tree, image, binary, p)
     except (KeyError, IndexError, TypeError) as e:
         raise ValueError(f"{src}: malformed glTF normal texture ({type(e).__name__}: "
@@ -703,19 +716,14 @@ def load_gltf_normal_map(path: PathLike) -> tuple[np.ndarray, int, float] | None
 
 def _gltf_parts(data: bytes, ext: str, src: str) -> tuple[dict, bytes | None]:
     """A glTF file's JSON tree and, for a GLB, its binary chunk (None if it has none)."""
+    binary = None
     if ext == ".gltf":
         tree = _parse_json_text(data, src)
-        binary = None
     else:
-        if len(data) < 20 or data[:4] != b"glTF":
-            raise ValueError(f"{src}: not a GLB file (it does not start with 'glTF')")
-        json_len = struct.unpack_from("<I", data, 12)[0]
-        tree = _parse_json_text(data[20:20 + json_len], src)
-        rest = 20 + json_len
-        binary = None
-        if len(data) >= rest + 8 and data[rest + 4:rest + 8] == b"BIN\0":
-            n = struct.unpack_from("<I", data, rest)[0]
-            binary = data[rest + 8:rest + 8 + n]
+        text, rest = _glb_chunks(data, src)
+        tree = _parse_json_text(text, src)
+        if len(rest) >= 8 and rest[4:8] == b"BIN\0":
+            binary = rest[8:8 + struct.unpack_from("<I", rest)[0]]
     if not isinstance(tree, dict):
         raise ValueError(f"{src}: not a glTF file (the JSON is not an object)")
     return tree, binary
@@ -731,6 +739,8 @@ def _gltf_normal_textures(tree: dict, src: str) -> list[dict]:
             for prim in mesh.get("primitives", []):
                 m = prim.get("material")
                 ref = materials[m].get("normalTexture", {}) if m is not None else {}
+                if not isinstance(ref, dict):
+                    raise TypeError(f"normalTexture is {ref!r}, not an object")
                 if ref not in refs:
                     refs.append(ref)
     except (AttributeError, TypeError, IndexError) as e:

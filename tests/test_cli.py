@@ -579,12 +579,13 @@ def _quad_gltf(path, *, scale=0.5, texture=True):
     return path
 
 
-def test_a_gltf_files_own_normal_map_renders_as_gltf_says(tmp_path):
+def test_a_gltf_files_own_normal_map_renders_as_gltf_says(tmp_path, capsys):
     """``jaxnm render FILE.gltf`` uses the file's normal map, decoded as the glTF
     specification says (uv origin at the image's top left, +green towards the image's top,
     MikkTSpace, ``normalTexture.scale`` scaling x and y): on a flat quad the perturbed normal
     is the decoded texel in world axes, the top rows' tilt towards world +y, the bottom
-    rows' towards +x. ``--normal-map`` replaces it."""
+    rows' towards +x. ``--normal-map`` replaces it; a map that cannot be read is named, and
+    the mesh renders without it."""
     quad = _quad_gltf(tmp_path / "q.gltf", scale=0.5)
     aovs = tmp_path / "a.npz"
     assert main(["render", str(quad), "-o", str(tmp_path / "q.png"), "--width", "32", "--height",
@@ -609,6 +610,18 @@ def test_a_gltf_files_own_normal_map_renders_as_gltf_says(tmp_path):
                  "mask,perturbed_normal"]) == 0
     out = io.load_aovs(aovs)
     assert np.abs(out["perturbed_normal"][out["mask"][..., 0] > 0] - [0, 0, 1]).max() < 0.01
+    # a map that cannot be read: the mesh renders without it, and the warning says why
+    tree = json.loads(quad.read_text())
+    tree["images"] = [{"uri": "missing.png"}]
+    quad.write_text(json.dumps(tree))
+    capsys.readouterr()
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")
+        assert main(["render", str(quad), "-o", str(tmp_path / "m.png"), "--width", "32",
+                     "--height", "32", "--aovs", str(aovs), "--aov-list", "mask"]) == 0
+    assert capsys.readouterr().err.splitlines() == [
+        f"jaxnm render: warning: {quad}: the normal texture 'missing.png' is not beside it "
+        f"({tmp_path / 'missing.png'}); rendered without it (--normal-map gives one)"]
 
 
 @pytest.mark.parametrize("command,file,message", [

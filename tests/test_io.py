@@ -973,6 +973,13 @@ def test_a_gltf_normal_map_through_another_uv_set_or_missing_is_named(tmp_path):
     path.write_text(json.dumps(tree))
     with pytest.warns(JaxnmWarning, match="read through TEXCOORD_1; jaxnm reads TEXCOORD_0 only"):
         assert load_gltf_normal_map(path) is None
+    tree["textures"] = [{"extensions": {"KHR_texture_basisu": {"source": 0}}}]
+    tree["materials"][0]["normalTexture"]["texCoord"] = 0
+    path.write_text(json.dumps(tree))
+    with pytest.raises(ValueError, match=re.escape(
+            f"{path}: the normal texture is stored only through the extensions "
+            "['KHR_texture_basisu']; jaxnm reads PNG and JPEG images")):
+        load_gltf_normal_map(path)
     tree["materials"] = [{}]
     path.write_text(json.dumps(tree))
     assert load_gltf_normal_map(path) is None

@@ -7,6 +7,7 @@ import argparse
 import dataclasses
 import os
 import time
+import warnings
 from pathlib import Path
 
 from ._flags import output_path
@@ -216,8 +217,13 @@ def _mesh_scene(path: str, width: int, height: int, up: str = "y", *, own_map: b
                             fov_y_deg=40.0, aspect=width / height, margin=1.05)
     scene = Scene(mesh=mesh, camera=camera, width=width, height=height,
                   cull_back=back_faces_hidden(mesh, camera), source=path)
-    own = own_map and Path(path).suffix.lower() in (".gltf", ".glb")
-    found = io.load_gltf_normal_map(path) if own and mesh.uv is not None else None
+    found = None
+    if own_map and mesh.uv is not None and Path(path).suffix.lower() in (".gltf", ".glb"):
+        try:
+            found = io.load_gltf_normal_map(path)
+        except ValueError as e:  # the mesh still renders: say why it has no map
+            warnings.warn(f"{e}; rendered without it (--normal-map gives one)", io.JaxnmWarning,
+                          stacklevel=2)
     if found is not None:
         texels, bits, scale = found
         scene = scene.replace(normal_map=texels, frame="vertex", normal_map_options=(
