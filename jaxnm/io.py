@@ -45,6 +45,7 @@ import numpy as np
 import png
 
 from .geometry import Mesh, check_mesh_arrays, vertex_normals
+from .textures import NormalMapOptions
 
 if TYPE_CHECKING:  # trimesh (with scipy, ~45 MB) is imported when a mesh file is read
     import trimesh
@@ -658,20 +659,23 @@ def _glb_for_geometry(data: bytes, src: str) -> bytes:
     return struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body
 
 
-def load_gltf_normal_map(path: PathLike) -> tuple[np.ndarray, int, float] | None:
-    """The tangent-space normal map of a glTF or GLB file's materials, or None if no
-    primitive's material has one.
+def load_gltf_normal_map(path: PathLike) -> tuple[np.ndarray, NormalMapOptions] | None:
+    """The tangent-space normal map of a glTF or GLB file's materials and how glTF says to
+    read it, or None if no primitive's material has one.
 
     glTF stores it unsigned, +green towards the image's top, in the MikkTSpace frame of the
-    vertex normals and uvs (or of the file's ``TANGENT`` attribute): `NormalMapOptions`
-    ``encoding="unsigned"``, ``green="up"``, read with `load_mesh`'s uvs (origin at the
-    bottom left) and ``frame="vertex"``. jaxnm renders a scene with one map: a file whose
-    primitives name different normal textures, or leave some without one, gives None with a
-    `JaxnmWarning`, as does a map read through a ``texCoord`` other than 0.
+    vertex normals and uvs (or of the file's ``TANGENT`` attribute): read it with
+    `load_mesh`'s uvs (origin at the bottom left) and ``frame="vertex"``. The options carry
+    ``normalTexture.scale`` as the strength, the sampler's wrap (``wrapS``) and its filter:
+    ``"nearest"`` or ``"bilinear"`` for a NEAREST or LINEAR ``minFilter``, else (mipmaps, or
+    none named) ``"trilinear"``. jaxnm renders a scene with one map and one wrap: a file
+    whose primitives name different normal textures, or leave some without one, gives None
+    with a `JaxnmWarning`, as does a map read through a ``texCoord`` other than 0 or moved
+    by ``KHR_texture_transform``; a sampler that wraps its axes differently warns and uses
+    ``wrapS``.
 
-    **Returns:** ``(image, bits, scale)``: the texture as `load_texture` gives it (float32
-    ``(H, W, 3)`` in [0, 1], row 0 at the top; bits 8 or 16) and the material's
-    ``normalTexture.scale``, which scales the decoded x and y (`NormalMapOptions.strength`).
+    **Returns:** ``(image, options)``: the texture as `load_texture` gives it (float32
+    ``(H, W, 3)`` in [0, 1], row 0 at the top) and its `NormalMapOptions`.
 
     **Raises:** `ValueError` naming the file for a texture that cannot be found or read
     (PNG and JPEG images are read; KTX2 and WebP, through their extensions, are not).
@@ -683,16 +687,15 @@ def load_gltf_normal_map(path: PathLike) -> tuple[np.ndarray, int, float] | None
     used = _gltf_normal_textures(tree, src)
     if not used:
         return None
-    if len(used) > 1:
-        warnings.warn(f"{src}: its primitives use {len(used)} normal textures (or some none); "
-                      "jaxnm renders a scene with one map, so none is used", JaxnmWarning,
-                      stacklevel=2)
-        return None
-    (ref,) = used
-    if ref.get("texCoord", 0) != 0:
-        warnings.warn(f"{src}: the normal texture is read through TEXCOORD_{ref['texCoord']}; "
-                      "jaxnm reads TEXCOORD_0 only, so it is not used", JaxnmWarning,
-                      stacklevel=2)
+    (ref,) = used if len(used) == 1 else [{}]
+    unused = (f"its primitives use {len(used)} normal textures (or some none); jaxnm renders "
+              "a scene with one map" if len(used) > 1 else
+              f"the normal texture is read through TEXCOORD_{ref['texCoord']}; jaxnm reads "
+              "TEXCOORD_0 only" if ref.get("texCoord", 0) != 0 else
+              "the normal texture is moved by KHR_texture_transform, which jaxnm does not "
+              "apply" if "KHR_texture_transform" in ref.get("extensions", {}) else None)
+    if unused:
+        warnings.warn(f"{src}: {unused}, so it is not used", JaxnmWarning, stacklevel=2)
         return None
     try:
         texture = tree["textures"][ref["index"]]
@@ -702,16 +705,37 @@ def load_gltf_normal_map(path: PathLike) -> tuple[np.ndarray, int, float] | None
                              "JPEG images")
         image = tree["images"][texture["source"]]
         data, kind = _gltf_image_bytes(tree, image, binary, p)
+        sampler = tree["samplers"][texture["sampler"]] if "sampler" in texture else {}
     except (KeyError, IndexError, TypeError) as e:
         raise ValueError(f"{src}: malformed glTF normal texture ({type(e).__name__}: "
                          f"{e})") from None
     where = f"{src}: normal texture {image.get('uri') or image.get('name') or ''}".rstrip()
     texels, bits = _decode_image(data, kind, where)
-    texels = _select_channels(texels, 3, where)
     scale = ref.get("scale", 1.0)
     if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not abs(scale) < np.inf:
         raise ValueError(f"{src}: normalTexture.scale must be a finite number, got {scale!r}")
-    return texels, bits, float(scale)
+    return _select_channels(texels, 3, where), NormalMapOptions(
+        encoding="unsigned", channels=3, green="up", strength=float(scale), space="tangent",
+        bits=bits if bits in (8, 16) else 8, **_gltf_sampling(sampler, src))
+
+
+#: glTF sampler codes: wrap modes, and the minifying filters without mipmaps.
+_GLTF_WRAPS = {10497: "repeat", 33071: "clamp", 33648: "mirror"}
+_GLTF_FILTERS = {9728: "nearest", 9729: "bilinear"}
+
+
+def _gltf_sampling(sampler: dict, src: str) -> dict:
+    """`NormalMapOptions`' ``wrap`` and ``filter`` for a glTF sampler."""
+    wrap_s, wrap_t = sampler.get("wrapS", 10497), sampler.get("wrapT", 10497)
+    if wrap_s not in _GLTF_WRAPS or wrap_t not in _GLTF_WRAPS:
+        raise ValueError(f"{src}: the normal texture's sampler has an unknown wrap "
+                         f"({wrap_s}, {wrap_t}); glTF's are {sorted(_GLTF_WRAPS)}")
+    if wrap_t != wrap_s:
+        warnings.warn(f"{src}: the normal texture wraps u {_GLTF_WRAPS[wrap_s]} and v "
+                      f"{_GLTF_WRAPS[wrap_t]}; jaxnm wraps both as u does", JaxnmWarning,
+                      stacklevel=3)
+    return {"wrap": _GLTF_WRAPS[wrap_s],
+            "filter": _GLTF_FILTERS.get(sampler.get("minFilter"), "trilinear")}
 
 
 def _gltf_parts(data: bytes, ext: str, src: str) -> tuple[dict, bytes | None]:

@@ -33,6 +33,7 @@ from jaxnm.io import (
     save_png,
 )
 from jaxnm.procedural import default_normal_map_texels
+from jaxnm.textures import NormalMapOptions
 
 DATA = Path(__file__).parent / "data"
 
@@ -939,10 +940,44 @@ def _glb_with_normal_texture(path, images):
 
 def test_a_glb_files_normal_map_is_read_from_its_binary_chunk(tmp_path):
     img = np.random.default_rng(0).integers(0, 256, (6, 10, 3), dtype=np.uint8)
-    texels, bits, scale = load_gltf_normal_map(_glb_with_normal_texture(tmp_path / "b.glb",
-                                                                        [img]))
-    assert bits == 8 and scale == 1.0
+    texels, opts = load_gltf_normal_map(_glb_with_normal_texture(tmp_path / "b.glb", [img]))
+    assert opts == NormalMapOptions(encoding="unsigned", channels=3, green="up", strength=1.0,
+                                    space="tangent", bits=8, wrap="repeat", filter="trilinear")
     np.testing.assert_array_equal(texels, img / np.float32(255))
+
+
+@pytest.mark.parametrize("sampler,wrap,filter", [
+    (None, "repeat", "trilinear"),  # no sampler: repeat, and the viewer's filter
+    ({"wrapS": 33071, "wrapT": 33071, "minFilter": 9728, "magFilter": 9728}, "clamp", "nearest"),
+    ({"wrapS": 33648, "wrapT": 33648, "minFilter": 9729}, "mirror", "bilinear"),
+    ({"minFilter": 9987}, "repeat", "trilinear"),
+])
+def test_a_gltf_normal_maps_sampler_and_scale_become_its_options(tmp_path, sampler, wrap,
+                                                                  filter):
+    save_png(tmp_path / "n.png", np.full((4, 4, 3), [0.5, 0.5, 1.0], np.float32), bits=16)
+    tree = {"asset": {"version": "2.0"},
+            "materials": [{"normalTexture": {"index": 0, "scale": 0.25}}],
+            "meshes": [{"primitives": [{"attributes": {}, "material": 0}]}],
+            "textures": [{"source": 0}], "images": [{"uri": "n.png"}]}
+    if sampler is not None:
+        tree["samplers"], tree["textures"][0]["sampler"] = [sampler], 0
+    path = tmp_path / "m.gltf"
+    path.write_text(json.dumps(tree))
+    texels, opts = load_gltf_normal_map(path)
+    assert texels.shape == (4, 4, 3)
+    assert (opts.wrap, opts.filter, opts.strength, opts.bits) == (wrap, filter, 0.25, 16)
+    if sampler is None:  # (once) axes wrapped differently: u's wrap, said; an unknown one
+        tree["samplers"], tree["textures"][0]["sampler"] = [{"wrapS": 33071, "wrapT": 10497}], 0
+        path.write_text(json.dumps(tree))
+        with pytest.warns(JaxnmWarning, match=re.escape(
+                f"{path}: the normal texture wraps u clamp and v repeat; jaxnm wraps both as u "
+                "does")):
+            assert load_gltf_normal_map(path)[1].wrap == "clamp"
+        tree["samplers"] = [{"wrapS": 1}]
+        path.write_text(json.dumps(tree))
+        with pytest.raises(ValueError, match=re.escape(
+                f"{path}: the normal texture's sampler has an unknown wrap (1, 10497)")):
+            load_gltf_normal_map(path)
 
 
 @pytest.mark.parametrize("images,why", [
@@ -956,7 +991,7 @@ def test_a_glb_whose_primitives_differ_in_normal_map_has_none(tmp_path, images, 
     a, b = (rng.integers(0, 256, (4, 4, 3), dtype=np.uint8) for _ in range(2))
     path = _glb_with_normal_texture(tmp_path / "m.glb", [a, b] if images == "two" else [a, None])
     with pytest.warns(JaxnmWarning, match=re.escape(f"{path}: {why}; jaxnm renders a scene "
-                                                    "with one map, so none is used")):
+                                                    "with one map, so it is not used")):
         assert load_gltf_normal_map(path) is None
 
 
@@ -971,10 +1006,17 @@ def test_a_gltf_normal_map_through_another_uv_set_or_missing_is_named(tmp_path):
         load_gltf_normal_map(path)
     tree["materials"][0]["normalTexture"]["texCoord"] = 1
     path.write_text(json.dumps(tree))
-    with pytest.warns(JaxnmWarning, match="read through TEXCOORD_1; jaxnm reads TEXCOORD_0 only"):
+    with pytest.warns(JaxnmWarning, match="read through TEXCOORD_1; jaxnm reads TEXCOORD_0 only, "
+                                          "so it is not used"):
+        assert load_gltf_normal_map(path) is None
+    tree["materials"][0]["normalTexture"] = {"index": 0, "extensions": {
+        "KHR_texture_transform": {"offset": [0.5, 0]}}}
+    path.write_text(json.dumps(tree))
+    with pytest.warns(JaxnmWarning, match="moved by KHR_texture_transform, which jaxnm does "
+                                          "not apply, so it is not used"):
         assert load_gltf_normal_map(path) is None
     tree["textures"] = [{"extensions": {"KHR_texture_basisu": {"source": 0}}}]
-    tree["materials"][0]["normalTexture"]["texCoord"] = 0
+    tree["materials"][0]["normalTexture"] = {"index": 0}
     path.write_text(json.dumps(tree))
     with pytest.raises(ValueError, match=re.escape(
             f"{path}: the normal texture is stored only through the extensions "

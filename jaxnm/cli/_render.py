@@ -207,7 +207,6 @@ def _mesh_scene(path: str, width: int, height: int, up: str = "y", *, own_map: b
     from ..camera import Camera
     from ..geometry import bounding_sphere
     from ..scene import Scene, back_faces_hidden, check_scene_options, validate_scene
-    from ..textures import NormalMapOptions
 
     check_scene_options(width=width, height=height, source=path)
     mesh = io.load_mesh(path)
@@ -225,10 +224,8 @@ def _mesh_scene(path: str, width: int, height: int, up: str = "y", *, own_map: b
             warnings.warn(f"{e}; rendered without it (--normal-map gives one)", io.JaxnmWarning,
                           stacklevel=2)
     if found is not None:
-        texels, bits, scale = found
-        scene = scene.replace(normal_map=texels, frame="vertex", normal_map_options=(
-            NormalMapOptions(encoding="unsigned", channels=3, green="up", strength=scale,
-                             bits=bits if bits in (8, 16) else 8)))
+        texels, options = found
+        scene = scene.replace(normal_map=texels, frame="vertex", normal_map_options=options)
     return validate_scene(scene)
 
 
