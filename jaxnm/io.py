@@ -45,7 +45,7 @@ import numpy as np
 import png
 
 from .geometry import Mesh, check_mesh_arrays, vertex_normals
-from .textures import NormalMapOptions
+from .textures import NormalMapOptions, encode_normal_map, quantize
 
 if TYPE_CHECKING:  # trimesh (with scipy, ~45 MB) is imported when a mesh file is read
     import trimesh
@@ -56,7 +56,7 @@ __all__ = [
     "write_fit_renders", "atomic_write", "writable", "unfinished_writes", "PathLike",
     "MESH_EXTENSIONS", "TEXTURE_EXTENSIONS", "IMAGE_EXTENSIONS", "save_obj", "save_normal_map_npz",
     "save_figure_grid", "check_tangent_normal_map", "INWARD_Z", "INWARD_SHARE",
-    "load_gltf_normal_map",
+    "load_gltf_normal_map", "save_glb",
 ]
 
 PathLike = str | os.PathLike
@@ -299,6 +299,38 @@ def save_obj(path: PathLike, mesh: Mesh) -> None:
                          for f in faces))
     with atomic_write(p) as fh:
         fh.write("".join(parts).encode())
+
+
+def save_glb(path: PathLike, mesh: Mesh, normal_map=None) -> None:
+    """Write ``mesh`` as a binary glTF (GLB), atomically (`atomic_write`), by trimesh's
+    exporter: positions, vertex normals, uvs (turned to glTF's origin at the image's top
+    left) and, with ``normal_map``, that map as the material's normal texture (an 8-bit PNG,
+    unsigned, +green up). glTF viewers decode it in MikkTSpace over these normals and uvs,
+    so ``normal_map`` is a map for the ``"vertex"`` frame with computed MikkTSpace tangents:
+    unit tangent-space normals ``(H, W, 3)``, row 0 at the top. Read back by `load_mesh`
+    and `load_gltf_normal_map`."""
+    import trimesh
+    from PIL import Image
+    from trimesh.visual import TextureVisuals
+    from trimesh.visual.material import PBRMaterial
+
+    p = _output_file(path, ".glb", "save_glb", "GLB")
+    tm = trimesh.Trimesh(np.asarray(mesh.positions, np.float64), np.asarray(mesh.faces),
+                         vertex_normals=None if mesh.normals is None
+                         else np.asarray(mesh.normals, np.float64), process=False)
+    if normal_map is not None and mesh.uv is None:
+        raise ValueError(f"{p}: save_glb: a normal map needs the mesh's uvs; this mesh has none")
+    if mesh.uv is not None:
+        texture = None
+        if normal_map is not None:
+            codes = quantize(encode_normal_map(np.asarray(normal_map, np.float32),
+                                               encoding="unsigned", green="up", bits=8), 8)
+            texture = Image.fromarray(np.round(np.asarray(codes) * 255).astype(np.uint8))
+        tm.visual = TextureVisuals(uv=np.asarray(mesh.uv, np.float64),
+                                   material=PBRMaterial(normalTexture=texture))
+    data = tm.export(file_type="glb")
+    with atomic_write(p) as fh:
+        fh.write(data)
 
 
 def _load_scene(p: Path, ext: str) -> trimesh.Scene:

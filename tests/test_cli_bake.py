@@ -126,9 +126,18 @@ def test_the_output_folder_and_its_report(baked):
     assert set(rep["seconds"]) >= {"read", "raycast", "plan", "targets", "prepare", "fit",
                                    "evaluate"}
     listed = set(rep["files"])
-    assert {"raycast/normal_map.png", "fit/normal_map.npz", "figure.png",
-            "report.json"} <= listed
+    assert {"raycast/normal_map.png", "fit/normal_map.npz", "figure.png", "report.json",
+            "raycast/low.glb", "fit/low.glb"} <= listed
     assert all((out / name).is_file() for name in listed)
+    # LOW with each map, for glTF viewers: LOW's vertices and uvs, the PNG's codes
+    low = io.load_mesh(rep["low_file"])
+    for method in ("raycast", "fit"):
+        glb = io.load_mesh(out / method / "low.glb")
+        np.testing.assert_array_equal(glb.positions, low.positions)
+        np.testing.assert_allclose(glb.uv, low.uv, atol=1e-7)
+        texels, opts = io.load_gltf_normal_map(out / method / "low.glb")
+        png, _ = io.load_texture(out / method / "normal_map.png", channels=3)
+        np.testing.assert_array_equal(np.round(texels * 255), np.round(png * 255))
 
 
 @pytest.mark.slow
@@ -169,10 +178,12 @@ def _angle(a, b):
     return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, -1)))
 
 
-@pytest.mark.parametrize("unwrap", [(), ("--unwrap",)], ids=["decimate", "decimate-unwrap"])
+@pytest.mark.parametrize("unwrap", [(), ("--unwrap", "--frame", "cotangent")],
+                         ids=["decimate", "decimate-unwrap-cotangent"])
 def test_decimate_writes_the_low_poly_mesh_with_uvs(files, tmp_path, capsys, unwrap):
     """``--decimate N`` makes LOW and unwraps it (it has no uvs otherwise); ``--unwrap``
-    beside it changes nothing. With no scores and no fit, the output is one line."""
+    beside it changes nothing. With no scores and no fit, the output is one line. A map for
+    the cotangent frame gets no ``low.glb`` (glTF viewers decode in MikkTSpace)."""
     out = tmp_path / "o"
     assert _bake(files / "torus.obj", "--decimate", "300", *unwrap, "--method", "raycast",
                  "--eval-views", "0", "--size", "32", "-o", out) == 0
@@ -181,6 +192,7 @@ def test_decimate_writes_the_low_poly_mesh_with_uvs(files, tmp_path, capsys, unw
     rep = json.loads((out / "report.json").read_text())
     assert rep["low_file"] == "low.obj" and rep["unwrapped"] is True
     assert "low.obj" in rep["files"] and not (out / "fit").exists()
+    assert (out / "raycast" / "low.glb").is_file() == (not unwrap)
     n = np.load(out / "raycast" / "normal_map.npz")["normals"]
     assert n.shape == (32, 32, 3)
     said = capsys.readouterr().out.splitlines()  # no scores, no fit: no summary, no blank line

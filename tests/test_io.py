@@ -1025,3 +1025,49 @@ def test_a_gltf_normal_map_through_another_uv_set_or_missing_is_named(tmp_path):
     tree["materials"] = [{}]
     path.write_text(json.dumps(tree))
     assert load_gltf_normal_map(path) is None
+
+
+def _glb_accessors(path: Path) -> dict:
+    """Every attribute of a GLB's first primitive, read straight from its binary chunk."""
+    data = path.read_bytes()
+    n = struct.unpack_from("<I", data, 12)[0]
+    tree = json.loads(data[20:20 + n])
+    blob = data[28 + n:28 + n + struct.unpack_from("<I", data, 20 + n)[0]]
+    out = {}
+    for name, k in tree["meshes"][0]["primitives"][0]["attributes"].items():
+        acc = tree["accessors"][k]
+        view = tree["bufferViews"][acc["bufferView"]]
+        width = {"VEC2": 2, "VEC3": 3}[acc["type"]]
+        start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+        out[name] = np.frombuffer(blob, "<f4", acc["count"] * width, start).reshape(-1, width)
+    return out
+
+
+def test_save_glb_writes_what_gltf_says_and_reads_back(tmp_path):
+    """`save_glb`: positions, normals and uvs as glTF stores them (uv origin at the image's
+    top left: v written as 1 - v), read straight from the file; the normal map back through
+    `load_gltf_normal_map` as the 8-bit codes of `encode_normal_map`, and the mesh through
+    `load_mesh`."""
+    from jaxnm.io import save_glb
+    from jaxnm.procedural import uv_sphere
+    from jaxnm.textures import encode_normal_map, quantize
+
+    mesh = uv_sphere(1.0, 8, 6)
+    rng = np.random.default_rng(0)
+    n = rng.normal(0, 0.3, (6, 10, 3)) + [0, 0, 1]
+    n = (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+    save_glb(tmp_path / "s.glb", mesh, n)
+    raw = _glb_accessors(tmp_path / "s.glb")
+    np.testing.assert_array_equal(raw["POSITION"], mesh.positions)
+    np.testing.assert_allclose(raw["NORMAL"], mesh.normals, atol=1e-7)
+    uv = np.asarray(mesh.uv)
+    np.testing.assert_allclose(raw["TEXCOORD_0"], np.c_[uv[:, 0], 1 - uv[:, 1]], atol=1e-7)
+    texels, opts = load_gltf_normal_map(tmp_path / "s.glb")
+    codes = quantize(encode_normal_map(n, encoding="unsigned", green="up", bits=8), 8)
+    np.testing.assert_array_equal(np.round(texels * 255), np.round(np.asarray(codes) * 255))
+    assert (opts.encoding, opts.green, opts.bits) == ("unsigned", "up", 8)
+    back = load_mesh(tmp_path / "s.glb")
+    np.testing.assert_array_equal(back.positions, mesh.positions)
+    np.testing.assert_allclose(back.uv, mesh.uv, atol=1e-7)
+    with pytest.raises(ValueError, match="save_glb writes GLB files; the name must end in .glb"):
+        save_glb(tmp_path / "s.gltf", mesh)

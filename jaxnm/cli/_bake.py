@@ -12,7 +12,9 @@ the maps first):
   up, 8 or 16 bits), ``normal_map.npz`` (``normals``: unit tangent-space vectors, row 0 on
   top, as ``jaxnm fit`` writes them, with masks), ``error_map.png`` (the held-out angle per
   texel), ``normal_map.dds`` with ``--store bc5``; ray casting also ``missed.png`` where rays
-  missed, the fit ``coverage.png`` (views per texel);
+  missed, the fit ``coverage.png`` (views per texel); ``low.glb``, LOW with the map as its
+  normal texture for glTF viewers, where the map is for MikkTSpace (``--frame vertex``, the
+  default, with tangents computed, not read from LOW);
 - ``OUT/low.obj`` with ``--decimate`` or ``--unwrap``: the mesh the maps are for;
 - ``OUT/report.json`` and ``OUT/figure.png`` (the held-out comparison).
 """
@@ -358,10 +360,15 @@ def _write_maps(out: Path, bake, store: str) -> list[str]:
     from .. import io
 
     files = []
+    # glTF viewers decode a normal texture in MikkTSpace over the file's normals and uvs
+    viewable = bake.frame == "vertex" and (bake.low.tangent_source or "mikktspace") == "mikktspace"
     if bake.raycast is not None:
         r = bake.raycast
         files += _map_files(out / "raycast", r.normals, store,
                             {"inside": r.inside, "filled": r.filled, "missed": r.missed})
+        if viewable:
+            io.save_glb(out / "raycast" / "low.glb", bake.low, r.normals)
+            files.append("raycast/low.glb")
         if r.texels_missed:
             io.save_png(out / "raycast" / "missed.png", r.missed.astype(np.float32))
             files.append("raycast/missed.png")
@@ -371,6 +378,9 @@ def _write_maps(out: Path, bake, store: str) -> list[str]:
             "slopes": (n[..., :2] / np.maximum(n[..., 2:], 1e-3)).astype(np.float32),
             "seen": bake.fit_seen, "views_per_texel": bake.plan.counts.astype(np.int16),
             "chart": bake.plan.chart})
+        if viewable:
+            io.save_glb(out / "fit" / "low.glb", bake.low, n)
+            files.append("fit/low.glb")
     return files
 
 
