@@ -65,7 +65,8 @@ def add_parser(sub) -> None:
                        description="Render SCENE.json, a mesh file seen whole from the front, "
                        "or the built-in default scene to a PNG.")
     p.add_argument("scene", nargs="?", help="scene JSON file, or a mesh file (OBJ, PLY, glTF, "
-                   "STL, OFF) seen whole from the front (default: the built-in scene)")
+                   "STL, OFF) seen whole from the front, a glTF file with its own normal map "
+                   "(default: the built-in scene)")
     p.add_argument("--up", choices=tuple(MESH_UP),
                    help="a mesh file's up axis (default: y; z for Blender's, most STL and CAD "
                    "files): the mesh is seen from its front, upright")
