@@ -67,9 +67,6 @@ def add_parser(sub) -> None:
     p.add_argument("scene", nargs="?", help="scene JSON file, or a mesh file (OBJ, PLY, glTF, "
                    "STL, OFF) seen whole from the front, a glTF file with its own normal map "
                    "(default: the built-in scene)")
-    p.add_argument("--up", choices=tuple(MESH_UP),
-                   help="a mesh file's up axis (default: y; z for Blender's, most STL and CAD "
-                   "files): the mesh is seen from its front, upright")
     p.add_argument("-o", "--output", default="render.png", help="output PNG (default: %(default)s)")
     p.add_argument("--aovs", metavar="OUT.npz",
                    help="also write per-pixel arrays to an .npz: " + ", ".join(OUTPUTS)
@@ -99,6 +96,9 @@ def add_parser(sub) -> None:
                    help="image width in pixels (default: the scene's; the built-in scene's "
                    "is 512); the camera keeps its vertical field of view")
     p.add_argument("--height", type=int, help="image height in pixels (as --width)")
+    p.add_argument("--up", choices=tuple(MESH_UP),
+                   help="a mesh file's up axis (default: y; z for Blender's, most STL and CAD "
+                   "files): the mesh is seen from its front, upright")
     p.add_argument("--exposure", type=float, default=1.0, help="linear scale before sRGB")
     p.add_argument("--bits", type=int, choices=(8, 16), default=8, help="PNG bit depth")
 
