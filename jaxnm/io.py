@@ -719,13 +719,8 @@ def load_gltf_normal_map(path: PathLike) -> tuple[np.ndarray, NormalMapOptions] 
     used = _gltf_normal_textures(tree, src)
     if not used:
         return None
-    (ref,) = used if len(used) == 1 else [{}]
-    unused = (f"its primitives use {len(used)} normal textures (or some none); jaxnm renders "
-              "a scene with one map" if len(used) > 1 else
-              f"the normal texture is read through TEXCOORD_{ref['texCoord']}; jaxnm reads "
-              "TEXCOORD_0 only" if ref.get("texCoord", 0) != 0 else
-              "the normal texture is moved by KHR_texture_transform, which jaxnm does not "
-              "apply" if "KHR_texture_transform" in ref.get("extensions", {}) else None)
+    ref = used[0]
+    unused = _gltf_map_unused(used)
     if unused:
         warnings.warn(f"{src}: {unused}, so it is not used", JaxnmWarning, stacklevel=2)
         return None
@@ -749,6 +744,20 @@ def load_gltf_normal_map(path: PathLike) -> tuple[np.ndarray, NormalMapOptions] 
     return _select_channels(texels, 3, where), NormalMapOptions(
         encoding="unsigned", channels=3, green="up", strength=float(scale), space="tangent",
         bits=bits if bits in (8, 16) else 8, **_gltf_sampling(sampler, src))
+
+
+def _gltf_map_unused(used: list[dict]) -> str | None:
+    """Why the normal textures ``used`` (`_gltf_normal_textures`) give jaxnm no map, or None."""
+    ref = used[0]
+    if len(used) > 1:
+        return (f"its primitives use {len(used)} normal textures (or some none); jaxnm renders "
+                "a scene with one map")
+    if ref.get("texCoord", 0) != 0:
+        return (f"the normal texture is read through TEXCOORD_{ref['texCoord']}; jaxnm reads "
+                "TEXCOORD_0 only")
+    if "KHR_texture_transform" in ref.get("extensions", {}):
+        return "the normal texture is moved by KHR_texture_transform, which jaxnm does not apply"
+    return None
 
 
 #: glTF sampler codes: wrap modes, and the minifying filters without mipmaps.

@@ -539,7 +539,7 @@ def test_up_z_shows_a_z_up_mesh_upright_from_its_front(tmp_path, capsys):
     assert "--up is a mesh file's up axis" in capsys.readouterr().err
 
 
-def _quad_gltf(path, *, scale=0.5, texture=True):
+def _quad_gltf(path, *, scale=0.5):
     """A glTF quad in z = 0, facing +z, written by hand as the glTF 2.0 specification says
     (uv (0, 0) at the image's top left, world (-1, 1); data URIs), with an 8x8 normal map whose
     top rows tilt towards +green (the image's top) and bottom rows towards +red."""
@@ -565,7 +565,7 @@ def _quad_gltf(path, *, scale=0.5, texture=True):
            dict(bufferView=1, componentType=5126, count=4, type="VEC3"),
            dict(bufferView=2, componentType=5126, count=4, type="VEC2"),
            dict(bufferView=3, componentType=5123, count=6, type="SCALAR")]
-    material = {"normalTexture": {"index": 0, "scale": scale}} if texture else {}
+    material = {"normalTexture": {"index": 0, "scale": scale}}
     tree = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
             "nodes": [{"mesh": 0}], "buffers": [{"byteLength": len(blob), "uri": uri}],
             "bufferViews": views, "accessors": acc, "materials": [material],
