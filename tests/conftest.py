@@ -39,8 +39,11 @@ settings.load_profile("jaxnm")
 
 
 def pytest_configure(config):
-    """With ``JAXNM_REQUIRE_GL=1`` (set by .ci/run) the GLSL comparison must run: a missing
-    OpenGL 4.5 context is an error instead of a skip."""
+    """With ``JAXNM_TEST_COMPILE_REPORT=FOLDER``, report each test's compilations
+    (`compile_report`). With ``JAXNM_REQUIRE_GL=1`` (set by .ci/run) the GLSL comparison
+    must run: a missing OpenGL 4.5 context is an error instead of a skip."""
+    if os.environ.get("JAXNM_TEST_COMPILE_REPORT"):  # tests/compile_report.py
+        config.pluginmanager.import_plugin("compile_report")
     if os.environ.get("JAXNM_REQUIRE_GL") != "1":
         return
     from glref import gl_available  # tests/ is on sys.path: pytest put it there for conftest
