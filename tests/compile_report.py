@@ -76,7 +76,7 @@ def pytest_runtest_protocol(item, nextitem):
 
 def summarize(lines: list[dict], top: int = 15) -> str:
     """The report's text: totals, then the ``top`` modules and tests by compile seconds."""
-    modules = collections.defaultdict(lambda: collections.Counter())
+    modules = collections.defaultdict(collections.Counter)
     for line in lines:
         m = modules[line["test"].split("::")[0]]
         m.update(dict(wall_s=line["wall_s"], compile_s=line["compile_s"],
