@@ -67,7 +67,9 @@ def pytest_runtest_protocol(item, nextitem):
     line = dict(test=item.nodeid, wall_s=time.perf_counter() - start,
                 compile_s=_seconds[COMPILE_SECONDS], compiled=_events[COMPILED],
                 from_cache=_events[FROM_CACHE])
-    worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+    # (xdist's worker id from the configuration: its environment variable also reaches
+    # pytest runs started by a test)
+    worker = getattr(item.config, "workerinput", {}).get("workerid", "main")
     folder = _folder()
     folder.mkdir(parents=True, exist_ok=True)
     with open(folder / f"{worker}.jsonl", "a") as f:
