@@ -241,10 +241,11 @@ def test_lbfgs_baseline_decreases_loss_and_is_deterministic(small):
 def test_a_fit_with_64_bit_types_on_is_the_float32_fit(small, solver):
     """With ``jax_enable_x64`` on (a notebook that checks against float64), every solver
     fits, in float32, the map it fits with it off: the G-buffer is then rasterized in
-    float64 and kept in float32, so the two differ by float32 rounding. (With 64-bit
+    float64 and kept in float32, so the two differ by float32 rounding where the targets
+    see the map. (With 64-bit
     types on inside the step, the solvers' float64 step sizes beside float32 maps would be
     refused by their programs.)"""
-    problem, _, _, prep, _ = small
+    problem, _, _, prep, seen = small
     opts = F.FitOptions(solver=solver, max_steps=2)
     ref = F.fit_normal_map(problem, opts, prepared=prep, progress=False)
     with jax.enable_x64(True):
@@ -254,7 +255,11 @@ def test_a_fit_with_64_bit_types_on_is_the_float32_fit(small, solver):
     assert res.normals.dtype == np.float32 and len(res.history) == len(ref.history)
     np.testing.assert_allclose([h["loss"] for h in res.history],
                                [h["loss"] for h in ref.history], rtol=1e-3)
-    np.testing.assert_allclose(res.normals, ref.normals, atol=2e-3)
+    # on the texels the targets see: elsewhere the problem leaves the map free, and an
+    # undamped Gauss-Newton step's least-squares solve may put anything there (lineax 0.1.0
+    # does, under 64-bit types: up to 0.4 on unseen texels, 1e-3 on seen ones)
+    assert np.all(np.isfinite(res.normals))
+    np.testing.assert_allclose(res.normals[seen], ref.normals[seen], atol=2e-3)
 
 
 def test_time_limit_keeps_best_so_far(small):
