@@ -76,6 +76,11 @@ def pytest_runtest_protocol(item, nextitem):
         f.write(json.dumps(line) + "\n")
 
 
+def _row(counts, name: str) -> str:
+    return (f"{counts['compile_s']:10.1f} {counts['wall_s']:8.1f} {counts['compiled']:8d} "
+            f"{counts['from_cache']:6d}  {name}")
+
+
 def summarize(lines: list[dict], top: int = 15) -> str:
     """The report's text: totals, then the ``top`` modules and tests by compile seconds."""
     modules = collections.defaultdict(collections.Counter)
@@ -89,12 +94,10 @@ def summarize(lines: list[dict], top: int = 15) -> str:
            f"{total['from_cache']} read from the persistent cache"]
     out.append(f"{'compile s':>10} {'wall s':>8} {'compiled':>8} {'cached':>6}  module")
     for name, m in sorted(modules.items(), key=lambda kv: -kv[1]["compile_s"])[:top]:
-        out.append(f"{m['compile_s']:10.1f} {m['wall_s']:8.1f} {m['compiled']:8d} "
-                   f"{m['from_cache']:6d}  {name} ({m['tests']} tests)")
+        out.append(_row(m, f"{name} ({m['tests']} tests)"))
     out.append(f"{'compile s':>10} {'wall s':>8} {'compiled':>8} {'cached':>6}  test")
     for line in sorted(lines, key=lambda t: -t["compile_s"])[:top]:
-        out.append(f"{line['compile_s']:10.1f} {line['wall_s']:8.1f} {line['compiled']:8d} "
-                   f"{line['from_cache']:6d}  {line['test']}")
+        out.append(_row(line, line["test"]))
     return "\n".join(out)
 
 
